@@ -1,0 +1,1 @@
+"""Multi-camera calibration: boards, intrinsics, extrinsics, bundle adjustment (livebridge.calibration)."""

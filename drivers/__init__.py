@@ -1,0 +1,1 @@
+"""Camera sources and servo buses for real hardware (livebridge.drivers)."""

@@ -1,0 +1,41 @@
+"""``livebridge basis``: import, inspect, validate and refine actuation bases."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from livebridge.cli._attach import attach
+
+
+@click.group()
+def basis() -> None:
+    """Actuation bases: import from meshes, show, check, refine."""
+
+
+@basis.command("import")
+@click.argument("manifest")
+@click.option("--shapes", type=click.Path(exists=True, path_type=Path),
+              help="Folder of mesh files or .npz of named deltas (default: the manifest's folder).")
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Basis file to write (.npz).")
+def import_(manifest: str, shapes: Path | None, out: Path) -> None:
+    """Build a basis from MANIFEST (a TOML file, or a shipped name such as choe-ko-ict)."""
+    from livebridge.errors import InputError
+    from livebridge.face.basis_import import import_basis
+
+    try:
+        result = import_basis(manifest, shapes)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
+    result.save(out)
+    click.echo(f"wrote {out}: {result.n_muscles} muscles, {result.n_vertices} vertices, "
+               f"{len(result.triangles)} triangles")
+
+
+attach(basis, (
+    ("livebridge.cli.basis_show", "show"),
+    ("livebridge.cli.basis_quality", "check"),
+    ("livebridge.cli.basis_quality", "refine"),
+))

@@ -1,0 +1,34 @@
+"""The real third-party reference data (ICT-FaceKit) for tests and benchmarks.
+
+The data is never copied into the package: it is read from ``../shared/data``
+beside the checkout, or from ``$LIVEBRIDGE_SHARED_DATA``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from livebridge.face.basis import Basis
+
+_REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def shared_data_dir() -> Path | None:
+    """The reference-data folder, or None when this machine has none."""
+    candidates = [os.environ.get("LIVEBRIDGE_SHARED_DATA"), _REPO_ROOT.parent / "shared" / "data",
+                  Path.cwd().parent / "shared" / "data"]
+    for candidate in candidates:
+        if candidate and (Path(candidate) / "ict-facekit").is_dir():
+            return Path(candidate)
+    return None
+
+
+def ict_basis() -> Basis | None:
+    """The 16-muscle Choe-Ko basis built from ICT-FaceKit's face region, or None without the data."""
+    from livebridge.face.basis_import import import_basis
+
+    data = shared_data_dir()
+    if data is None:
+        return None
+    return import_basis("choe-ko-ict", data / "ict-facekit" / "face_region.npz")

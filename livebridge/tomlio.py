@@ -1,0 +1,53 @@
+"""TOML reading and writing with errors that name the file and field."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+from livebridge.errors import InputError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    """Read a TOML file; a missing or malformed file raises :class:`InputError`."""
+    path = Path(path)
+    try:
+        with path.open("rb") as stream:
+            return tomllib.load(stream)
+    except FileNotFoundError:
+        raise InputError("file not found", path) from None
+    except tomllib.TOMLDecodeError as error:
+        raise InputError(f"not valid TOML ({error})", path) from None
+
+
+def save_toml(path: str | Path, data: dict[str, Any]) -> None:
+    """Write ``data`` as TOML, atomically (a crash never leaves half a file)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(tomli_w.dumps(data).encode())
+    tmp.replace(path)
+
+
+def require(table: dict[str, Any], key: str, kind: type | tuple[type, ...], path: str | Path,
+            prefix: str = "") -> Any:
+    """Return ``table[key]`` checked against ``kind``, or raise naming ``prefix.key``."""
+    field = f"{prefix}.{key}" if prefix else key
+    if key not in table:
+        raise InputError("missing", path, field)
+    value = table[key]
+    if not isinstance(value, kind) or isinstance(value, bool) and bool not in _as_tuple(kind):
+        names = " or ".join(k.__name__ for k in _as_tuple(kind))
+        raise InputError(f"expected {names}, got {type(value).__name__} {value!r}", path, field)
+    return value
+
+
+def _as_tuple(kind: type | tuple[type, ...]) -> tuple[type, ...]:
+    return kind if isinstance(kind, tuple) else (kind,)

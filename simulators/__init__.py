@@ -1,0 +1,1 @@
+"""Simulated devices: performer, camera rig, servo buses (livebridge.simulators)."""

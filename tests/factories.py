@@ -1,0 +1,20 @@
+"""Small seeded objects for tests."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from livebridge.face.basis import Basis, Muscle
+
+
+def random_basis(rng: np.random.Generator, n_vertices: int = 40, n_muscles: int = 4) -> Basis:
+    """A small random basis on a triangulated grid, for round-trip tests."""
+    side = int(np.ceil(np.sqrt(n_vertices)))
+    xs, ys = np.meshgrid(np.arange(side), np.arange(side))
+    neutral = np.stack([xs.ravel(), ys.ravel(), rng.normal(size=side * side)], axis=1)[: side * side] * 10
+    grid = np.arange(side * side).reshape(side, side)
+    a, b, c, d = grid[:-1, :-1].ravel(), grid[:-1, 1:].ravel(), grid[1:, :-1].ravel(), grid[1:, 1:].ravel()
+    triangles = np.concatenate([np.stack([a, b, c], 1), np.stack([b, d, c], 1)])
+    elements = rng.normal(size=(n_muscles, side * side, 3))
+    muscles = tuple(Muscle(f"m{i}", "upper" if i % 2 == 0 else "lower", None, "") for i in range(n_muscles))
+    return Basis(neutral, triangles, elements, muscles)
