@@ -1,0 +1,151 @@
+"""Calibrated cameras: pinhole model with distortion, and a group of them.
+
+Conventions (aniposelib-compatible): ``rotation`` is a Rodrigues vector and
+``translation`` a vector in mm, together the ``world2cam`` transform
+``X_cam = R @ X_world + t``. Arrays are camera-first and NaN means "not seen".
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """One calibrated camera.
+
+    Attributes
+    ----------
+    name : str
+    size : tuple of int
+        Image ``(width, height)`` in pixels.
+    matrix : ndarray, shape (3, 3)
+        Intrinsic matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``.
+    distortions : ndarray, shape (5,)
+        OpenCV ``(k1, k2, p1, p2, k3)``, or ``(k1, k2, k3, k4)`` when ``fisheye``.
+    rotation : ndarray, shape (3,)
+        Rodrigues vector of ``world2cam``.
+    translation : ndarray, shape (3,)
+        Translation of ``world2cam`` in mm.
+    fisheye : bool
+    """
+
+    name: str
+    size: tuple[int, int]
+    matrix: np.ndarray
+    distortions: np.ndarray
+    rotation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    fisheye: bool = False
+
+    def __post_init__(self):
+        for name in ("matrix", "distortions", "rotation", "translation"):
+            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64))
+        object.__setattr__(self, "size", (int(self.size[0]), int(self.size[1])))
+
+    @property
+    def world2cam(self) -> np.ndarray:
+        """Homogeneous world-to-camera transform, shape (4, 4)."""
+        transform = np.eye(4)
+        transform[:3, :3] = cv2.Rodrigues(self.rotation)[0]
+        transform[:3, 3] = self.translation
+        return transform
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates (mm), shape (3,)."""
+        rotation = cv2.Rodrigues(self.rotation)[0]
+        return -rotation.T @ self.translation
+
+    @property
+    def projection(self) -> np.ndarray:
+        """Projection matrix ``K [R | t]`` for undistorted pixels, shape (3, 4)."""
+        return self.matrix @ self.world2cam[:3]
+
+    def project(self, points_3d: np.ndarray) -> np.ndarray:
+        """Distorted pixel coordinates of world points.
+
+        Parameters
+        ----------
+        points_3d : ndarray, shape (n_points, 3)
+
+        Returns
+        -------
+        ndarray, shape (n_points, 2); NaN rows stay NaN.
+        """
+        points_3d = np.asarray(points_3d, dtype=np.float64).reshape(-1, 3)
+        out = np.full((len(points_3d), 2), np.nan)
+        valid = np.isfinite(points_3d).all(axis=1)
+        if valid.any():
+            objects = points_3d[valid].reshape(-1, 1, 3)
+            if self.fisheye:
+                pixels, _ = cv2.fisheye.projectPoints(objects, self.rotation, self.translation, self.matrix,
+                                                      self.distortions[:4])
+            else:
+                pixels, _ = cv2.projectPoints(objects, self.rotation, self.translation, self.matrix, self.distortions)
+            out[valid] = pixels.reshape(-1, 2)
+        return out
+
+    def undistort_points(self, points_2d: np.ndarray) -> np.ndarray:
+        """Distorted pixels to undistorted pixels (same intrinsic matrix).
+
+        Parameters
+        ----------
+        points_2d : ndarray, shape (n_points, 2)
+
+        Returns
+        -------
+        ndarray, shape (n_points, 2); NaN rows stay NaN.
+        """
+        points_2d = np.asarray(points_2d, dtype=np.float64).reshape(-1, 2)
+        out = np.full_like(points_2d, np.nan)
+        valid = np.isfinite(points_2d).all(axis=1)
+        if valid.any():
+            pixels = points_2d[valid].reshape(-1, 1, 2)
+            if self.fisheye:
+                result = cv2.fisheye.undistortPoints(pixels, self.matrix, self.distortions[:4], P=self.matrix)
+            else:
+                result = cv2.undistortPoints(pixels, self.matrix, self.distortions, P=self.matrix)
+            out[valid] = result.reshape(-1, 2)
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class CameraGroup:
+    """Several calibrated cameras sharing one world frame (mm)."""
+
+    cameras: tuple[Camera, ...]
+
+    def __post_init__(self):
+        object.__setattr__(self, "cameras", tuple(self.cameras))
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(camera.name for camera in self.cameras)
+
+    def project(self, points_3d: np.ndarray) -> np.ndarray:
+        """Distorted pixels of world points in every camera.
+
+        Parameters
+        ----------
+        points_3d : ndarray, shape (n_points, 3)
+
+        Returns
+        -------
+        ndarray, shape (n_cams, n_points, 2)
+        """
+        return np.stack([camera.project(points_3d) for camera in self.cameras])
+
+    def undistort_points(self, points_2d: np.ndarray) -> np.ndarray:
+        """Undistort pixels per camera: ``(n_cams, n_points, 2)`` in and out."""
+        return np.stack([camera.undistort_points(p) for camera, p in zip(self.cameras, points_2d)])
+
+    def reprojection_error(self, points_3d: np.ndarray, points_2d: np.ndarray) -> np.ndarray:
+        """Pixel distance between projections and observations, shape (n_cams, n_points); NaN where unseen."""
+        return np.linalg.norm(self.project(points_3d) - points_2d, axis=-1)
