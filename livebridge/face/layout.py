@@ -1,0 +1,405 @@
+"""Marker-layout design: where to put physical markers so the contractions are observable.
+
+The solve recovers contractions ``x`` from marker displacements ``d_j = sum_i x_i d_ij``, upper-face
+muscles from upper-face markers and lower-face muscles from lower-face markers. A layout is good when
+each region's displacement matrix ``D_r (3 n_r, m_r)`` (markers x muscles of that region) is well
+conditioned, and stays so when a marker is occluded.
+
+:func:`design_markers` picks face-marker sites greedily, per region, to maximise the D-optimal
+criterion ``log det(D_r^T D_r)`` (each step adds the candidate with the largest
+``log det(I_3 + A_k F^-1 A_k^T)``, ``A_k (3, m_r)`` its displacement rows, ``F`` the information so far),
+under a minimum spacing between markers, then swaps in observers until every muscle is seen by at
+least ``min_observers`` markers. Candidates are triangle centroids on the front of the face (normal
+towards +z, the cameras' side) that move with expression. The region of a candidate comes from a
+horizontal boundary between the upper and lower face, fitted to where upper and lower muscles move
+the surface. Rigid head markers (role ``head``) go on well-spread front-facing sites of the upper
+face that barely move with any element (upper forehead, temples, nose bridge).
+
+:func:`farthest_point_markers` is the baseline (farthest-point sampling of the same candidates), and
+:func:`layout_report` gives the figures: condition numbers of the whole face and of each region, the
+worst of them with any one marker lost, and how many markers observe each muscle.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from livebridge.face.basis import REGIONS, Basis
+from livebridge.face.markers import MarkerSet
+
+OBSERVE_FRACTION = 0.2  # a marker observes a muscle that moves it by >= this share of the muscle's peak ...
+OBSERVE_MIN_MM = 0.5  # ... and by at least this many mm
+MIN_FACING = 0.3  # candidates' normals point towards the cameras (+z) at least this much
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals, shape (n_vertices, 3).
+
+    Parameters
+    ----------
+    vertices : ndarray, shape (n_vertices, 3)
+    triangles : ndarray of int, shape (n_triangles, 3)
+    """
+    corners = vertices[triangles]
+    face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, triangles[:, k], face)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+
+
+def triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unit triangle normals, shape (n_triangles, 3)."""
+    corners = vertices[triangles]
+    face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    return face / np.maximum(np.linalg.norm(face, axis=1, keepdims=True), 1e-12)
+
+
+def region_boundary(basis: Basis) -> float:
+    """Height ``y`` (mm) of the horizontal boundary between the upper and the lower face.
+
+    Each vertex votes for the region whose muscles move it more (weight: that motion, squared);
+    the boundary is the height that misplaces the least weight. A basis with muscles in only one
+    region gets a boundary below (or above) every vertex.
+    """
+    upper = basis.region_mask("upper")
+    energy = np.einsum("mvd,mvd->mv", basis.elements, basis.elements)  # (M, V)
+    e_upper = energy[upper].sum(axis=0)
+    e_lower = energy[~upper].sum(axis=0)
+    y = basis.neutral[:, 1]
+    if not upper.any():
+        return float(y.max() + 1.0)
+    if upper.all():
+        return float(y.min() - 1.0)
+    is_upper = e_upper > e_lower
+    weight = np.maximum(e_upper, e_lower)
+    order = np.argsort(y)
+    ys, up, w = y[order], is_upper[order], weight[order]
+    # boundary just above ys[k]: vertices 0..k are "lower"; cost = upper weight below + lower weight above
+    cost = np.cumsum(np.where(up, w, 0.0)) + (np.sum(np.where(~up, w, 0.0)) - np.cumsum(np.where(~up, w, 0.0)))
+    k = int(np.argmin(cost))
+    return float(0.5 * (ys[k] + ys[min(k + 1, len(ys) - 1)]))
+
+
+def _triangle_displacements(basis: Basis) -> np.ndarray:
+    """Displacement of every triangle centroid by every element, shape (n_triangles, n_muscles, 3)."""
+    return np.transpose(basis.elements[:, basis.triangles].mean(axis=2), (1, 0, 2))
+
+
+def observer_thresholds(basis: Basis) -> np.ndarray:
+    """Per muscle, the displacement (mm) at which a marker counts as observing it, shape (n_muscles,)."""
+    peak = np.linalg.norm(basis.elements, axis=2).max(axis=1)
+    return np.maximum(OBSERVE_FRACTION * peak, OBSERVE_MIN_MM)
+
+
+def face_candidates(basis: Basis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Candidate face-marker sites: front-facing triangle centroids that move with expression.
+
+    Returns
+    -------
+    triangles : ndarray of int, shape (n_candidates,)
+    centroids : ndarray, shape (n_candidates, 3)
+        Neutral positions, mm.
+    regions : ndarray of str, shape (n_candidates,)
+    """
+    centroids = basis.neutral[basis.triangles].mean(axis=1)
+    normals = triangle_normals(basis.neutral, basis.triangles)
+    motion = np.linalg.norm(_triangle_displacements(basis), axis=2)  # (T, M)
+    moves = (motion >= observer_thresholds(basis)[None]).any(axis=1)
+    keep = np.flatnonzero((normals[:, 2] >= MIN_FACING) & moves)
+    boundary = region_boundary(basis)
+    regions = np.where(centroids[keep, 1] > boundary, "upper", "lower")
+    return keep, centroids[keep], regions
+
+
+def default_spacing(basis: Basis, count: int) -> float:
+    """A minimum spacing (mm) that lets ``count`` markers spread over the candidate area."""
+    triangles, _, _ = face_candidates(basis)
+    corners = basis.neutral[basis.triangles[triangles]]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
+    return float(0.55 * np.sqrt(area / max(count, 1)))
+
+
+def _allocate(counts: dict[str, int], total: int) -> dict[str, int]:
+    """Split ``total`` markers between regions in proportion to their muscle counts."""
+    present = {r: c for r, c in counts.items() if c > 0}
+    shares = {r: total * c / sum(present.values()) for r, c in present.items()}
+    alloc = {r: int(np.floor(s)) for r, s in shares.items()}
+    for r in sorted(shares, key=lambda r: shares[r] - alloc[r], reverse=True)[: total - sum(alloc.values())]:
+        alloc[r] += 1
+    return alloc
+
+
+def _criterion(information: np.ndarray) -> np.ndarray:
+    """Design score of information matrices ``F (..., m, m)``: higher is better.
+
+    ``(1/m) log det F - log(lambda_max / lambda_min)``: the D-optimal term (mean log eigenvalue:
+    signal in every direction) plus a conditioning term (``cond(D) = sqrt(lambda_max / lambda_min)``), which
+    D-optimality alone ignores because ``det`` is blind to how unevenly muscles are seen.
+    """
+    eigen = np.maximum(np.linalg.eigvalsh(information), 1e-300)
+    return np.log(eigen).mean(axis=-1) + np.log(eigen[..., 0]) - np.log(eigen[..., -1])
+
+
+def _greedy_design(rows: np.ndarray, centroids: np.ndarray, count: int, spacing: float, ridge: float) -> list[int]:
+    """Greedy choice of ``count`` candidates at least ``spacing`` apart, maximising :func:`_criterion`.
+
+    The first ``ceil(m / 3)`` picks (until the information can have full rank) are pure D-optimal:
+    the candidate with the largest ``log det(I_3 + A_k F^-1 A_k^T)``.
+
+    Parameters
+    ----------
+    rows : ndarray, shape (n_candidates, 3, m)
+        Each candidate's displacement rows ``A_k`` for the region's muscles.
+    centroids : ndarray, shape (n_candidates, 3)
+    """
+    n, _, m = rows.shape
+    outer = np.einsum("kdm,kdn->kmn", rows, rows)  # (n, m, m)
+    information = ridge * np.eye(m)
+    allowed = np.ones(n, dtype=bool)
+    chosen: list[int] = []
+    for step in range(count):
+        if not allowed.any():
+            break
+        options = np.flatnonzero(allowed)
+        if step < -(-m // 3):
+            inverse = np.linalg.inv(information)
+            inner = np.einsum("kdm,mn,ken->kde", rows[options], inverse, rows[options]) + np.eye(3)
+            gain = np.linalg.slogdet(inner)[1]
+        else:
+            gain = _criterion(information[None] + outer[options])
+        best = int(options[np.argmax(gain)])
+        chosen.append(best)
+        information = information + outer[best]
+        allowed &= np.linalg.norm(centroids - centroids[best], axis=1) >= spacing
+    return chosen
+
+
+def _ensure_observers(rows, observes, centroids, chosen, spacing, k_observers, ridge):
+    """Swap markers until every muscle has ``k_observers`` observers (where the candidates allow it).
+
+    Each swap brings in a candidate observing the most starved muscle in place of a chosen marker whose
+    loss starves no other muscle, choosing the pair with the best :func:`_criterion`; spacing is kept.
+    """
+    chosen = list(chosen)
+    m = observes.shape[1]
+    outer = np.einsum("kdm,kdn->kmn", rows, rows)
+    need = np.minimum(k_observers, observes.sum(axis=0))  # cannot ask more than the candidates offer
+    for _ in range(4 * m * k_observers):
+        counts = observes[chosen].sum(axis=0)
+        starved = np.flatnonzero(counts < need)
+        if not starved.size:
+            break
+        muscle = int(starved[np.argmin(counts[starved] - need[starved])])
+        best = None
+        for drop in range(len(chosen)):
+            if observes[chosen[drop]][counts <= need].any():
+                continue  # dropping it would starve a muscle
+            rest = [c for i, c in enumerate(chosen) if i != drop]
+            far = np.ones(len(centroids), dtype=bool)
+            for c in rest:
+                far &= np.linalg.norm(centroids - centroids[c], axis=1) >= spacing
+            options = np.flatnonzero(far & observes[:, muscle])
+            if not options.size:
+                continue
+            scores = _criterion(ridge * np.eye(m) + outer[rest].sum(axis=0) + outer[options])
+            if best is None or scores.max() > best[0]:
+                best = (scores.max(), drop, int(options[np.argmax(scores)]))
+        if best is None:
+            break
+        chosen[best[1]] = best[2]
+    return chosen
+
+
+def _marker_set(triangles, regions, names, roles) -> MarkerSet:
+    n = len(triangles)
+    return MarkerSet(tuple(names), np.asarray(triangles, dtype=np.int64), np.full((n, 3), 1.0 / 3.0),
+                     tuple(regions), tuple(roles))
+
+
+def _face_names(regions) -> list[str]:
+    counter = {r: 0 for r in REGIONS}
+    names = []
+    for region in regions:
+        counter[region] += 1
+        names.append(f"{region}_{counter[region]:02d}")
+    return names
+
+
+def head_markers(basis: Basis, n_head: int = 5) -> MarkerSet:
+    """Rigid head-rig markers: well spread, front-facing sites of the upper face that barely move.
+
+    Sites are triangle centroids above the region boundary whose largest displacement over all
+    elements is in the lowest fifth; among them, farthest-point sampling (from the stillest) spreads
+    ``n_head`` markers, which are therefore not coplanar on a curved head.
+    """
+    if n_head < 0:
+        raise ValueError("n_head must be >= 0")
+    if n_head == 0:
+        return _marker_set([], [], [], [])
+    centroids = basis.neutral[basis.triangles].mean(axis=1)
+    normals = triangle_normals(basis.neutral, basis.triangles)
+    motion = np.linalg.norm(_triangle_displacements(basis), axis=2).max(axis=1)
+    front = np.flatnonzero((normals[:, 2] >= 0.2) & (centroids[:, 1] > region_boundary(basis)))
+    if len(front) < n_head:
+        front = np.flatnonzero(normals[:, 2] >= 0.2)
+    still = front[motion[front] <= np.quantile(motion[front], 0.2)]
+    if len(still) < n_head:
+        still = front[np.argsort(motion[front])[: max(n_head, 1)]]
+    picked = [int(still[np.argmin(motion[still])])]
+    distance = np.linalg.norm(centroids[still] - centroids[picked[0]], axis=1)
+    for _ in range(n_head - 1):
+        nxt = int(still[np.argmax(distance)])
+        picked.append(nxt)
+        distance = np.minimum(distance, np.linalg.norm(centroids[still] - centroids[nxt], axis=1))
+    return _marker_set(picked, ["upper"] * n_head, [f"head_{k + 1:02d}" for k in range(n_head)], ["head"] * n_head)
+
+
+def _join(face: MarkerSet, head: MarkerSet) -> MarkerSet:
+    return MarkerSet(face.names + head.names, np.concatenate([face.triangles, head.triangles]),
+                     np.concatenate([face.barycentric, head.barycentric]), face.regions + head.regions,
+                     face.roles + head.roles)
+
+
+def design_markers(basis: Basis, count: int = 64, min_spacing_mm: float | None = None, n_head: int = 5,
+                   seed: int = 0, min_observers: int = 3) -> MarkerSet:
+    """Design a marker layout: ``count`` face markers (greedy D-optimal per region) plus head markers.
+
+    Parameters
+    ----------
+    basis : Basis
+    count : int
+        Number of face markers, split between regions in proportion to their muscle counts.
+    min_spacing_mm : float, optional
+        Minimum distance between face markers (default: :func:`default_spacing`).
+    n_head : int
+        Rigid head-rig markers (>= 4 for a robust head pose; 0 for none).
+    seed : int
+        Breaks ties only; the design is deterministic for a given basis.
+    min_observers : int
+        Every muscle should be observed by at least this many markers of its region.
+
+    Returns
+    -------
+    MarkerSet
+        Face markers named ``upper_01``..., ``lower_01``..., then ``head_01``...
+    """
+    del seed  # the greedy design is deterministic; the argument keeps the interface of the baseline
+    if count < 1:
+        raise ValueError("count must be >= 1")
+    spacing = default_spacing(basis, count) if min_spacing_mm is None else float(min_spacing_mm)
+    triangles, centroids, regions = face_candidates(basis)
+    displacement = _triangle_displacements(basis)[triangles]  # (n_cand, M, 3)
+    thresholds = observer_thresholds(basis)
+    alloc = _allocate({r: int(basis.region_mask(r).sum()) for r in REGIONS}, count)
+    picked_triangles, picked_regions = [], []
+    for region in REGIONS:
+        n_region = alloc.get(region, 0)
+        in_region = np.flatnonzero(regions == region)
+        if n_region == 0 or not in_region.size:
+            continue
+        muscles = basis.region_mask(region)
+        rows = np.transpose(displacement[in_region][:, muscles], (0, 2, 1))  # (n, 3, m)
+        observes = np.linalg.norm(displacement[in_region][:, muscles], axis=2) >= thresholds[muscles]
+        ridge = 1e-6 * np.einsum("kdm,kdm->", rows, rows) / len(rows)
+        chosen = _greedy_design(rows, centroids[in_region], n_region, spacing, ridge)
+        chosen = _ensure_observers(rows, observes, centroids[in_region], chosen, spacing, min_observers, ridge)
+        order = sorted(chosen, key=lambda c: (-centroids[in_region][c, 1], centroids[in_region][c, 0]))
+        picked_triangles += [int(triangles[in_region][c]) for c in order]
+        picked_regions += [region] * len(order)
+    face = _marker_set(picked_triangles, picked_regions, _face_names(picked_regions), ["face"] * len(picked_regions))
+    return _join(face, head_markers(basis, n_head))
+
+
+def farthest_point_markers(basis: Basis, count: int = 64, seed: int = 0, n_head: int = 0) -> MarkerSet:
+    """Baseline layout: farthest-point sampling of the same face candidates, from a seeded start.
+
+    Parameters
+    ----------
+    basis : Basis
+    count : int
+    seed : int
+        Picks the first candidate.
+    n_head : int
+        Head markers added as in :func:`design_markers`.
+    """
+    triangles, centroids, regions = face_candidates(basis)
+    rng = np.random.default_rng(seed)
+    picked = [int(rng.integers(len(triangles)))]
+    distance = np.linalg.norm(centroids - centroids[picked[0]], axis=1)
+    for _ in range(min(count, len(triangles)) - 1):
+        nxt = int(np.argmax(distance))
+        picked.append(nxt)
+        distance = np.minimum(distance, np.linalg.norm(centroids - centroids[nxt], axis=1))
+    picked.sort(key=lambda c: (regions[c] != "upper", -centroids[c, 1], centroids[c, 0]))
+    picked_regions = [str(regions[c]) for c in picked]
+    face = _marker_set(triangles[picked], picked_regions, _face_names(picked_regions), ["face"] * len(picked))
+    return _join(face, head_markers(basis, n_head))
+
+
+def condition_number(displacement: np.ndarray) -> float:
+    """Condition number ``s_max / s_min`` of a displacement matrix, inf when rank deficient.
+
+    Parameters
+    ----------
+    displacement : ndarray, shape (n_markers, n_muscles, 3)
+    """
+    n, m, _ = displacement.shape
+    if n * 3 < m or m == 0:
+        return float("inf")
+    singular = np.linalg.svd(np.transpose(displacement, (0, 2, 1)).reshape(3 * n, m), compute_uv=False)
+    return float(singular[0] / singular[-1]) if singular[-1] > 1e-12 * max(singular[0], 1e-300) else float("inf")
+
+
+def _worst_without_one(displacement: np.ndarray) -> float:
+    n = len(displacement)
+    if n <= 1:
+        return float("inf")
+    return max(condition_number(np.delete(displacement, k, axis=0)) for k in range(n))
+
+
+def layout_report(basis: Basis, markers: MarkerSet) -> dict:
+    """Observability figures of a layout.
+
+    Returns
+    -------
+    dict
+        ``n_face``, ``n_head``, ``condition_whole`` (all face markers, all muscles),
+        ``condition_worst_loss_whole`` (the worst of those with any one face marker removed),
+        ``regions``: per region ``{n_markers, n_muscles, condition, condition_worst_loss}`` (its markers,
+        its muscles), ``observers``: per muscle the number of its region's markers it moves by at
+        least ``max(0.2 x its peak, 0.5 mm)``, ``min_observers``, ``head_spread_mm`` (smallest singular
+        value of the centred head-marker positions: > 0 means not coplanar, larger is better spread),
+        ``head_motion_mm`` (largest displacement of any head-marker site by any element).
+    """
+    displacement = markers.displacement_matrix(basis)  # (n, M, 3)
+    face = markers.face_mask
+    report: dict = {
+        "n_face": int(face.sum()), "n_head": int((~face).sum()),
+        "condition_whole": condition_number(displacement[face]),
+        "condition_worst_loss_whole": _worst_without_one(displacement[face]),
+        "regions": {},
+    }
+    thresholds = observer_thresholds(basis)
+    observers = {}
+    for region in REGIONS:
+        muscles = basis.region_mask(region)
+        if not muscles.any():
+            continue
+        rows = displacement[markers.region_mask(region)][:, muscles]
+        report["regions"][region] = {
+            "n_markers": int(len(rows)), "n_muscles": int(muscles.sum()),
+            "condition": condition_number(rows), "condition_worst_loss": _worst_without_one(rows),
+        }
+        seen = np.linalg.norm(rows, axis=2) >= thresholds[muscles]
+        for name, count in zip(np.array(basis.names)[muscles], seen.sum(axis=0)):
+            observers[str(name)] = int(count)
+    report["observers"] = {name: observers[name] for name in basis.names if name in observers}
+    report["min_observers"] = min(observers.values()) if observers else 0
+    head = markers.subset(markers.head_mask)
+    if len(head):
+        positions = head.neutral_positions(basis)
+        report["head_spread_mm"] = float(np.linalg.svd(positions - positions.mean(axis=0), compute_uv=False)[-1])
+        moved = np.linalg.norm(head.positions(basis.elements, basis.triangles), axis=2)  # element displacements
+        report["head_motion_mm"] = float(moved.max())
+    return report
