@@ -1,0 +1,838 @@
+"""A simulated camera rig: N cameras filming the synthetic performer's markers, with ground truth.
+
+Each camera renders, per frame, the markers as bright anti-aliased discs whose radius follows their
+distance (``f * diameter / 2 / depth``) on a dark, faintly shaded face (Lambert shading of the basis'
+neutral mesh lit from the camera, as by an IR ring light), rendered once per camera and cached, and
+shifted with the head. A marker is hidden when the face surface lies in front of it (a per-frame depth
+splat of the deformed, posed mesh) or when it faces away from the camera (more than ``max_view_deg``).
+Sensor noise comes from pre-generated noise tiles read at random offsets; optional motion blur smears
+each marker over the exposure, spurious highlights appear on the face, frames drop and timestamps jitter.
+Everything is seeded: frame ``seq`` of camera ``c`` depends only on ``(seed, seq, c)`` and the
+configuration, not on the order in which cameras are read.
+
+The rig knows the ground truth (:class:`SimTruth`): 3D marker positions, labels, contractions,
+``head2world``, per-camera visibility and true pixel positions.
+
+Use it directly (``SimRig(...).framesets(n)`` yields :class:`~livebridge.capture.frame.FrameSet` with
+``.truth``) or through the camera-source registry (``sim://rig?cameras=4&seed=1``: one
+:class:`SimCameraSource` per camera, all sharing one rig).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+from livebridge.calibration.cameras import Camera, CameraGroup
+
+from livebridge.capture.frame import Frame, FrameSet
+from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase, SourceURL
+from livebridge.errors import InputError
+from livebridge.face.basis import Basis
+from livebridge.face.markers import MarkerSet
+
+SYNC_MODES = ("hardware", "free")
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """How the simulated rig renders and misbehaves. All defaults give a clean, hardware-synced rig.
+
+    Attributes
+    ----------
+    size : tuple of int
+        Image ``(width, height)`` of generated cameras (cameras from a calibration keep their own size).
+    fps : float
+    distance_mm : tuple of float
+        ``(near, far)`` distance of generated cameras from the face centre.
+    spread_deg : float
+        Horizontal arc the generated cameras span in front of the face.
+    fill : float
+        Fraction of the image height the face fills in a generated camera (sets the focal length).
+    marker_diameter_mm : float
+        Physical marker diameter; the disc radius in pixels is ``f * diameter / 2 / depth``.
+    marker_level : float
+        Marker brightness (0..255) at the nominal exposure.
+    face_level : float
+        Brightest shading of the face background at the nominal exposure (dark: markers stand out).
+    ambient_level : float
+        Background level outside the face.
+    noise_sigma : float
+        Standard deviation of additive sensor noise in grey levels (0: none).
+    motion_blur : bool
+        Smear each marker over the exposure time along its motion.
+    spurious_rate : float
+        Expected number of spurious highlights (small bright blobs on the face) per camera frame.
+    drop_rate : float
+        Probability that a camera drops a frame.
+    jitter_s : float
+        Standard deviation of timestamp noise (clipped at 3 sigma), seconds.
+    sync : {"hardware", "free"}
+        ``hardware``: all cameras share one sync domain and frame counter, exposures start together;
+        ``free``: each camera runs on its own (own domain, own counter, a fixed time offset of up to
+        ``free_offset`` frame periods).
+    free_offset : float
+        Largest per-camera time offset of a free-running camera, in frame periods.
+    occlusion : bool
+        Hide markers behind the face surface (depth test).
+    max_view_deg : float
+        Markers whose normal is more than this angle from the direction to the camera are hidden.
+    exposure_us : float
+        Nominal exposure; brightness scales with ``exposure * gain`` relative to it.
+    follow_head : bool
+        Shift the cached face background with the head (an affine warp per camera frame).
+    """
+
+    size: tuple[int, int] = (1280, 800)
+    fps: float = 60.0
+    distance_mm: tuple[float, float] = (600.0, 800.0)
+    spread_deg: float = 80.0
+    fill: float = 0.75
+    marker_diameter_mm: float = 3.0
+    marker_level: float = 230.0
+    face_level: float = 40.0
+    ambient_level: float = 6.0
+    noise_sigma: float = 2.0
+    motion_blur: bool = False
+    spurious_rate: float = 0.0
+    drop_rate: float = 0.0
+    jitter_s: float = 0.0
+    sync: str = "hardware"
+    free_offset: float = 0.25
+    occlusion: bool = True
+    max_view_deg: float = 80.0
+    exposure_us: float = 2000.0
+    follow_head: bool = True
+
+    def __post_init__(self):
+        if self.sync not in SYNC_MODES:
+            raise InputError(f"sync must be one of {SYNC_MODES}, got {self.sync!r}", field="sync")
+        if not self.fps > 0:
+            raise InputError(f"fps must be positive, got {self.fps}", field="fps")
+        for name in ("drop_rate",):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise InputError(f"{name} must be in [0, 1), got {getattr(self, name)}", field=name)
+        for name in ("noise_sigma", "spurious_rate", "jitter_s", "marker_diameter_mm"):
+            if getattr(self, name) < 0:
+                raise InputError(f"{name} must be >= 0, got {getattr(self, name)}", field=name)
+
+
+@dataclass(frozen=True, eq=False)
+class SimTruth:
+    """Ground truth of one simulated instant.
+
+    Attributes
+    ----------
+    seq : int
+        Frame number of the performer (and of a hardware-synced rig).
+    t : float
+        Performance time, seconds from the start.
+    marker_names : tuple of str, length n_markers
+    points_3d : ndarray, shape (n_markers, 3)
+        Marker centres in the world frame, mm.
+    contractions : ndarray, shape (n_muscles,)
+    head2world : ndarray, shape (4, 4)
+    visible : ndarray of bool, shape (n_cams, n_markers)
+        Drawn in that camera's image (False also where the camera dropped the frame).
+    points_2d : ndarray, shape (n_cams, n_markers, 2)
+        True (distorted) pixel position of each marker centre; NaN where not visible.
+    radius_px : ndarray, shape (n_cams, n_markers)
+        Drawn disc radius in pixels; NaN where not visible.
+    spurious_2d : tuple of ndarray, length n_cams, each shape (n_spurious, 2)
+        Pixel positions of the spurious highlights drawn in each camera.
+    dropped : ndarray of bool, shape (n_cams,)
+        Cameras that dropped this frame.
+    """
+
+    seq: int
+    t: float
+    marker_names: tuple[str, ...]
+    points_3d: np.ndarray
+    contractions: np.ndarray
+    head2world: np.ndarray
+    visible: np.ndarray
+    points_2d: np.ndarray
+    radius_px: np.ndarray
+    spurious_2d: tuple[np.ndarray, ...]
+    dropped: np.ndarray
+
+
+# ------------------------------------------------------------------------------------------ set-up helpers
+
+def face_centre(basis: Basis) -> np.ndarray:
+    """Centre of the neutral face's bounding box, mm, shape (3,)."""
+    return 0.5 * (basis.neutral.min(axis=0) + basis.neutral.max(axis=0))
+
+
+def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, 1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """``world2cam`` (Rodrigues rotation, translation) of an OpenCV camera at ``center`` looking at ``target``.
+
+    OpenCV camera axes: x right, y down, z forward; ``up`` is the world direction that appears upwards.
+    """
+    forward = np.asarray(target, float) - np.asarray(center, float)
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])  # rows: camera axes in world coordinates
+    translation = -rotation @ np.asarray(center, float)
+    return cv2.Rodrigues(rotation)[0].ravel(), translation
+
+
+def generate_cameras(basis: Basis, n_cameras: int = 4, config: RigConfig | None = None,
+                     seed: int = 0) -> CameraGroup:
+    """Cameras on an arc in front of the face (+z), looking at its centre, at 0.5–1 m.
+
+    Azimuths spread evenly over ``config.spread_deg``; elevations alternate a little above and below;
+    distances are drawn in ``config.distance_mm``; the focal length makes the face fill ``config.fill``
+    of the image height. No lens distortion.
+
+    Returns
+    -------
+    CameraGroup
+        Cameras ``cam0 .. cam{n-1}``, image size ``config.size``.
+    """
+    config = config or RigConfig()
+    if n_cameras < 1:
+        raise InputError(f"need at least one camera, got {n_cameras}", field="cameras")
+    rng = np.random.default_rng([int(seed), 5])
+    target = face_centre(basis)
+    extent = float(np.ptp(basis.neutral[:, 1]))
+    width, height = config.size
+    azimuths = np.deg2rad(np.linspace(-0.5, 0.5, n_cameras) * config.spread_deg) if n_cameras > 1 else [0.0]
+    cameras = []
+    for k, azimuth in enumerate(azimuths):
+        elevation = np.deg2rad(8.0 if k % 2 == 0 else -6.0) if n_cameras > 1 else 0.0
+        distance = rng.uniform(*config.distance_mm)
+        direction = np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation),
+                              np.cos(azimuth) * np.cos(elevation)])
+        centre = target + distance * direction
+        rotation, translation = look_at(centre, target)
+        focal = config.fill * height * distance / extent
+        matrix = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])
+        cameras.append(Camera(f"cam{k}", (width, height), matrix, np.zeros(5), rotation, translation))
+    return CameraGroup(cameras)
+
+
+def generate_markers(basis: Basis, n_face: int = 40, n_head: int = 4, seed: int = 0) -> MarkerSet:
+    """A spread-out development marker set: face markers by farthest-point sampling of front-facing vertices,
+    head markers at the top and the temples.
+
+    Returns
+    -------
+    MarkerSet
+        ``n_face`` face markers (``f00..``; upper/lower by height relative to the nose) and ``n_head`` head
+        markers (``h0..``).
+    """
+    rng = np.random.default_rng([int(seed), 7])
+    vertices, triangles = basis.neutral, basis.triangles
+    normals = _triangle_normals(vertices, triangles)
+    centroids = vertices[triangles].mean(axis=1)
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    front = (normals[:, 2] > 0.5) & (centroids[:, 2] > low[2] + 0.45 * (high[2] - low[2]))
+    candidates = np.flatnonzero(front)
+    if len(candidates) < n_face + n_head:
+        raise InputError(f"the mesh has only {len(candidates)} front-facing triangles for {n_face + n_head} markers")
+    chosen = [int(rng.choice(candidates))]
+    distance = np.linalg.norm(centroids[candidates] - centroids[chosen[0]], axis=1)
+    for _ in range(n_face + n_head - 1):
+        chosen.append(int(candidates[np.argmax(distance)]))
+        distance = np.minimum(distance, np.linalg.norm(centroids[candidates] - centroids[chosen[-1]], axis=1))
+    chosen = np.array(chosen)
+    # head markers: the highest of the chosen (forehead top, temples) are rigid-rig markers
+    order = np.argsort(-centroids[chosen, 1])
+    head, face = chosen[order[:n_head]], chosen[order[n_head:]]
+    nose_y = vertices[np.argmax(vertices[:, 2]), 1]
+    names, regions, roles = [], [], []
+    for k, tri in enumerate(face):
+        names.append(f"f{k:02d}")
+        regions.append("upper" if centroids[tri, 1] > nose_y else "lower")
+        roles.append("face")
+    for k, _ in enumerate(head):
+        names.append(f"h{k}")
+        regions.append("upper")
+        roles.append("head")
+    all_triangles = np.concatenate([face, head])
+    barycentric = rng.dirichlet(np.full(3, 4.0), size=len(all_triangles))
+    return MarkerSet(tuple(names), all_triangles, barycentric, tuple(regions), tuple(roles))
+
+
+def default_face() -> tuple[Basis, MarkerSet]:
+    """The built-in face and markers when available, else the ICT reference basis with generated markers."""
+    try:
+        from livebridge.face.builtin import builtin_basis, builtin_markers
+    except ImportError:
+        builtin_basis = builtin_markers = None
+    if builtin_basis is not None:
+        return builtin_basis(), builtin_markers()
+    from livebridge.face.reference import ict_basis
+
+    basis = ict_basis()
+    if basis is None:
+        raise InputError("no face basis: the built-in face is missing and the reference data is absent")
+    return basis, generate_markers(basis)
+
+
+def _triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unit normals, shape (..., n_triangles, 3), of triangles ``(n, 3)`` over vertices ``(..., V, 3)``."""
+    a = vertices[..., triangles[:, 0], :]
+    normal = np.cross(vertices[..., triangles[:, 1], :] - a, vertices[..., triangles[:, 2], :] - a)
+    return normal / np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+
+
+def _apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+# ------------------------------------------------------------------------------------------- rendering
+
+def render_discs(image: np.ndarray, centers: np.ndarray, radii: np.ndarray, levels: np.ndarray) -> None:
+    """Draw anti-aliased bright discs in place (alpha-blended towards ``levels``).
+
+    Coverage of a pixel is ``clip(radius + 0.5 - distance, 0, 1)`` from the pixel centre (integer pixel
+    coordinates are pixel centres, as in OpenCV). Motion blur: pass several ``centers`` per disc.
+
+    Parameters
+    ----------
+    image : ndarray of uint8, shape (height, width)
+    centers : ndarray, shape (n, 2) or (n, n_samples, 2)
+        Disc centres in pixels; with samples, the disc is averaged over the sample positions.
+    radii : ndarray, shape (n,)
+    levels : ndarray, shape (n,)
+        Grey level of a fully covered pixel.
+    """
+    if len(centers) == 0:
+        return
+    centers = np.asarray(centers, dtype=np.float64)
+    if centers.ndim == 2:
+        centers = centers[:, None, :]
+    height, width = image.shape
+    mid = centers.mean(axis=1)  # (n, 2)
+    extent = np.abs(centers - mid[:, None]).max(axis=(1, 2))
+    half = int(math.ceil(float(np.max(radii + extent)) + 1.5))
+    offsets = np.arange(-half, half + 1, dtype=np.float64)
+    corner = np.rint(mid).astype(np.int64)  # patch centre pixel
+    # distance of every patch pixel from every sample centre: (n, s, P, P)
+    fx = (corner[:, None, 0] - centers[:, :, 0])[:, :, None] + offsets
+    fy = (corner[:, None, 1] - centers[:, :, 1])[:, :, None] + offsets
+    distance = np.sqrt(fy[:, :, :, None] ** 2 + fx[:, :, None, :] ** 2)
+    coverage = np.clip(radii[:, None, None, None] + 0.5 - distance, 0.0, 1.0).mean(axis=1)  # (n, P, P)
+    for k in range(len(coverage)):
+        x0, y0 = corner[k, 0] - half, corner[k, 1] - half
+        x1, y1 = x0 + 2 * half + 1, y0 + 2 * half + 1
+        cx0, cy0, cx1, cy1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+        if cx0 >= cx1 or cy0 >= cy1:
+            continue
+        region = image[cy0:cy1, cx0:cx1]
+        alpha = coverage[k, cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
+        blended = region + alpha * (levels[k] - region)
+        region[...] = np.clip(blended + 0.5, 0, 255).astype(np.uint8)
+
+
+def _render_face(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, face_level: float,
+                 ambient_level: float) -> np.ndarray:
+    """The dark shaded face seen by ``camera`` (painter's algorithm, Lambert lit from the camera).
+
+    Returns
+    -------
+    ndarray of float32, shape (height, width)
+    """
+    width, height = camera.size
+    image = np.full((height, width), ambient_level, dtype=np.float32)
+    pixels = camera.project(vertices)
+    cam_points = _apply(camera.world2cam, vertices)
+    normals = _triangle_normals(vertices, triangles)
+    centroids = vertices[triangles].mean(axis=1)
+    to_camera = camera.center - centroids
+    to_camera /= np.linalg.norm(to_camera, axis=1, keepdims=True)
+    lambert = np.einsum("nd,nd->n", normals, to_camera)
+    depth = cam_points[triangles, 2].mean(axis=1)
+    visible = (lambert > 0) & (depth > 0) & np.isfinite(pixels[triangles]).all(axis=(1, 2))
+    shade = ambient_level + (face_level - ambient_level) * (0.35 + 0.65 * lambert)
+    fixed = np.rint(pixels * 16).astype(np.int32)  # 4 fractional bits
+    for tri in np.flatnonzero(visible)[np.argsort(-depth[visible])]:
+        cv2.fillConvexPoly(image, fixed[triangles[tri]], float(shade[tri]), lineType=cv2.LINE_8, shift=4)
+    return cv2.GaussianBlur(image, (0, 0), 1.2)
+
+
+class _NoiseTiles:
+    """Pre-generated zero-mean noise as a saturating add and subtract pair of uint8 tiles, read at offsets."""
+
+    PAD = 97
+
+    def __init__(self, size: tuple[int, int], sigma: float, seed: int):
+        width, height = size
+        rng = np.random.default_rng([int(seed), 13])
+        noise = rng.normal(0.0, sigma, size=(height + self.PAD, width + self.PAD)).astype(np.float32)
+        self.plus = np.clip(np.rint(noise), 0, 255).astype(np.uint8)
+        self.minus = np.clip(np.rint(-noise), 0, 255).astype(np.uint8)
+        self.size = size
+
+    def apply(self, image: np.ndarray, rng: np.random.Generator) -> None:
+        width, height = self.size
+        ox, oy = rng.integers(0, self.PAD, size=2)
+        cv2.add(image, self.plus[oy:oy + height, ox:ox + width], dst=image)
+        cv2.subtract(image, self.minus[oy:oy + height, ox:ox + width], dst=image)
+
+
+@dataclass(frozen=True, eq=False)
+class _State:
+    """Per-seq world state shared by the cameras."""
+
+    seq: int
+    t: float
+    contractions: np.ndarray
+    head2world: np.ndarray
+    markers: np.ndarray  # (n, 3) world
+    previous: np.ndarray  # (n, 3) world, one frame earlier (motion blur)
+    vertices: np.ndarray | None  # (V, 3) world, deformed and posed (None when not needed)
+    normals: np.ndarray  # (n, 3) marker normals, world
+
+
+# --------------------------------------------------------------------------------------------------- rig
+
+class SimRig:
+    """N simulated cameras filming a synthetic performer.
+
+    Parameters
+    ----------
+    basis : Basis
+        The face (mm, +y up, +z out of the face).
+    markers : MarkerSet
+    cameras : CameraGroup, optional
+        Calibrated cameras in the world (= model-at-rest) frame; default: :func:`generate_cameras`.
+    n_cameras : int
+        Number of generated cameras when ``cameras`` is None.
+    config : RigConfig
+    seed : int
+        Seeds the performer, the generated cameras and all noise.
+    performer : object, optional
+        Anything with ``frames()`` yielding frames with ``seq, t, contractions, head2world,
+        marker_positions``; default: :class:`livebridge.simulators.performer.Performer` with ``script``.
+    script : str
+        Performer script when ``performer`` is None.
+    """
+
+    def __init__(self, basis: Basis, markers: MarkerSet, cameras: CameraGroup | None = None, n_cameras: int = 4,
+                 config: RigConfig | None = None, seed: int = 0, performer=None, script: str = "mixed"):
+        self.config = config or RigConfig()
+        self.seed = int(seed)
+        self.basis, self.markers = basis, markers
+        markers.check_mesh(len(basis.triangles))
+        self.cameras = cameras if cameras is not None else generate_cameras(basis, n_cameras, self.config, seed)
+        if performer is None:
+            from livebridge.simulators.performer import Performer
+
+            performer = Performer(basis, markers, fps=self.config.fps, seed=seed, script=script, realtime=False)
+        self._performer = performer
+        self._frames_iter = None
+        self._next_seq = 0
+        self._states: OrderedDict[int, _State] = OrderedDict()
+        self._lock = threading.RLock()
+        self._window = 256
+        n_cams = len(self.cameras)
+        self.t0: float | None = None
+        rng = np.random.default_rng([self.seed, 17])
+        if self.config.sync == "free":
+            period = 1.0 / self.config.fps
+            self._offsets = rng.uniform(-1, 1, size=n_cams) * self.config.free_offset * period
+            self._seq_offsets = rng.integers(0, 10_000, size=n_cams)
+            self.sync_domains = tuple(f"sim{self.seed}:{c.name}" for c in self.cameras.cameras)
+        else:
+            self._offsets = np.zeros(n_cams)
+            self._seq_offsets = np.zeros(n_cams, dtype=np.int64)
+            self.sync_domains = (f"sim{self.seed}:rig",) * n_cams
+        self._exposure = [(self.config.exposure_us, 1.0)] * n_cams
+        self._noise = [_NoiseTiles(c.size, self.config.noise_sigma, self.seed * 1000 + k)
+                       if self.config.noise_sigma > 0 else None for k, c in enumerate(self.cameras.cameras)]
+        # cached backgrounds: float32 at nominal brightness, then uint8 per brightness scale
+        self._backgrounds = [None] * n_cams
+        self._scaled: dict[tuple[int, float], np.ndarray] = {}
+        self._marker_triangles = basis.triangles[markers.triangles]  # (n, 3) vertex indices
+        self._elements = basis.elements.reshape(len(basis.elements), -1)  # (M, V*3)
+        self._anchor = face_centre(basis)
+
+    # ----------------------------------------------------------------------------- public API
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Camera names (the ``source_id`` of each camera's frames)."""
+        return self.cameras.names
+
+    @property
+    def n_cameras(self) -> int:
+        return len(self.cameras)
+
+    @property
+    def period(self) -> float:
+        return 1.0 / self.config.fps
+
+    def start(self, t0: float | None = None) -> None:
+        """Fix the host time of frame 0 (``time.monotonic()`` now, unless given); idempotent."""
+        with self._lock:
+            if self.t0 is None:
+                self.t0 = time.monotonic() if t0 is None else float(t0)
+
+    def framesets(self, n: int | None = None, realtime: bool = False, start: int = 0) -> Iterator[FrameSet]:
+        """Frame sets with ground truth (``.truth`` is a :class:`SimTruth`), in camera order.
+
+        Parameters
+        ----------
+        n : int, optional
+            How many (default: forever).
+        realtime : bool
+            Pace frame ``seq`` to host time ``t0 + seq / fps``; False: as fast as the CPU allows.
+        start : int
+            First performer frame.
+        """
+        self.start()
+        seq = start
+        while n is None or seq < start + n:
+            if realtime:
+                delay = self.t0 + seq * self.period - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            frames, truth = self.render(seq)
+            yield FrameSet.from_frames(frames, self.names, index=seq, truth=truth)
+            seq += 1
+
+    def render(self, seq: int, cameras=None) -> tuple[list[Frame | None], SimTruth]:
+        """Render frame ``seq`` of every camera (or the camera indices in ``cameras``).
+
+        Returns
+        -------
+        frames : list of (Frame or None), length n_cams
+            None for a dropped frame or a camera not asked for.
+        truth : SimTruth
+        """
+        self.start()
+        state = self._state(seq)
+        indices = range(self.n_cameras) if cameras is None else cameras
+        n_cams, n_markers = self.n_cameras, len(self.markers)
+        visible = np.zeros((n_cams, n_markers), dtype=bool)
+        points_2d = np.full((n_cams, n_markers, 2), np.nan)
+        radius = np.full((n_cams, n_markers), np.nan)
+        spurious = [np.zeros((0, 2))] * n_cams
+        dropped = np.zeros(n_cams, dtype=bool)
+        frames: list[Frame | None] = [None] * n_cams
+        for c in indices:
+            frame, vis, pix, rad, spur, drop = self._render_camera(state, c)
+            frames[c], spurious[c], dropped[c] = frame, spur, drop
+            visible[c], points_2d[c], radius[c] = vis, np.where(vis[:, None], pix, np.nan), np.where(vis, rad, np.nan)
+        truth = SimTruth(seq, state.t, self.markers.names, state.markers, state.contractions, state.head2world,
+                         visible, points_2d, radius, tuple(spurious), dropped)
+        return frames, truth
+
+    def truth(self, seq: int) -> SimTruth:
+        """Ground truth of frame ``seq`` (renders it)."""
+        return self.render(seq)[1]
+
+    def camera_frame(self, seq: int, camera: int) -> Frame | None:
+        """Frame ``seq`` of one camera, None when that camera drops it."""
+        return self.render(seq, cameras=[camera])[0][camera]
+
+    def source_seq(self, seq: int, camera: int) -> int:
+        """The frame counter camera ``camera`` stamps on rig frame ``seq``."""
+        return int(seq + self._seq_offsets[camera])
+
+    def set_exposure(self, camera: int, exposure_us: float, gain: float) -> ExposureSetting:
+        """Set one camera's exposure (brightness scales with ``exposure * gain``); returns what was applied."""
+        exposure_us = float(np.clip(exposure_us, 10.0, 0.9e6 / self.config.fps))
+        gain = float(np.clip(gain, 1.0, 16.0))
+        with self._lock:
+            self._exposure[camera] = (exposure_us, gain)
+        return ExposureSetting(True, exposure_us, gain)
+
+    def sources(self, realtime: bool = True) -> list[SimCameraSource]:
+        """One camera source per camera, sharing this rig."""
+        return [SimCameraSource(self, k, realtime) for k in range(self.n_cameras)]
+
+    def render_board(self, board, board2world: np.ndarray, blur_px: float = 0.0, noise: float | None = None,
+                     seed: int = 0) -> list[np.ndarray]:
+        """Images of a calibration board held in front of the rig, one per camera.
+
+        Uses :func:`livebridge.simulators.board_render.render_board_view`.
+
+        Parameters
+        ----------
+        board : the calibration board (ChArUco or chessboard) of :mod:`livebridge.calibration`
+        board2world : ndarray, shape (4, 4)
+        blur_px, noise : float
+            Gaussian blur (pixels) and noise (grey levels); ``noise`` defaults to ``config.noise_sigma``.
+
+        Returns
+        -------
+        list of ndarray of uint8, shape (height, width)
+        """
+        from livebridge.simulators.board_render import render_board_view
+
+        noise = self.config.noise_sigma if noise is None else noise
+        rng = np.random.default_rng([self.seed, int(seed), 23])
+        return [render_board_view(board, camera, board2world, blur_px, noise, rng) for camera in self.cameras.cameras]
+
+    # ----------------------------------------------------------------------------- internals
+    def _state(self, seq: int) -> _State:
+        with self._lock:
+            state = self._states.get(seq)
+            if state is not None:
+                return state
+            if seq < self._next_seq:
+                self._frames_iter = None  # evicted: restart the deterministic performer from 0
+            if self._frames_iter is None:
+                self._frames_iter = iter(self._performer.frames())
+                self._next_seq = 0
+                self._last = None
+            while self._next_seq <= seq:
+                frame = next(self._frames_iter)
+                previous = self._last.marker_positions if self._last is not None else frame.marker_positions
+                self._last = frame
+                self._next_seq += 1
+                if frame.seq >= seq - 1:
+                    self._states[frame.seq] = self._make_state(frame, previous)
+                    while len(self._states) > self._window:
+                        self._states.popitem(last=False)
+            return self._states[seq]
+
+    def _make_state(self, frame, previous: np.ndarray) -> _State:
+        contractions = np.asarray(frame.contractions, dtype=np.float64)
+        head2world = np.asarray(frame.head2world, dtype=np.float64)
+        model = self.basis.neutral + (contractions @ self._elements).reshape(-1, 3)
+        vertices = _apply(head2world, model)
+        corners = vertices[self._marker_triangles]  # (n, 3, 3)
+        normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+        return _State(int(frame.seq), float(frame.t), contractions, head2world,
+                      np.asarray(frame.marker_positions, dtype=np.float64), np.asarray(previous, dtype=np.float64),
+                      vertices if self.config.occlusion else None, normal)
+
+    def _background(self, c: int, scale: float) -> np.ndarray:
+        key = (c, round(scale, 3))
+        image = self._scaled.get(key)
+        if image is None:
+            with self._lock:
+                if self._backgrounds[c] is None:
+                    self._backgrounds[c] = _render_face(self.cameras.cameras[c], self.basis.neutral,
+                                                        self.basis.triangles, self.config.face_level,
+                                                        self.config.ambient_level)
+                image = np.clip(self._backgrounds[c] * scale + 0.5, 0, 255).astype(np.uint8)
+                self._scaled[key] = image
+        return image
+
+    def _visibility(self, camera: Camera, state: _State, pixels: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Markers facing the camera and not behind the face surface, shape (n,) bool."""
+        to_camera = camera.center - state.markers
+        distance = np.linalg.norm(to_camera, axis=1)
+        cosine = np.einsum("nd,nd->n", state.normals, to_camera) / distance
+        visible = (cosine > math.cos(math.radians(self.config.max_view_deg))) & (depth > 0)
+        width, height = camera.size
+        visible &= (pixels[:, 0] > -0.5) & (pixels[:, 0] < width - 0.5) & (pixels[:, 1] > -0.5) & \
+                   (pixels[:, 1] < height - 0.5)
+        if not self.config.occlusion or not visible.any():
+            return visible
+        # depth splat of the deformed mesh on a coarse grid (pinhole, no distortion: used consistently)
+        cell = 4
+        focal = camera.matrix[0, 0]
+        grid_w, grid_h = width // cell + 1, height // cell + 1
+        world2cam = camera.world2cam
+        points = _apply(world2cam, state.vertices)
+        front = points[:, 2] > 1.0
+        points = points[front]
+        u = camera.matrix[0, 0] * points[:, 0] / points[:, 2] + camera.matrix[0, 2]
+        v = camera.matrix[1, 1] * points[:, 1] / points[:, 2] + camera.matrix[1, 2]
+        inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        index = (v[inside] // cell).astype(np.int64) * grid_w + (u[inside] // cell).astype(np.int64)
+        zbuffer = np.full(grid_w * grid_h, np.inf)
+        np.minimum.at(zbuffer, index, points[inside, 2])
+        marker_cam = _apply(world2cam, state.markers)
+        mu = camera.matrix[0, 0] * marker_cam[:, 0] / marker_cam[:, 2] + camera.matrix[0, 2]
+        mv = camera.matrix[1, 1] * marker_cam[:, 1] / marker_cam[:, 2] + camera.matrix[1, 2]
+        ok = visible & (mu >= 0) & (mu < width) & (mv >= 0) & (mv < height)
+        cells = (mv[ok] // cell).astype(np.int64) * grid_w + (mu[ok] // cell).astype(np.int64)
+        surface = zbuffer[cells]
+        # the surface around the marker itself is closer by up to (cell size) * tan(view angle)
+        cos_ok = np.clip(cosine[ok], 0.17, 1.0)
+        slope = np.sqrt(1.0 - cos_ok ** 2) / cos_ok
+        margin = 3.0 + 1.5 * cell * marker_cam[ok, 2] / focal * slope
+        hidden = np.zeros_like(visible)
+        hidden[np.flatnonzero(ok)] = marker_cam[ok, 2] > surface + margin
+        return visible & ~hidden
+
+    def _render_camera(self, state: _State, c: int):
+        camera = self.cameras.cameras[c]
+        config = self.config
+        rng = np.random.default_rng([self.seed, state.seq, c, 29])
+        n_markers = len(self.markers)
+        pixels = camera.project(state.markers)
+        depth = _apply(camera.world2cam, state.markers)[:, 2]
+        focal = float(camera.matrix[0, 0])
+        radii = focal * config.marker_diameter_mm / 2.0 / np.maximum(depth, 1e-6)
+        drop = bool(config.drop_rate > 0 and rng.random() < config.drop_rate)
+        if drop:
+            return None, np.zeros(n_markers, bool), pixels, radii, np.zeros((0, 2)), True
+        visible = self._visibility(camera, state, pixels, depth)
+        exposure_us, gain = self._exposure[c]
+        scale = exposure_us / config.exposure_us * gain
+        image = self._background(c, scale).copy()
+        if config.follow_head and not np.allclose(state.head2world, np.eye(4), atol=1e-9):
+            image = self._follow_head(image, camera, state.head2world)
+        # spurious highlights: small bright blobs on visible face vertices
+        spurious = np.zeros((0, 2))
+        if config.spurious_rate > 0:
+            count = int(rng.poisson(config.spurious_rate))
+            if count:
+                pick = rng.integers(0, len(self.basis.neutral), size=count)
+                spurious = camera.project(_apply(state.head2world, self.basis.neutral[pick]))
+                spurious = spurious[np.isfinite(spurious).all(axis=1)]
+                render_discs(image, spurious, rng.uniform(0.8, 2.5, size=len(spurious)),
+                             np.minimum(255.0, rng.uniform(0.5, 1.1, size=len(spurious)) * config.marker_level))
+        index = np.flatnonzero(visible)
+        if len(index):
+            centers = pixels[index]
+            if config.motion_blur:
+                previous = camera.project(state.previous[index])
+                fraction = exposure_us * 1e-6 * config.fps  # exposure as a fraction of the frame period
+                steps = np.linspace(-0.5, 0.5, 7)[None, :, None]
+                centers = centers[:, None, :] + steps * fraction * (centers - previous)[:, None, :]
+            render_discs(image, centers, radii[index], np.full(len(index), min(255.0, config.marker_level * scale)))
+        if self._noise[c] is not None:
+            self._noise[c].apply(image, rng)
+        t_capture = self.t0 + state.seq * self.period + self._offsets[c]
+        if config.jitter_s > 0:
+            t_capture += float(np.clip(rng.normal(0.0, config.jitter_s), -3 * config.jitter_s, 3 * config.jitter_s))
+        frame = Frame(image, t_capture, self.source_seq(state.seq, c), camera.name, exposure_us, gain,
+                      self.sync_domains[c])
+        return frame, visible, pixels, radii, spurious, False
+
+    def _follow_head(self, image: np.ndarray, camera: Camera, head2world: np.ndarray) -> np.ndarray:
+        """Warp the neutral-pose background by the affine map the head motion induces near the face centre."""
+        anchor = self._anchor + np.array([[0, 0, 0], [60.0, 0, 0], [0, 60.0, 0]])
+        before = camera.project(anchor).astype(np.float32)
+        after = camera.project(_apply(head2world, anchor)).astype(np.float32)
+        warp = cv2.getAffineTransform(before, after)
+        return cv2.warpAffine(image, warp, camera.size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+# -------------------------------------------------------------------------------------------- sources
+
+class SimCameraSource(SourceBase):
+    """One camera of a :class:`SimRig` as a camera source.
+
+    Frames come in order of the rig's frame numbers; dropped frames are skipped. With ``realtime`` a
+    frame is delivered no earlier than the end of its exposure on the host clock.
+    """
+
+    def __init__(self, rig: SimRig, camera: int, realtime: bool = True):
+        self.rig, self.camera, self.realtime = rig, int(camera), realtime
+        self.source_id = rig.names[self.camera]
+        self._seq = 0
+        self._running = False
+        self._stop_at: int | None = None
+
+    def start(self) -> None:
+        self.rig.start()
+        self._running = True
+
+    def stop(self) -> None:
+        self._running = False
+        self._end(None)
+
+    def kill_after(self, seq: int) -> None:
+        """Simulate a camera that stops delivering after rig frame ``seq`` (unplugged)."""
+        self._stop_at = int(seq)
+
+    def read(self, timeout: float | None = None) -> Frame | None:
+        if not self._running:
+            if self._ended:
+                return None
+            raise RuntimeError(f"{self.source_id}: read() before start()")
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            if self._stop_at is not None and self._seq > self._stop_at:
+                self._end(f"{self.source_id}: camera stopped delivering after frame {self._stop_at} (simulated)")
+                return None
+            seq = self._seq
+            if self.realtime:
+                ready = self.rig.t0 + (seq + 0.5) * self.rig.period
+                wait = ready - time.monotonic()
+                if deadline is not None and ready > deadline:
+                    time.sleep(max(0.0, deadline - time.monotonic()))
+                    return None
+                if wait > 0:
+                    time.sleep(wait)
+            self._seq += 1
+            frame = self.rig.camera_frame(seq, self.camera)
+            if frame is not None:
+                return frame
+
+    def set_exposure(self, manual: bool, exposure_us: float | None = None, gain: float | None = None):
+        current_exposure, current_gain = self.rig._exposure[self.camera]
+        return self.rig.set_exposure(self.camera, current_exposure if exposure_us is None else exposure_us,
+                                     current_gain if gain is None else gain)
+
+    @property
+    def capabilities(self) -> Capabilities:
+        return Capabilities(size=self.rig.cameras.cameras[self.camera].size, fps=self.rig.config.fps,
+                            manual_exposure=True, exposure_range_us=(10.0, 0.9e6 / self.rig.config.fps),
+                            gain_range=(1.0, 16.0), hardware_sync=self.rig.config.sync == "hardware",
+                            formats=("GREY",))
+
+
+_URL_KEYS = {"cameras", "seed", "fps", "noise", "drop", "jitter_ms", "spurious", "blur", "sync", "realtime",
+             "size", "calibration", "script", "occlusion", "diameter_mm", "basis", "markers"}
+
+
+def rig_from_url(url: SourceURL | str) -> SimRig:
+    """A :class:`SimRig` from ``sim://rig?cameras=4&seed=1&fps=60&noise=2&drop=0.01&jitter_ms=0.5&spurious=0.1
+    &blur=1&sync=hardware|free&size=1280x800&script=mixed&occlusion=1&diameter_mm=3&calibration=PATH
+    &basis=PATH.npz&markers=PATH.toml``."""
+    if isinstance(url, str):
+        url = SourceURL.parse(url)
+    if url.netloc != "rig":
+        raise InputError(f"unknown simulator {url.netloc!r}; known: rig", url.url)
+    url.check_known(_URL_KEYS)
+    changes = {}
+    for key, name, kind in (("fps", "fps", float), ("noise", "noise_sigma", float), ("drop", "drop_rate", float),
+                            ("spurious", "spurious_rate", float), ("blur", "motion_blur", bool),
+                            ("sync", "sync", str), ("occlusion", "occlusion", bool),
+                            ("diameter_mm", "marker_diameter_mm", float)):
+        value = url.take(key, kind)
+        if value is not None:
+            changes[name] = value
+    if "jitter_ms" in url.query:
+        changes["jitter_s"] = url.take("jitter_ms", float) / 1000.0
+    if "size" in url.query:
+        try:
+            width, height = (int(v) for v in url.query["size"].lower().split("x"))
+        except ValueError:
+            raise InputError("size must look like 1280x800", url.url, "size") from None
+        changes["size"] = (width, height)
+    try:
+        config = replace(RigConfig(), **changes)
+    except InputError as error:
+        raise InputError(error.message, url.url, error.field) from None
+    if "basis" in url.query:
+        basis = Basis.load(url.query["basis"])
+        markers = MarkerSet.load(url.query["markers"]) if "markers" in url.query else generate_markers(basis)
+    else:
+        basis, markers = default_face()
+        if "markers" in url.query:
+            markers = MarkerSet.load(url.query["markers"])
+    cameras = None
+    if "calibration" in url.query:
+        from livebridge.calibration.calibfile import load_calibration
+
+        cameras = load_calibration(url.query["calibration"])
+        cameras = getattr(cameras, "cameras", cameras) if not isinstance(cameras, CameraGroup) else cameras
+    return SimRig(basis, markers, cameras=cameras, n_cameras=url.take("cameras", int, 4), config=config,
+                  seed=url.take("seed", int, 0), script=url.query.get("script", "mixed"))
+
+
+def open_url(url: SourceURL) -> list[SimCameraSource]:
+    """The registry hook: one source per camera of the rig the URL describes."""
+    rig = rig_from_url(url)
+    return rig.sources(realtime=url.take("realtime", bool, True))
