@@ -1,0 +1,359 @@
+"""Recording live takes to a directory, written incrementally, and reading them back.
+
+Take directory format (``livebridge-take-dir``, version 1)
+---------------------------------------------------------
+``take.toml``
+    Manifest: ``format``, ``version``, ``created`` (local wall-clock ISO time),
+    ``t0`` (the monotonic time, s, of the first frame), ``muscle_names``,
+    ``marker_names``, ``fps`` (nominal, or absent), ``units = "mm"``, and the
+    names of the copied ``session`` and ``calibration`` files.
+``contractions.csv``
+    Header ``frame,seq,t,<muscle>...,error_upper_mm,error_lower_mm``; one row
+    per solved frame set. ``t`` is seconds on the runtime's monotonic clock
+    (the frame set's capture time); ``frame`` counts rows from 0; ``seq`` is
+    the frame-set number (gaps = frame sets the pipeline dropped).
+``markers.csv``
+    Header ``frame,seq,t,<marker>_x,<marker>_y,<marker>_z,...``: the labelled
+    marker positions in the capture (world) frame, mm. An empty field means
+    the marker was not seen in that frame set.
+``displacements.csv`` (when recorded)
+    Same layout: each labelled marker's displacement from neutral in the face
+    model frame, mm (what the solver consumed).
+``session.toml``, ``calibration.*``
+    Copies of the files the take was recorded with.
+``frames/`` (optional)
+    Raw camera images, ``frames/<camera>/<seq>.png``, listed in
+    ``frames/frames.csv`` (``camera,seq,t_capture,file``).
+
+All CSV files are plain RFC-4180 text with a header row, ``.`` as decimal
+separator. They are written by a background thread in whole lines, one
+``write`` per flush, at least every ``flush_interval`` seconds (0.5 s by
+default), so a crash -- even SIGKILL -- loses at most the last second, and a
+reader never sees half a line except possibly at the very end of a file
+(which :func:`load_take_dir` drops).
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import queue
+import shutil
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from livebridge.errors import InputError
+from livebridge.tomlio import load_toml, save_toml
+
+TAKE_DIR_FORMAT = "livebridge-take-dir"
+TAKE_DIR_VERSION = 1
+
+
+class _CsvStream:
+    """Whole lines appended in memory and written with one ``os.write`` per flush."""
+
+    def __init__(self, path: Path, header: list[str]):
+        self.path = path
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_APPEND, 0o644)
+        self._pending: list[str] = [",".join(header) + "\n"]
+        self._lock = threading.Lock()
+        self.flush()  # the header is on disk from the start
+
+    def append(self, line: str) -> None:
+        with self._lock:
+            self._pending.append(line)
+
+    def flush(self, sync: bool = False) -> None:
+        with self._lock:
+            lines, self._pending = self._pending, []
+        if lines:
+            data = "".join(lines).encode()
+            while data:
+                written = os.write(self._fd, data)
+                data = data[written:]
+        if sync:
+            os.fsync(self._fd)
+
+    def close(self) -> None:
+        self.flush(sync=True)
+        os.close(self._fd)
+
+
+def _fmt(values: np.ndarray, digits: int) -> str:
+    return ",".join("" if v != v else f"{v:.{digits}f}" for v in np.asarray(values, dtype=np.float64).ravel().tolist())
+
+
+class TakeRecorder:
+    """Writes a take directory while the pipeline runs.
+
+    Parameters
+    ----------
+    path : Path
+        The take directory; created, and must not exist or be empty.
+    muscle_names : sequence of str
+    marker_names : sequence of str
+    session_file, calibration_file : Path, optional
+        Copied into the take.
+    fps : float, optional
+        Nominal frame-set rate, for the manifest.
+    record_displacements : bool
+        Also write ``displacements.csv``.
+    record_frames : bool
+        Also write raw camera images (PNG) from :meth:`record_frames`.
+    flush_interval : float
+        Seconds between flushes to the OS (at most 1).
+    """
+
+    def __init__(self, path: str | Path, muscle_names, marker_names, session_file=None, calibration_file=None,
+                 fps: float | None = None, record_displacements: bool = True, record_frames: bool = False,
+                 flush_interval: float = 0.5):
+        self.path = Path(path)
+        if self.path.exists() and (not self.path.is_dir() or any(self.path.iterdir())):
+            raise InputError("the take directory exists and is not empty; choose a new one", self.path)
+        if not 0 < flush_interval <= 1.0:
+            raise InputError("flush_interval must be in (0, 1] seconds", field="flush_interval")
+        self.path.mkdir(parents=True, exist_ok=True)
+        self.muscle_names = tuple(muscle_names)
+        self.marker_names = tuple(marker_names)
+        self.flush_interval = flush_interval
+        manifest = {
+            "format": TAKE_DIR_FORMAT, "version": TAKE_DIR_VERSION,
+            "created": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+            "units": "mm", "muscle_names": list(self.muscle_names), "marker_names": list(self.marker_names),
+        }
+        if fps:
+            manifest["fps"] = float(fps)
+        for key, source in (("session", session_file), ("calibration", calibration_file)):
+            if source is not None:
+                source = Path(source)
+                target = self.path / (f"{key}{source.suffix}" if key == "calibration" else "session.toml")
+                shutil.copyfile(source, target)
+                manifest[key] = target.name
+        self._manifest = manifest
+        save_toml(self.path / "take.toml", manifest)
+        xyz = [f"{name}_{axis}" for name in self.marker_names for axis in "xyz"]
+        self._contractions = _CsvStream(self.path / "contractions.csv",
+                                        ["frame", "seq", "t", *self.muscle_names, "error_upper_mm", "error_lower_mm"])
+        self._markers = _CsvStream(self.path / "markers.csv", ["frame", "seq", "t", *xyz])
+        self._displacements = _CsvStream(self.path / "displacements.csv", ["frame", "seq", "t", *xyz]) \
+            if record_displacements else None
+        self._frames_index = None
+        self._frame_queue: queue.Queue | None = None
+        if record_frames:
+            (self.path / "frames").mkdir()
+            self._frames_index = _CsvStream(self.path / "frames" / "frames.csv", ["camera", "seq", "t_capture", "file"])
+            self._frame_queue = queue.Queue(maxsize=64)
+        self.frames = 0
+        self.frames_dropped = 0
+        self._t0: float | None = None
+        self._closed = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._flush_loop, name="take-recorder", daemon=True)
+        self._thread.start()
+
+    def record(self, seq: int, t: float, contractions: np.ndarray, markers: np.ndarray | None = None,
+               displacements: np.ndarray | None = None, region_errors=(float("nan"), float("nan"))) -> None:
+        """Append one frame set.
+
+        Parameters
+        ----------
+        seq : int
+        t : float
+            Monotonic seconds (capture time of the frame set).
+        contractions : ndarray, shape (n_muscles,)
+        markers : ndarray, shape (n_markers, 3), optional
+            Labelled positions in the capture frame, mm; NaN unseen.
+        displacements : ndarray, shape (n_markers, 3), optional
+            Displacements in the model frame, mm; NaN unseen.
+        region_errors : (float, float)
+            RMS marker error of the upper and lower solve, mm.
+        """
+        if self._closed:
+            raise RuntimeError("the recorder is closed")
+        if self._t0 is None:
+            self._t0 = float(t)
+        frame = self.frames
+        lead = f"{frame},{int(seq)},{t:.6f},"
+        self._contractions.append(lead + _fmt(contractions, 6) + "," + _fmt(region_errors, 4) + "\n")
+        n = len(self.marker_names)
+        blank = ",".join([""] * (3 * n))
+        self._markers.append(lead + (blank if markers is None else _fmt(markers, 4)) + "\n")
+        if self._displacements is not None:
+            self._displacements.append(lead + (blank if displacements is None else _fmt(displacements, 4)) + "\n")
+        self.frames += 1
+
+    def record_frames(self, frames) -> None:
+        """Queue raw camera frames (objects with ``image``, ``seq``, ``t_capture``, ``source_id``) for PNG files.
+
+        Never blocks: frames arriving faster than the disk takes them are dropped and counted.
+        """
+        if self._frame_queue is None:
+            return
+        for frame in frames:
+            try:
+                self._frame_queue.put_nowait(frame)
+            except queue.Full:
+                self.frames_dropped += 1
+
+    def _flush_loop(self) -> None:
+        next_flush = time.monotonic() + self.flush_interval
+        while not self._stop.is_set():
+            timeout = max(0.0, next_flush - time.monotonic())
+            if self._frame_queue is not None:
+                try:
+                    self._write_image(self._frame_queue.get(timeout=min(timeout, 0.05)))
+                except queue.Empty:
+                    pass
+            else:
+                self._stop.wait(timeout)
+            if time.monotonic() >= next_flush:
+                self._flush_all()
+                next_flush = time.monotonic() + self.flush_interval
+
+    def _write_image(self, frame) -> None:
+        import cv2
+
+        camera = "".join(c if c.isalnum() or c in "-_." else "_" for c in str(frame.source_id))
+        folder = self.path / "frames" / camera
+        folder.mkdir(exist_ok=True)
+        name = f"{int(frame.seq):08d}.png"
+        cv2.imwrite(str(folder / name), np.asarray(frame.image))
+        self._frames_index.append(f"{camera},{int(frame.seq)},{frame.t_capture:.6f},{camera}/{name}\n")
+
+    def _flush_all(self, sync: bool = False) -> None:
+        for stream in (self._contractions, self._markers, self._displacements, self._frames_index):
+            if stream is not None:
+                stream.flush(sync)
+
+    def close(self) -> None:
+        """Write everything still pending, fsync, and close the files (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        self._thread.join()
+        if self._frame_queue is not None:
+            while True:
+                try:
+                    self._write_image(self._frame_queue.get_nowait())
+                except queue.Empty:
+                    break
+        for stream in (self._contractions, self._markers, self._displacements, self._frames_index):
+            if stream is not None:
+                stream.close()
+        if self._t0 is not None:
+            self._manifest.update(t0=self._t0, frames=self.frames)
+            save_toml(self.path / "take.toml", self._manifest)
+
+    def __enter__(self) -> TakeRecorder:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+@dataclass(frozen=True, eq=False)
+class RecordedTake:
+    """A take directory read back.
+
+    Attributes
+    ----------
+    path : Path
+    seq : ndarray of int, shape (n_frames,)
+    t : ndarray, shape (n_frames,)
+    contractions : ndarray, shape (n_frames, n_muscles)
+    region_errors : ndarray, shape (n_frames, 2)
+    markers : ndarray, shape (n_frames, n_markers, 3)
+        Capture-frame positions, mm, NaN unseen.
+    displacements : ndarray, shape (n_frames, n_markers, 3) or None
+    muscle_names, marker_names : tuple of str
+    manifest : dict
+    complete : bool
+        False when the take was cut short (no final manifest, or a torn last line).
+    """
+
+    path: Path
+    seq: np.ndarray
+    t: np.ndarray
+    contractions: np.ndarray
+    region_errors: np.ndarray
+    markers: np.ndarray
+    displacements: np.ndarray | None
+    muscle_names: tuple[str, ...]
+    marker_names: tuple[str, ...]
+    manifest: dict
+    complete: bool
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.t)
+
+    def to_take(self):
+        """As a :class:`livebridge.take.Take` (positions, displacements, solved contractions)."""
+        from livebridge.take import Take
+
+        return Take(self.t, self.marker_names, displacements=self.displacements, positions=self.markers,
+                    contractions=self.contractions, muscle_names=self.muscle_names, fps=self.manifest.get("fps"))
+
+
+def _read_csv(path: Path, n_columns: int) -> tuple[list[str], np.ndarray, bool]:
+    """Header and float rows of a recorder CSV; a torn or malformed last line is dropped."""
+    text = path.read_text()
+    lines = text.split("\n")
+    torn = not text.endswith("\n")
+    lines = lines[:-1]  # the empty string after the last newline, or a line a crash cut short
+    if not lines:
+        raise InputError("empty file (no header)", path)
+    header = lines[0].split(",")
+    if len(header) != n_columns:
+        raise InputError(f"header has {len(header)} columns, expected {n_columns}", path)
+    rows = []
+    for number, line in enumerate(lines[1:], start=2):
+        fields = line.split(",")
+        if len(fields) != n_columns:
+            raise InputError(f"line {number} has {len(fields)} fields, expected {n_columns}", path)
+        try:
+            rows.append([float(f) if f else np.nan for f in fields])
+        except ValueError as error:
+            raise InputError(f"line {number}: {error}", path) from None
+    return header, np.array(rows, dtype=np.float64).reshape(len(rows), n_columns), torn
+
+
+def load_take_dir(path: str | Path) -> RecordedTake:
+    """Read a take directory, including one cut short by a crash (up to its last flushed line).
+
+    Frames present in some files but not yet in others (a crash between two
+    files' flushes) are dropped, so every array has the same frames.
+    """
+    path = Path(path)
+    manifest = load_toml(path / "take.toml")
+    if manifest.get("format") != TAKE_DIR_FORMAT:
+        raise InputError(f"format must be {TAKE_DIR_FORMAT!r}", path / "take.toml", "format")
+    if manifest.get("version", 0) > TAKE_DIR_VERSION:
+        raise InputError(f"version {manifest['version']} is newer than this livebridge reads",
+                         path / "take.toml", "version")
+    muscles = tuple(manifest.get("muscle_names", ()))
+    markers = tuple(manifest.get("marker_names", ()))
+    _, c_rows, torn_c = _read_csv(path / "contractions.csv", 3 + len(muscles) + 2)
+    _, m_rows, torn_m = _read_csv(path / "markers.csv", 3 + 3 * len(markers))
+    d_rows, torn_d = None, False
+    if (path / "displacements.csv").exists():
+        _, d_rows, torn_d = _read_csv(path / "displacements.csv", 3 + 3 * len(markers))
+    n = min(len(c_rows), len(m_rows), len(d_rows) if d_rows is not None else len(c_rows))
+    c_rows, m_rows = c_rows[:n], m_rows[:n]
+    if not np.array_equal(c_rows[:, :2], m_rows[:, :2]):
+        raise InputError("contractions.csv and markers.csv disagree on frame numbers", path)
+    displacements = None
+    if d_rows is not None:
+        displacements = d_rows[:n, 3:].reshape(n, len(markers), 3)
+    complete = "frames" in manifest and manifest["frames"] == n and not (torn_c or torn_m or torn_d)
+    return RecordedTake(
+        path=path, seq=c_rows[:, 1].astype(np.int64), t=c_rows[:, 2],
+        contractions=c_rows[:, 3:3 + len(muscles)], region_errors=c_rows[:, 3 + len(muscles):],
+        markers=m_rows[:, 3:].reshape(n, len(markers), 3), displacements=displacements,
+        muscle_names=muscles, marker_names=markers, manifest=manifest, complete=complete,
+    )
