@@ -1,0 +1,96 @@
+"""A pseudo-terminal that a simulated device serves from a thread.
+
+The transport only moves bytes: whatever the client writes to the slave side
+(``/dev/pts/N``, opened with pyserial or a vendor SDK like any serial port)
+is handed to ``handler(data) -> replies``; each reply is written back after
+its delay. The device logic lives in the handler, as pure framing + state.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import threading
+import time
+import tty
+from collections.abc import Callable, Iterable
+
+Reply = tuple[float, bytes]  # (delay in seconds before sending, bytes)
+
+
+class PtyBus:
+    """Serve a pseudo-terminal from a background thread.
+
+    Parameters
+    ----------
+    handler : callable
+        ``handler(data: bytes) -> iterable of (delay_s, reply_bytes)``;
+        called on the serving thread for each chunk the client writes.
+    tick : callable, optional
+        Called about every ``tick_period`` seconds on the serving thread
+        (device clocks: motion, watchdogs, temperature).
+    """
+
+    def __init__(self, handler: Callable[[bytes], Iterable[Reply]], tick: Callable[[], None] | None = None,
+                 tick_period: float = 0.02):
+        self.handler = handler
+        self.tick = tick
+        self.tick_period = tick_period
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        self.path = os.ttyname(self.slave)
+        self.bytes_in = 0
+        self.bytes_out = 0
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, name=f"pty-bus {self.path}", daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        last_tick = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                ready, _, _ = select.select([self.master], [], [], self.tick_period)
+                if ready:
+                    try:
+                        data = os.read(self.master, 65536)
+                    except OSError:  # no client has the slave open: nothing to read yet
+                        time.sleep(self.tick_period)
+                        continue
+                    self.bytes_in += len(data)
+                    for delay, reply in self.handler(data):
+                        if delay > 0:
+                            time.sleep(delay)
+                        if reply:
+                            self._write(reply)
+                now = time.monotonic()
+                if self.tick is not None and now - last_tick >= self.tick_period:
+                    last_tick = now
+                    self.tick()
+        except BaseException as error:  # surfaced through .error and close()
+            self.error = error
+
+    def _write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            written = os.write(self.master, view)
+            self.bytes_out += written
+            view = view[written:]
+
+    def close(self) -> None:
+        """Stop serving and close both ends; re-raise an error the serving thread hit."""
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        for fd in (self.master, self.slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        if self.error is not None:
+            raise RuntimeError(f"simulated bus {self.path} failed") from self.error
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
