@@ -1,0 +1,287 @@
+"""The session file: everything one live run needs, in one TOML file, checked before anything starts.
+
+Example (every table but ``[cameras]`` is optional; paths are relative to the session file)::
+
+    [cameras]
+    urls = ["v4l2:///dev/video0?fps=60", "v4l2:///dev/video2?fps=60"]  # or ["sim://rig?cameras=4&seed=1"]
+    sync_tolerance = 0.5          # frame periods, for cameras in different sync domains
+
+    [face]
+    basis = "basis.npz"           # or "builtin" (the built-in face), "ict" (reference data)
+    markers = "markers.toml"      # or "builtin"
+
+    calibration = "rig.toml"      # top level: the camera calibration (not needed by sim:// rigs)
+
+    [reconstruct]
+    tolerance_px = 2.0            # epipolar gate
+    max_residual_px = 2.0         # outlier view rejection
+
+    [solver]
+    mode = "split-compensated"    # "split", "joint"
+    exaggerate = false
+    sweeps = 2
+
+    [servo]
+    rig = "head.toml"             # the servo rig file (buses by URL, servos, limits)
+
+    [outputs.render]
+    enabled = true
+    host = "127.0.0.1"
+    port = 8765                   # 0: any free port
+
+    [outputs.vmc]
+    enabled = false
+    host = "127.0.0.1"
+    port = 39539
+    case = "camel"                # "pascal", "lower", "snake"
+    mapping = { jaw = { jawOpen = 1.0 } }   # optional; default ARKit names
+
+    [recording]
+    enabled = false
+    directory = "takes"           # each run writes a new take directory inside
+    raw_frames = false
+
+    [runtime]
+    status_interval = 1.0         # seconds between live status lines
+    frames = 0                    # stop after this many frame sets (0: until Ctrl-C)
+
+Unknown keys are errors (a misspelt key would otherwise be silently ignored); every error names the
+file and the dotted field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from livebridge.errors import InputError
+from livebridge.tomlio import load_toml
+
+BUILTIN_NAMES = ("builtin", "ict")
+_TOP_KEYS = {"cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime"}
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = 8765
+
+
+@dataclass(frozen=True)
+class VMCOptions:
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = 39539
+    case: str = "camel"
+    mapping: Any = None  # None (ARKit), "identity", or {muscle: {blendshape: weight}}
+
+
+@dataclass(frozen=True)
+class RecordingOptions:
+    enabled: bool = False
+    directory: Path | None = None
+    raw_frames: bool = False
+
+
+@dataclass(frozen=True)
+class Session:
+    """A validated session file.
+
+    Attributes
+    ----------
+    path : Path or None
+        The session file (None for a session built in code).
+    camera_urls : tuple of str
+    sync_tolerance : float
+        Frame periods.
+    basis : Path or str
+        A ``.npz`` path, or ``"builtin"`` / ``"ict"``.
+    markers : Path or str or None
+        A marker-set TOML path, ``"builtin"``, or None (the rig's / built-in markers).
+    calibration : Path or None
+    reconstruct : dict
+        Options for the reconstruction stage (``tolerance_px``, ``max_residual_px``).
+    solver : dict
+        Keyword arguments of :class:`livebridge.solve.solver.SolverConfig`.
+    servo_rig : Path or None
+    render, vmc, recording : option records
+    status_interval : float
+    frames : int
+        0: run until stopped.
+    """
+
+    path: Path | None
+    camera_urls: tuple[str, ...]
+    sync_tolerance: float = 0.5
+    basis: Path | str = "builtin"
+    markers: Path | str | None = None
+    calibration: Path | None = None
+    reconstruct: dict = field(default_factory=dict)
+    solver: dict = field(default_factory=dict)
+    servo_rig: Path | None = None
+    render: RenderOptions = RenderOptions()
+    vmc: VMCOptions = VMCOptions()
+    recording: RecordingOptions = RecordingOptions()
+    status_interval: float = 1.0
+    frames: int = 0
+
+
+class _Table:
+    """Typed, named access to one TOML table; remembers the keys read to reject unknown ones."""
+
+    def __init__(self, data: Any, path: Path | None, prefix: str):
+        if not isinstance(data, dict):
+            raise InputError(f"expected a table, got {type(data).__name__}", path, prefix or None)
+        self.data, self.path, self.prefix, self.read = data, path, prefix, set()
+
+    def _field(self, key: str) -> str:
+        return f"{self.prefix}.{key}" if self.prefix else key
+
+    def get(self, key: str, kind, default=None, required: bool = False):
+        self.read.add(key)
+        if key not in self.data:
+            if required:
+                raise InputError("missing", self.path, self._field(key))
+            return default
+        value = self.data[key]
+        kinds = kind if isinstance(kind, tuple) else (kind,)
+        if isinstance(value, bool) and bool not in kinds or not isinstance(value, kinds):
+            if float in kinds and isinstance(value, int) and not isinstance(value, bool):
+                return float(value)
+            names = " or ".join(k.__name__ for k in kinds)
+            raise InputError(f"expected {names}, got {type(value).__name__} {value!r}", self.path, self._field(key))
+        return value
+
+    def table(self, key: str) -> _Table:
+        self.read.add(key)
+        return _Table(self.data.get(key, {}), self.path, self._field(key))
+
+    def path_value(self, key: str, builtins: tuple[str, ...] = (), must_exist: bool = True,
+                   required: bool = False, default=None):
+        value = self.get(key, str, None, required)
+        if value is None:
+            return default
+        if value in builtins:
+            return value
+        base = self.path.parent if self.path is not None else Path.cwd()
+        resolved = (base / value).resolve() if not Path(value).is_absolute() else Path(value)
+        if must_exist and not resolved.exists():
+            raise InputError(f"file not found: {resolved}", self.path, self._field(key))
+        return resolved
+
+    def check_known(self, known: set[str] | None = None) -> None:
+        unknown = sorted(set(self.data) - (known if known is not None else self.read))
+        if unknown:
+            raise InputError(f"unknown key {unknown[0]!r}", self.path, self._field(unknown[0]))
+
+
+def _positive(value, path, name, allow_zero=False):
+    if value is not None and not (value > 0 or allow_zero and value == 0):
+        raise InputError(f"must be {'>= 0' if allow_zero else '> 0'}, got {value}", path, name)
+    return value
+
+
+def _port(value, path, name):
+    if not 0 <= value <= 65535:
+        raise InputError(f"port must be in 0..65535, got {value}", path, name)
+    return value
+
+
+def session_from_dict(data: dict, path: Path | None = None) -> Session:
+    """Validate a parsed session table (``path`` names the file in errors and anchors relative paths)."""
+    path = Path(path) if path is not None else None
+    top = _Table(data, path, "")
+    top.check_known(_TOP_KEYS)
+
+    cameras = top.table("cameras")
+    urls = cameras.get("urls", list, required=True)
+    if not urls or not all(isinstance(u, str) and "://" in u for u in urls):
+        raise InputError("a non-empty list of camera URLs (scheme://...)", path, "cameras.urls")
+    sync_tolerance = _positive(cameras.get("sync_tolerance", float, 0.5), path, "cameras.sync_tolerance")
+    if sync_tolerance > 0.5:
+        raise InputError("at most half a frame period", path, "cameras.sync_tolerance")
+    cameras.check_known()
+
+    face = top.table("face")
+    basis = face.path_value("basis", BUILTIN_NAMES, default="builtin")
+    if isinstance(basis, Path) and basis.suffix != ".npz":
+        raise InputError("a basis .npz file (from `livebridge basis import`), 'builtin' or 'ict'", path, "face.basis")
+    markers = face.path_value("markers", ("builtin",))
+    face.check_known()
+
+    calibration = top.path_value("calibration")
+    if calibration is None and not all(u.startswith(("sim://", "replay://")) for u in urls):
+        raise InputError("real cameras need a calibration file", path, "calibration")
+
+    reconstruct = top.table("reconstruct")
+    reconstruct_options = {}
+    for key in ("tolerance_px", "max_residual_px"):
+        value = _positive(reconstruct.get(key, float), path, f"reconstruct.{key}")
+        if value is not None:
+            reconstruct_options[key] = value
+    reconstruct.check_known()
+
+    solver = top.table("solver")
+    solver_options = {}
+    mode = solver.get("mode", str)
+    if mode is not None:
+        solver_options["mode"] = mode
+    for key, kind in (("exaggerate", bool), ("sweeps", int), ("cache_size", int)):
+        value = solver.get(key, kind)
+        if value is not None:
+            solver_options[key] = value
+    solver.check_known()
+    try:
+        from livebridge.solve.solver import SolverConfig
+
+        SolverConfig(**solver_options)
+    except InputError as error:
+        raise InputError(error.message, path, f"solver.{error.field}") from None
+    except ImportError:  # pragma: no cover - the solver module is part of the package
+        pass
+
+    servo = top.table("servo")
+    servo_rig = servo.path_value("rig")
+    servo.check_known()
+
+    outputs = top.table("outputs")
+    outputs.check_known({"render", "vmc"})
+    r = outputs.table("render")
+    render = RenderOptions(r.get("enabled", bool, True), r.get("host", str, "127.0.0.1"),
+                           _port(r.get("port", int, 8765), path, "outputs.render.port"))
+    r.check_known()
+    v = outputs.table("vmc")
+    mapping = v.get("mapping", (dict, str))
+    if isinstance(mapping, str) and mapping != "identity":
+        raise InputError("a table {muscle = {blendshape = weight}} or 'identity'", path, "outputs.vmc.mapping")
+    vmc = VMCOptions(v.get("enabled", bool, False), v.get("host", str, "127.0.0.1"),
+                     _port(v.get("port", int, 39539), path, "outputs.vmc.port"), v.get("case", str, "camel"), mapping)
+    v.check_known()
+    from livebridge.output.vmc import CASES
+
+    if vmc.case not in CASES:
+        raise InputError(f"must be one of {CASES}, got {vmc.case!r}", path, "outputs.vmc.case")
+
+    rec = top.table("recording")
+    recording = RecordingOptions(rec.get("enabled", bool, False),
+                                 rec.path_value("directory", must_exist=False, default=None),
+                                 rec.get("raw_frames", bool, False))
+    if recording.enabled and recording.directory is None:
+        raise InputError("recording is enabled: give the directory for takes", path, "recording.directory")
+    rec.check_known()
+
+    runtime = top.table("runtime")
+    status_interval = _positive(runtime.get("status_interval", float, 1.0), path, "runtime.status_interval")
+    frames = _positive(runtime.get("frames", int, 0), path, "runtime.frames", allow_zero=True)
+    runtime.check_known()
+
+    return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_options,
+                   solver_options, servo_rig, render, vmc, recording, status_interval, frames)
+
+
+def load_session(path: str | Path) -> Session:
+    """Read and validate a session file; errors name the file and the field."""
+    path = Path(path).resolve()
+    return session_from_dict(load_toml(path), path)

@@ -1,0 +1,103 @@
+"""Session files: validated up front, errors name the field, paths relative to the file."""
+
+from __future__ import annotations
+
+import pytest
+
+from livebridge.errors import InputError
+from livebridge.runtime.session import load_session
+
+
+def _write(tmp_path, text, name="session.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_full_session_with_relative_paths(tmp_path):
+    sub = tmp_path / "conf"
+    sub.mkdir()
+    for name in ("basis.npz", "markers.toml", "rig.toml", "head.toml"):
+        (sub / name).write_text("")
+    path = _write(sub, """
+calibration = "rig.toml"
+[cameras]
+urls = ["v4l2:///dev/video0?fps=60", "v4l2:///dev/video2?fps=60"]
+sync_tolerance = 0.25
+[face]
+basis = "basis.npz"
+markers = "markers.toml"
+[reconstruct]
+tolerance_px = 1.5
+[solver]
+mode = "joint"
+exaggerate = true
+[servo]
+rig = "head.toml"
+[outputs.render]
+port = 0
+[outputs.vmc]
+enabled = true
+port = 39540
+case = "pascal"
+mapping = { jaw = { jawOpen = 1.0 } }
+[recording]
+enabled = true
+directory = "../takes"
+raw_frames = true
+[runtime]
+status_interval = 0.5
+frames = 300
+""")
+    session = load_session(path)
+    assert session.camera_urls == ("v4l2:///dev/video0?fps=60", "v4l2:///dev/video2?fps=60")
+    assert session.basis == sub / "basis.npz" and session.markers == sub / "markers.toml"
+    assert session.calibration == sub / "rig.toml" and session.servo_rig == sub / "head.toml"
+    assert session.recording.directory == tmp_path / "takes" and session.recording.raw_frames
+    assert session.solver == {"mode": "joint", "exaggerate": True}
+    assert session.reconstruct == {"tolerance_px": 1.5}
+    assert session.vmc.enabled and session.vmc.port == 39540 and session.vmc.case == "pascal"
+    assert session.vmc.mapping == {"jaw": {"jawOpen": 1.0}}
+    assert session.render.port == 0 and session.render.host == "127.0.0.1"
+    assert session.frames == 300 and session.status_interval == 0.5 and session.sync_tolerance == 0.25
+
+
+def test_minimal_simulated_session_defaults(tmp_path):
+    session = load_session(_write(tmp_path, '[cameras]\nurls = ["sim://rig?cameras=4"]\n'))
+    assert session.basis == "builtin" and session.markers is None and session.calibration is None
+    assert session.render.enabled and session.render.port == 8765
+    assert not session.vmc.enabled and not session.recording.enabled and session.servo_rig is None
+
+
+@pytest.mark.parametrize("text,field", [
+    ("", "cameras.urls"),
+    ('[cameras]\nurls = []\n', "cameras.urls"),
+    ('[cameras]\nurls = ["webcam0"]\n', "cameras.urls"),
+    ('[cameras]\nurls = ["v4l2:///dev/video0"]\n', "calibration"),
+    ('[cameras]\nurls = ["sim://rig"]\nsync_tolerance = 0.9\n', "cameras.sync_tolerance"),
+    ('[cameras]\nurls = ["sim://rig"]\nurl = "x"\n', "cameras.url"),
+    ('[cameras]\nurls = ["sim://rig"]\n[face]\nbasis = "missing.npz"\n', "face.basis"),
+    ('[cameras]\nurls = ["sim://rig"]\n[face]\nmarkers = "missing.toml"\n', "face.markers"),
+    ('[cameras]\nurls = ["sim://rig"]\n[solver]\nmode = "fast"\n', "solver.mode"),
+    ('[cameras]\nurls = ["sim://rig"]\n[solver]\nsweeps = "two"\n', "solver.sweeps"),
+    ('[cameras]\nurls = ["sim://rig"]\n[servo]\nrig = "nope.toml"\n', "servo.rig"),
+    ('[cameras]\nurls = ["sim://rig"]\n[outputs.render]\nport = 70000\n', "outputs.render.port"),
+    ('[cameras]\nurls = ["sim://rig"]\n[outputs.render]\nenabled = "yes"\n', "outputs.render.enabled"),
+    ('[cameras]\nurls = ["sim://rig"]\n[outputs.vmc]\ncase = "SHOUT"\n', "outputs.vmc.case"),
+    ('[cameras]\nurls = ["sim://rig"]\n[outputs.osc]\nport = 1\n', "outputs.osc"),
+    ('[cameras]\nurls = ["sim://rig"]\n[recording]\nenabled = true\n', "recording.directory"),
+    ('[cameras]\nurls = ["sim://rig"]\n[runtime]\nframes = -3\n', "runtime.frames"),
+    ('[cameras]\nurls = ["sim://rig"]\n[camera]\nurls = []\n', "camera"),
+])
+def test_errors_name_file_and_field(tmp_path, text, field):
+    path = _write(tmp_path, text)
+    with pytest.raises(InputError) as info:
+        load_session(path)
+    assert info.value.field == field, str(info.value)
+    assert info.value.path == str(path.resolve())
+
+
+def test_malformed_toml_names_the_file(tmp_path):
+    path = _write(tmp_path, "[cameras\n")
+    with pytest.raises(InputError, match="session.toml"):
+        load_session(path)
