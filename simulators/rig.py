@@ -104,7 +104,7 @@ class RigConfig:
     drop_rate: float = 0.0
     jitter_s: float = 0.0
     sync: str = "hardware"
-    free_offset: float = 0.25
+    free_offset: float = 0.15
     occlusion: bool = True
     max_view_deg: float = 80.0
     exposure_us: float = 2000.0
@@ -473,9 +473,12 @@ class SimRig:
         return 1.0 / self.config.fps
 
     def start(self, t0: float | None = None) -> None:
-        """Fix the host time of frame 0 (``time.monotonic()`` now, unless given); idempotent."""
+        """Render the cached backgrounds and fix the host time of frame 0 (``time.monotonic()`` now, unless
+        given); idempotent."""
         with self._lock:
             if self.t0 is None:
+                for c in range(self.n_cameras):  # the cached backgrounds, before the clock starts
+                    self._background(c, 1.0)
                 self.t0 = time.monotonic() if t0 is None else float(t0)
 
     def framesets(self, n: int | None = None, realtime: bool = False, start: int = 0) -> Iterator[FrameSet]:
@@ -501,8 +504,10 @@ class SimRig:
             yield FrameSet.from_frames(frames, self.names, index=seq, truth=truth)
             seq += 1
 
-    def render(self, seq: int, cameras=None) -> tuple[list[Frame | None], SimTruth]:
+    def render(self, seq: int, cameras=None, draw: bool = True) -> tuple[list[Frame | None], SimTruth]:
         """Render frame ``seq`` of every camera (or the camera indices in ``cameras``).
+
+        With ``draw=False`` only the ground truth is computed (no images; frames are all None).
 
         Returns
         -------
@@ -521,7 +526,7 @@ class SimRig:
         dropped = np.zeros(n_cams, dtype=bool)
         frames: list[Frame | None] = [None] * n_cams
         for c in indices:
-            frame, vis, pix, rad, spur, drop = self._render_camera(state, c)
+            frame, vis, pix, rad, spur, drop = self._render_camera(state, c, draw)
             frames[c], spurious[c], dropped[c] = frame, spur, drop
             visible[c], points_2d[c], radius[c] = vis, np.where(vis[:, None], pix, np.nan), np.where(vis, rad, np.nan)
         truth = SimTruth(seq, state.t, self.markers.names, state.markers, state.contractions, state.head2world,
@@ -529,8 +534,8 @@ class SimRig:
         return frames, truth
 
     def truth(self, seq: int) -> SimTruth:
-        """Ground truth of frame ``seq`` (renders it)."""
-        return self.render(seq)[1]
+        """Ground truth of frame ``seq`` without drawing images (spurious highlights are left out)."""
+        return self.render(seq, draw=False)[1]
 
     def camera_frame(self, seq: int, camera: int) -> Frame | None:
         """Frame ``seq`` of one camera, None when that camera drops it."""
@@ -662,7 +667,7 @@ class SimRig:
         hidden[np.flatnonzero(ok)] = marker_cam[ok, 2] > surface + margin
         return visible & ~hidden
 
-    def _render_camera(self, state: _State, c: int):
+    def _render_camera(self, state: _State, c: int, draw: bool = True):
         camera = self.cameras.cameras[c]
         config = self.config
         rng = np.random.default_rng([self.seed, state.seq, c, 29])
@@ -675,6 +680,8 @@ class SimRig:
         if drop:
             return None, np.zeros(n_markers, bool), pixels, radii, np.zeros((0, 2)), True
         visible = self._visibility(camera, state, pixels, depth)
+        if not draw:
+            return None, visible, pixels, radii, np.zeros((0, 2)), False
         exposure_us, gain = self._exposure[c]
         scale = exposure_us / config.exposure_us * gain
         image = self._background(c, scale).copy()

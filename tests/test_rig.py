@@ -143,7 +143,7 @@ def test_seeded_and_order_independent(face):
 def test_spurious_highlights_and_motion_blur(face):
     basis, markers = face
     rig = SimRig(basis, markers, n_cameras=1, config=RigConfig(noise_sigma=0, spurious_rate=3.0), seed=3)
-    truth = rig.truth(5)
+    truth = rig.render(5)[1]
     assert len(truth.spurious_2d[0]) > 0
     # motion blur: a long exposure smears fast markers along their motion
     sharp = SimRig(basis, markers, n_cameras=1, config=RigConfig(noise_sigma=0, follow_head=False), seed=3)

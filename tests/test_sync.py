@@ -1,0 +1,152 @@
+"""The frame synchroniser: property tests with random jitter, drops, delivery delays and a dead camera."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from livebridge.capture.frame import Frame
+from livebridge.capture.sync import SyncedCapture, Synchronizer
+
+IMAGE = np.zeros((2, 2), np.uint8)
+
+
+def _stream(seed, n_cams, n_frames, fps, domains, jitter, drop_p, dead_cam, dead_at, max_delay):
+    """Frames of a simulated rig in arrival order, with the true instant of every frame.
+
+    ``domains``: "hardware" (one domain, shared seq), "free" (own domain and counter each) or "mixed".
+    Returns (frames in arrival order, {id(frame): instant}, dropped (n_cams, n_frames) bool).
+    """
+    rng = np.random.default_rng(seed)
+    period = 1.0 / fps
+    names = [f"c{k}" for k in range(n_cams)]
+    if domains == "hardware":
+        domain_of, seq_offset = ["hw"] * n_cams, np.zeros(n_cams, int)
+    elif domains == "free":
+        domain_of, seq_offset = names, rng.integers(0, 1000, n_cams)
+    else:
+        domain_of = ["A" if k % 2 == 0 else "B" for k in range(n_cams)]
+        seq_offset = np.array([0 if k % 2 == 0 else 77 for k in range(n_cams)])
+    offset = rng.uniform(-0.05, 0.05, n_cams) * period
+    dropped = rng.random((n_cams, n_frames)) < drop_p
+    instant_of, arrivals = {}, []
+    for c in range(n_cams):
+        arrival = -np.inf
+        for k in range(n_frames):
+            if dead_cam == c and k >= dead_at:
+                break
+            if dropped[c, k]:
+                continue
+            t = 10.0 + k * period + offset[c] + rng.uniform(-1, 1) * jitter * period
+            frame = Frame(IMAGE, t, k + seq_offset[c], names[c], sync_domain=domain_of[c])
+            instant_of[id(frame)] = k
+            arrival = max(arrival, t + rng.uniform(0, max_delay) * period)  # in order per camera
+            arrivals.append((arrival, c, frame))
+    arrivals.sort(key=lambda a: (a[0], a[1]))
+    return names, [a[2] for a in arrivals], instant_of, dropped, period
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31), n_cams=st.integers(2, 5), n_frames=st.integers(5, 80),
+       fps=st.sampled_from([30.0, 60.0, 90.0, 120.0]), domains=st.sampled_from(["hardware", "free", "mixed"]),
+       jitter=st.floats(0.0, 0.15), drop_p=st.floats(0.0, 0.3), kill=st.booleans(),
+       dead_frac=st.floats(0.0, 0.5), max_delay=st.floats(0.0, 1.5))
+def test_synchroniser_properties(seed, n_cams, n_frames, fps, domains, jitter, drop_p, kill, dead_frac, max_delay):
+    dead_cam = 0 if kill else None
+    dead_at = int(dead_frac * n_frames)
+    names, frames, instant_of, dropped, period = _stream(seed, n_cams, n_frames, fps, domains, jitter, drop_p,
+                                                         dead_cam, dead_at, max_delay)
+    sync = Synchronizer(names, period)
+    out = []
+    for frame in frames:
+        out.extend(sync.push(frame))
+    out.extend(sync.flush())
+    stats = sync.stats
+
+    placed = [f for fs in out for f in fs.frames if f is not None]
+    assert len({id(f) for f in placed}) == len(placed)  # no frame in two sets
+    assert sum(stats.late.values()) == 0  # delays below max_wait: nothing is late
+    assert len(placed) == len(frames)  # every frame placed exactly once
+    instants = []
+    for k, fs in enumerate(out):
+        assert fs.index == k and fs.source_ids == tuple(names)
+        present = {instant_of[id(f)] for f in fs.frames if f is not None}
+        assert len(present) == 1  # one instant per frame set
+        instants.append(present.pop())
+        assert fs.skew <= sync.tolerance_s + 1e-12
+        for name, f in zip(fs.source_ids, fs.frames):
+            assert f is None or f.source_id == name
+    assert instants == sorted(instants) and len(set(instants)) == len(instants)  # in time order, no split sets
+    delivered = {instant_of[id(f)] for f in frames}
+    assert set(instants) == delivered
+    assert stats.framesets == len(out) and stats.complete == sum(fs.complete for fs in out)
+    # drops: exactly the frames a live camera did not deliver, over the emitted sets
+    for c, name in enumerate(names):
+        missing = sum(1 for fs, k in zip(out, instants) if fs.frames[c] is None)
+        if c != dead_cam:
+            assert stats.drops[name] == sum(dropped[c, k] for k in instants) == missing
+        else:
+            assert stats.drops[name] <= missing
+    if dead_cam is not None and (n_frames - dead_at) * period > sync.dead_after_s + sync.max_wait_s + 2 * period:
+        assert names[dead_cam] in stats.dead and any("dead" in e for e in sync.events)
+        # the rest keep going: every later instant still produced a frame set
+        assert max(instants) >= n_frames - 2 or drop_p > 0
+
+
+def test_late_and_out_of_order_frames_are_counted_and_discarded():
+    sync = Synchronizer(["a", "b"], 0.01)
+    out = []
+    for k in range(10):
+        out += sync.push(Frame(IMAGE, 1 + k * 0.01, k, "a", sync_domain="a"))
+    # b's frames 0..2 arrive after a has moved 10 frames on: beyond max_wait, their sets already left
+    out += sync.push(Frame(IMAGE, 1.0005, 0, "b", sync_domain="b"))
+    assert sync.stats.late["b"] == 1
+    out += sync.push(Frame(IMAGE, 1.0905, 9, "b", sync_domain="b"))
+    out += sync.push(Frame(IMAGE, 1.0805, 8, "b", sync_domain="b"))  # out of order for b: discarded
+    assert sync.stats.late["b"] == 2
+    out += sync.flush()
+    assert [fs.index for fs in out] == list(range(len(out)))
+    assert out[-1].complete and out[-1]["b"].seq == 9
+
+
+def test_tolerance_is_at_most_half_a_period():
+    with pytest.raises(ValueError, match="period/2"):
+        Synchronizer(["a"], 1 / 60, tolerance_s=0.6 / 60)
+    with pytest.raises(ValueError, match="repeat"):
+        Synchronizer(["a", "a"], 1 / 60)
+
+
+def test_hardware_domain_groups_by_seq_despite_timestamps():
+    sync = Synchronizer(["l", "r"], 1 / 30)
+    # same seq, timestamps 0.45 periods apart but ordered oppositely: grouped by seq, not time
+    out = sync.push(Frame(IMAGE, 5.0, 7, "l", sync_domain="oak")) + sync.push(
+        Frame(IMAGE, 5.0 + 0.45 / 30, 7, "r", sync_domain="oak"))
+    out += sync.push(Frame(IMAGE, 5.0 + 1.0 / 30, 8, "r", sync_domain="oak"))
+    out += sync.push(Frame(IMAGE, 5.0 + 0.6 / 30, 8, "l", sync_domain="oak"))
+    out += sync.flush()
+    assert [(fs["l"].seq, fs["r"].seq) for fs in out] == [(7, 7), (8, 8)]
+
+
+def test_synced_capture_with_sim_rig_and_an_unplugged_camera(ict):
+    from livebridge.simulators.rig import RigConfig, SimRig, generate_markers
+
+    rig = SimRig(ict, generate_markers(ict, 20, 4), n_cameras=3,
+                 config=RigConfig(size=(320, 200), fps=60, noise_sigma=0, drop_rate=0.05, sync="free"), seed=2)
+    sources = rig.sources(realtime=True)
+    sources[2].kill_after(20)
+    got = []
+    with SyncedCapture(sources, rig.period, queue_size=64) as capture:
+        while len(got) < 60:
+            fs = capture.read(timeout=1.0)
+            assert fs is not None
+            got.append(fs)
+        events = capture.events
+        stats = capture.sync.stats
+    assert any("cam2" in e for e in events) and "cam2" in stats.dead
+    assert all(fs["cam2"] is None for fs in got[40:])
+    late_sets = got[40:]
+    assert sum(fs["cam0"] is not None and fs["cam1"] is not None for fs in late_sets) >= 0.8 * len(late_sets)
+    assert all(b.t > a.t for a, b in zip(got, got[1:]))
+    assert max(fs.skew for fs in got) <= 0.5 * rig.period
