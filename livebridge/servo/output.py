@@ -77,6 +77,8 @@ class ServoOutput:
             for name, spec in self.rig.buses.items():
                 options = dict(self.bus_options.get(name, {}))
                 options.setdefault("log", lambda message, name=name: self._event(name, message))
+                if spec.kind in ("maestro", "ssc32"):
+                    options.setdefault("estop", self.rig.estop)
                 bus = open_bus(spec.url, **options)
                 self.buses[name] = bus
                 setups = [ServoSetup(s.address, s.low, s.high, s.neutral, s.model, s.name)

@@ -1,0 +1,190 @@
+"""A simulated Pololu Maestro on a pseudo-terminal (compact and Pololu protocols).
+
+Byte-exact command parsing (set target, set multiple targets, set speed, set
+acceleration, get position, get moving state, get errors, go home); channel
+outputs move toward their targets limited by speed (0.25 µs / 10 ms) and
+acceleration (0.25 µs / 10 ms / 80 ms) as the Maestro does; targets are
+clamped to each channel's [min, max] (default 500..2500 µs here; a new
+Maestro ships with 992..2000 µs). A malformed command sets the serial
+protocol error bit (bit 4), cleared by get errors. Commands in the Pololu
+protocol for another device number are ignored. Fault injection as the
+Dynamixel simulator: corrupted or dropped replies.
+"""
+
+from __future__ import annotations
+
+import random
+import threading
+import time
+
+from livebridge.drivers import maestro as mp
+from livebridge.simulators.pty_bus import PtyBus, Reply
+
+_LENGTHS = {mp.SET_TARGET: 3, mp.SET_SPEED: 3, mp.SET_ACCELERATION: 3, mp.GET_POSITION: 1,
+            mp.GET_MOVING_STATE: 0, mp.GET_ERRORS: 0, mp.GO_HOME: 0}
+PROTOCOL_ERROR = 1 << 4
+
+
+class MaestroSim:
+    """A Maestro with ``channels`` servo channels, device number ``device``."""
+
+    def __init__(self, channels: int = 24, device: int = 12, range_us=(500.0, 2500.0), home_us: float = 0.0,
+                 corrupt_rate: float = 0.0, drop_rate: float = 0.0, seed: int = 0, clock=time.monotonic):
+        self.channels = channels
+        self.device = device
+        self.low, self.high = (int(range_us[0] * 4), int(range_us[1] * 4))
+        self.home = int(home_us * 4)
+        self.target = [0] * channels
+        self.position = [0.0] * channels
+        self.velocity = [0.0] * channels
+        self.speed = [0] * channels
+        self.acceleration = [0] * channels
+        self.errors = 0
+        self.corrupt_rate, self.drop_rate = corrupt_rate, drop_rate
+        self.random = random.Random(seed)
+        self.clock = clock
+        self.lock = threading.RLock()
+        self.buffer = bytearray()
+        self.target_log: list[tuple[int, int]] = []  # (channel, quarter-µs) of every target received
+        self.commands = 0
+        self._last = clock()
+        self.pty: PtyBus | None = None
+
+    def start(self) -> str:
+        self.pty = PtyBus(self.handle, tick=self.tick, tick_period=0.01)
+        return self.pty.path
+
+    def close(self) -> None:
+        if self.pty is not None:
+            self.pty.close()
+            self.pty = None
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def tick(self) -> None:
+        with self.lock:
+            now = self.clock()
+            dt, self._last = now - self._last, now
+            for c in range(self.channels):
+                self._move(c, dt)
+
+    def _move(self, c: int, dt: float) -> None:
+        goal = self.target[c]
+        if goal == 0 or self.position[c] == 0:
+            self.position[c] = float(goal)
+            return
+        d = goal - self.position[c]
+        speed = self.speed[c] * 100.0 if self.speed[c] else float("inf")  # quarter-µs per second
+        step = min(abs(d), speed * dt)
+        if self.acceleration[c]:
+            a = self.acceleration[c] * 100.0 / 0.08  # quarter-µs per s^2
+            v = min(abs(self.velocity[c]) + a * dt, speed, (2 * a * abs(d)) ** 0.5)
+            step = min(abs(d), v * dt)
+            self.velocity[c] = v if d else 0.0
+        self.position[c] += step if d > 0 else -step
+
+    def handle(self, data: bytes) -> list[Reply]:
+        with self.lock:
+            self.tick()
+            self.buffer += data
+            replies = []
+            while self.buffer:
+                used, reply = self._parse()
+                if used == 0:
+                    break
+                del self.buffer[:used]
+                if reply:
+                    replies.append(reply)
+        out = []
+        for reply in replies:
+            if self.drop_rate and self.random.random() < self.drop_rate:
+                continue
+            if self.corrupt_rate and self.random.random() < self.corrupt_rate:
+                reply = bytearray(reply)
+                reply[self.random.randrange(len(reply))] ^= 1 << self.random.randrange(8)
+            out.append((0.0, bytes(reply)))
+        return out
+
+    def _parse(self) -> tuple[int, bytes | None]:
+        """Consume one command from the buffer: (bytes used, reply); (0, None) when incomplete."""
+        buf = self.buffer
+        offset, device = 0, None
+        if buf[0] == mp.POLOLU_START:
+            if len(buf) < 3:
+                return 0, None
+            device, command, offset = buf[1], buf[2] | 0x80, 3
+            if buf[1] & 0x80 or buf[2] & 0x80:
+                self.errors |= PROTOCOL_ERROR
+                return 1, None
+        elif buf[0] & 0x80:
+            command, offset = buf[0], 1
+        else:
+            self.errors |= PROTOCOL_ERROR
+            return 1, None
+        if command == mp.SET_MULTIPLE_TARGETS:
+            if len(buf) < offset + 2:
+                return 0, None
+            n = buf[offset]
+            length = 2 + 2 * n
+        elif command in _LENGTHS:
+            length = _LENGTHS[command]
+        else:
+            self.errors |= PROTOCOL_ERROR
+            return offset, None
+        if len(buf) < offset + length:
+            return 0, None
+        data = bytes(buf[offset:offset + length])
+        used = offset + length
+        if any(b & 0x80 for b in data):
+            self.errors |= PROTOCOL_ERROR
+            return used, None
+        if device is not None and device != self.device:
+            return used, None
+        self.commands += 1
+        return used, self._execute(command, data)
+
+    def _channel(self, c: int) -> bool:
+        if c >= self.channels:
+            self.errors |= PROTOCOL_ERROR
+            return False
+        return True
+
+    def _set_target(self, c: int, value: int) -> None:
+        self.target_log.append((c, value))
+        if value and self.position[c] == 0:
+            self.position[c] = float(min(self.high, max(self.low, value)))
+        self.target[c] = 0 if value == 0 else min(self.high, max(self.low, value))
+
+    def _execute(self, command: int, data: bytes) -> bytes | None:
+        if command == mp.SET_TARGET:
+            if self._channel(data[0]):
+                self._set_target(data[0], data[1] | (data[2] << 7))
+        elif command == mp.SET_MULTIPLE_TARGETS:
+            n, first = data[0], data[1]
+            for k in range(n):
+                if self._channel(first + k):
+                    self._set_target(first + k, data[2 + 2 * k] | (data[3 + 2 * k] << 7))
+        elif command == mp.SET_SPEED:
+            if self._channel(data[0]):
+                self.speed[data[0]] = data[1] | (data[2] << 7)
+        elif command == mp.SET_ACCELERATION:
+            if self._channel(data[0]):
+                self.acceleration[data[0]] = data[1] | (data[2] << 7)
+        elif command == mp.GET_POSITION:
+            if self._channel(data[0]):
+                value = int(round(self.position[data[0]]))
+                return bytes([value & 0xFF, value >> 8])
+        elif command == mp.GET_MOVING_STATE:
+            return bytes([int(any(abs(p - t) > 0.5 for p, t in zip(self.position, self.target) if t))])
+        elif command == mp.GET_ERRORS:
+            errors, self.errors = self.errors, 0
+            return bytes([errors & 0xFF, errors >> 8])
+        elif command == mp.GO_HOME:
+            for c in range(self.channels):
+                self._set_target(c, self.home)
+        return None
