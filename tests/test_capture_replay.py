@@ -53,19 +53,24 @@ def test_replay_original_timing_and_synchronised(recorded):
     for source in sources:
         source.start()
     out, arrivals = [], []
-    pending = {s.source_id: s.read() for s in sources}
+
+    def read(source):
+        frame = source.read()
+        if frame is not None:
+            arrivals.append(time.monotonic() - frame.t_capture)
+        return frame
+
+    pending = {s.source_id: read(s) for s in sources}
     while any(f is not None for f in pending.values()):  # merge the two streams in time order
         name = min((n for n, f in pending.items() if f is not None), key=lambda n: pending[n].t_capture)
-        frame = pending[name]
-        arrivals.append(time.monotonic() - frame.t_capture)
-        out += sync.push(frame)
-        pending[name] = next(s for s in sources if s.source_id == name).read()
+        out += sync.push(pending[name])
+        pending[name] = read(next(s for s in sources if s.source_id == name))
     out += sync.flush()
     elapsed = time.monotonic() - start
     recorded_span = max(f.t_capture for fs in frames.values() for f in fs) - min(
         f.t_capture for fs in frames.values() for f in fs)
     assert elapsed >= recorded_span * 0.9
-    assert max(arrivals) < 0.05  # delivered close to its (shifted) capture time
+    assert np.median(arrivals) < 0.01 and min(arrivals) > -1e-3  # delivered at its (shifted) capture time
     hardware = frames["cam0"][0].sync_domain == frames["cam1"][0].sync_domain
     assert hardware and len(out) >= 11
     for fs in out:
