@@ -72,6 +72,9 @@ class DynamixelBus:
         Set each servo's return delay time (EEPROM) during ``configure``.
     missing_after : int
         Consecutive polls without an answer before a servo is reported missing.
+    timeout_margin_ms : float
+        Reply timeout beyond the bytes' wire time (the SDK's default is 34 ms;
+        simulated buses default to 150 ms so a busy machine does not lose replies).
     """
 
     kind = "dynamixel"
@@ -79,9 +82,17 @@ class DynamixelBus:
     def __init__(self, port: str, baud: int = 1_000_000, url: str | None = None, simulator=None,
                  status_every: int = 10, fast_read: bool | None = None, bus_watchdog_s: float | None = None,
                  return_delay_us: int | None = None, missing_after: int = 5, clock=time.monotonic,
-                 log=None, retries: int = 3):
+                 log=None, retries: int = 3, timeout_margin_ms: float = 34.0):
         from dynamixel_sdk import PacketHandler, PortHandler
 
+        class Port(PortHandler):
+            # The SDK waits tx time + 2 x its 16 ms latency constant + 2 ms for a reply; a configurable margin
+            # lets a simulated bus on a loaded machine (or a slow adapter) get more time.
+            def setPacketTimeout(self, packet_length):
+                self.packet_start_time = self.getCurrentTime()
+                self.packet_timeout = self.tx_time_per_byte * packet_length + margin_ms
+
+        margin_ms = float(timeout_margin_ms)
         self.url = url or f"dynamixel://{port}?baud={baud}"
         self.simulator = simulator
         self.clock = clock
@@ -92,7 +103,7 @@ class DynamixelBus:
         self.return_delay_us = return_delay_us
         self.missing_after = missing_after
         self.retries = retries
-        self.port = PortHandler(port)
+        self.port = Port(port)
         try:
             opened = self.port.openPort()
         except Exception as error:  # pyserial raises SerialException (an OSError subclass) or ValueError
@@ -415,6 +426,7 @@ def open_url(url: str, **options) -> DynamixelBus:
         except ValueError as error:
             raise InputError(str(error), url) from None
         path = sim.start()
+        options.setdefault("timeout_margin_ms", 150.0)
         try:
             return DynamixelBus(path, baud=baud, url=url, simulator=sim, **options)
         except BaseException:

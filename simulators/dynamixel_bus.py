@@ -382,8 +382,8 @@ class DynamixelSim:
             return []
         replies = []
         for servo in targets:
+            level = servo.get("status_return_level")  # the level before this instruction decides its reply
             error, params = self._single(servo, inst, p, now)
-            level = servo.get("status_return_level")
             wants = level >= 2 or (level == 1 and inst == dxl.READ)
             if not broadcast and wants:
                 replies.append(self._status(servo, error, params))
