@@ -1,0 +1,289 @@
+"""Marker reconstruction (correspondence, triangulation, labelling) on a simulated take; DLT vs aniposelib."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+SWAP_MM = 2.0  # a labelled marker farther than this from its true position is an outlier
+
+
+@dataclass(frozen=True, eq=False)
+class SimulatedTake:
+    """2D observations of a simulated take with ground truth.
+
+    Attributes
+    ----------
+    frames_2d : list (n_frames) of list (n_cams) of ndarray, shape (n_detections, 2)
+        Undistorted pixel centroids per frame and camera, markers and spurious highlights shuffled.
+    t : ndarray, shape (n_frames,)
+    points_3d : ndarray, shape (n_frames, n_markers, 3)
+        True world positions.
+    head2world : ndarray, shape (n_frames, 4, 4)
+    displacements : ndarray, shape (n_frames, n_markers, 3)
+        True displacements from neutral in the model frame.
+    labelled_2d : ndarray, shape (n_frames, n_cams, n_markers, 2)
+        The same marker observations by label (distorted pixels, noise included), NaN where unseen.
+    """
+
+    frames_2d: list
+    t: np.ndarray
+    points_3d: np.ndarray
+    head2world: np.ndarray
+    displacements: np.ndarray
+    labelled_2d: np.ndarray
+
+
+def face_and_markers(count: int = 64, n_head: int = 5):
+    """The ICT basis and a marker layout of ``count`` face + ``n_head`` head markers (None without the data)."""
+    from livebridge.face.reference import ict_basis
+
+    basis = ict_basis()
+    if basis is None:
+        return None, None
+    try:
+        from livebridge.face.layout import design_markers
+
+        markers = design_markers(basis, count=count, n_head=n_head)
+    except ImportError:
+        from livebridge.simulators.rig import generate_markers
+
+        markers = generate_markers(basis, n_face=count, n_head=n_head)
+    return basis, markers
+
+
+RIG_SPREAD_DEG = 120.0  # cameras at ±60° around the face: the face's sides are seen by two or more cameras
+
+
+def rig_cameras(basis, n_cameras: int = 4, seed: int = 0, distortion: float = -0.08):
+    """The simulated rig's cameras (spread over :data:`RIG_SPREAD_DEG`) with a mild radial distortion ``k1``."""
+    from livebridge.calibration.cameras import Camera, CameraGroup
+    from livebridge.simulators.rig import RigConfig, generate_cameras
+
+    cameras = generate_cameras(basis, n_cameras, RigConfig(spread_deg=RIG_SPREAD_DEG), seed=seed)
+    return CameraGroup([Camera(c.name, c.size, c.matrix, np.array([distortion, 0.0, 0.0, 0.0, 0.0]), c.rotation,
+                               c.translation) for c in cameras.cameras])
+
+
+def simulate(basis, markers, cameras, n_frames: int, seed: int = 0, noise_px: float = 0.2, occlusion: float = 0.1,
+             spurious: float = 3.0, max_view_deg: float = 75.0, head_turn_deg: float = 0.0,
+             turn_axis=(0.0, 1.0, 0.0), fps: float = 60.0) -> SimulatedTake:
+    """A performer take seen by ``cameras`` at the 2D level (no images).
+
+    Markers facing away from a camera (normal more than ``max_view_deg`` from it) are hidden, then
+    a further ``occlusion`` fraction of marker views at random; centroids get Gaussian noise of
+    ``noise_px`` per axis; ``spurious`` highlights per camera and frame (Poisson) appear near the
+    face; detections are undistorted and shuffled. ``head_turn_deg`` turns the whole performance
+    about ``turn_axis`` through the face centre (the first labelling must cope with it).
+    """
+    from scipy.spatial.transform import Rotation
+
+    from livebridge.simulators.performer import perform
+    from livebridge.simulators.rig import face_centre
+
+    rng = np.random.default_rng([seed, 61])
+    performance = perform(basis, markers, n_frames, fps=fps, seed=seed, script="mixed", head_motion=True)
+    turn = np.eye(4)
+    if head_turn_deg:
+        axis = np.asarray(turn_axis, dtype=np.float64)
+        turn[:3, :3] = Rotation.from_rotvec(np.deg2rad(head_turn_deg) * axis / np.linalg.norm(axis)).as_matrix()
+        centre = face_centre(basis)
+        turn[:3, 3] = centre - turn[:3, :3] @ centre
+    head2world = turn @ performance.head2world
+    points = performance.marker_positions @ turn[:3, :3].T + turn[:3, 3]
+    # marker normals: neutral triangle normals carried by the head pose
+    corners = basis.neutral[basis.triangles[markers.triangles]]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals_world = np.einsum("fij,nj->fni", head2world[:, :3, :3], normals)
+    n_cams, n_markers = len(cameras), len(markers)
+    labelled = np.full((n_frames, n_cams, n_markers, 2), np.nan)
+    frames_2d = []
+    lo = cameras.project(points[0]).reshape(-1, 2)
+    box_lo, box_hi = np.nanmin(lo, axis=0), np.nanmax(lo, axis=0)
+    for f in range(n_frames):
+        pixels = cameras.project(points[f])  # (c, n, 2)
+        per_camera = []
+        for c, camera in enumerate(cameras.cameras):
+            to_camera = camera.center - points[f]
+            cosine = (normals_world[f] * to_camera).sum(1) / np.linalg.norm(to_camera, axis=1)
+            seen = (cosine > np.cos(np.deg2rad(max_view_deg))) & (rng.random(n_markers) >= occlusion)
+            observed = pixels[c] + rng.normal(scale=noise_px, size=pixels[c].shape)
+            labelled[f, c, seen] = observed[seen]
+            extra = rng.uniform(box_lo, box_hi, size=(rng.poisson(spurious), 2))
+            detections = np.concatenate([observed[seen], extra])
+            per_camera.append(camera.undistort_points(detections[rng.permutation(len(detections))]))
+        frames_2d.append(per_camera)
+    return SimulatedTake(frames_2d, performance.t, points, head2world, performance.marker_displacements, labelled)
+
+
+def evaluate(frames, take: SimulatedTake) -> dict:
+    """Accuracy of labelled frames against the truth.
+
+    Returns ``rmse_mm`` (3D error over every labelled marker-frame), ``labelled_fraction`` (of all
+    marker-frames), ``labelled_fraction_reconstructible`` (of the marker-frames seen by at least two
+    cameras, the ones any reconstruction can label), ``swaps`` (labelled marker-frames whose position
+    is nearer another marker's true position than its own: a wrong identity), ``outliers_2mm``
+    (labelled marker-frames more than 2 mm from the truth), ``displacement_rmse_mm`` (model frame,
+    against the true displacements from neutral) and ``stray_per_frame``.
+    """
+    world = np.stack([f.positions_world for f in frames])
+    seen = np.isfinite(world).all(axis=-1)
+    error = np.linalg.norm(world - take.points_3d, axis=-1)
+    to_all = np.linalg.norm(world[:, :, None] - take.points_3d[:, None], axis=-1)  # (f, n, n)
+    nearest = np.argmin(np.where(np.isfinite(to_all), to_all, np.inf), axis=2)
+    swaps = int((seen & (nearest != np.arange(world.shape[1])[None])).sum())
+    reconstructible = np.isfinite(take.labelled_2d[..., 0]).sum(axis=1) >= 2
+    displacement = np.stack([f.displacements for f in frames])
+    disp_error = np.linalg.norm(displacement - take.displacements, axis=-1)
+    return {
+        "rmse_mm": float(np.sqrt(np.mean(error[seen] ** 2))) if seen.any() else float("nan"),
+        "labelled_fraction": float(seen.mean()),
+        "labelled_fraction_reconstructible": float((seen & reconstructible).sum() / max(reconstructible.sum(), 1)),
+        "swaps": swaps,
+        "outliers_2mm": int((seen & (error > SWAP_MM)).sum()),
+        "displacement_rmse_mm": float(np.sqrt(np.mean(disp_error[seen] ** 2))) if seen.any() else float("nan"),
+        "stray_per_frame": float(np.mean([f.n_stray for f in frames])),
+    }
+
+
+def _aniposelib_group(cameras):
+    from aniposelib.cameras import Camera as AnipCamera
+    from aniposelib.cameras import CameraGroup as AnipGroup
+
+    return AnipGroup([AnipCamera(matrix=c.matrix, dist=c.distortions, size=c.size, rvec=c.rotation, tvec=c.translation,
+                                 name=c.name) for c in cameras.cameras])
+
+
+def _time_per_call(function, inputs, repeats: int) -> float:
+    best = np.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for item in inputs:
+            function(item)
+        best = min(best, (time.perf_counter() - start) / len(inputs))
+    return best
+
+
+def triangulation_comparison(cameras, labelled_2d: np.ndarray, n_frames: int, log) -> dict:
+    """Our batched DLT vs ``aniposelib.CameraGroup.triangulate`` on the same labelled, undistorted points, per frame.
+
+    Both get the same undistorted observations with the undistortion outside the timing: ours as
+    undistorted pixels (it normalises them itself, inside the timing), aniposelib as normalised
+    coordinates with ``undistort=False`` (it would otherwise undistort with OpenCV itself).
+    """
+    from livebridge.reconstruct.triangulate import Triangulator
+
+    triangulator = Triangulator(cameras)
+    frames = labelled_2d[:n_frames]
+    undistorted = [cameras.undistort_points(f) for f in frames]  # (c, n, 2) each
+    normalized = [triangulator.normalize(u) for u in undistorted]
+    ours = np.stack([triangulator.dlt(u) for u in undistorted])
+    result = {"triangulate_peer": "aniposelib CameraGroup.triangulate (jax DLT), per frame"}
+    try:
+        group = _aniposelib_group(cameras)
+        theirs = np.stack([group.triangulate(n, undistort=False) for n in normalized])
+    except Exception as error:  # noqa: BLE001 - the peer may be missing or broken; we report and fall back
+        log(f"aniposelib unavailable ({error!r}); comparing with OpenCV triangulatePoints medians")
+        return result | _opencv_comparison(triangulator, undistorted, ours)
+    both = np.isfinite(ours).all(-1) & np.isfinite(theirs).all(-1)
+    result["triangulate_max_diff_mm"] = float(np.abs(ours[both] - theirs[both]).max())
+    result["triangulate_same_points"] = bool((np.isfinite(ours).all(-1) == np.isfinite(theirs).all(-1)).all())
+    repeats = 3
+    ours_s = _time_per_call(triangulator.dlt, undistorted, repeats)
+    theirs_s = _time_per_call(lambda n: group.triangulate(n, undistort=False), normalized, repeats)
+    result["triangulate_us_per_frame"] = ours_s * 1e6
+    result["aniposelib_us_per_frame"] = theirs_s * 1e6
+    result["triangulate_speedup_vs_aniposelib"] = theirs_s / ours_s
+    # the whole take in one call (aniposelib's best case)
+    stacked_u = np.concatenate(undistorted, axis=1)
+    stacked_n = np.concatenate(normalized, axis=1)
+    group.triangulate(stacked_n, undistort=False)
+    ours_b = _time_per_call(triangulator.dlt, [stacked_u], repeats)
+    theirs_b = _time_per_call(lambda n: group.triangulate(n, undistort=False), [stacked_n], repeats)
+    result["triangulate_batch_speedup_vs_aniposelib"] = theirs_b / ours_b
+    return result
+
+
+def _opencv_comparison(triangulator, undistorted, ours) -> dict:
+    import itertools
+
+    import cv2
+
+    def opencv(points):
+        estimates = []
+        for a, b in itertools.combinations(range(len(points)), 2):
+            pa, pb = triangulator.normalize(points[a:a + 1])[0], triangulator.normalize(points[b:b + 1])[0]
+            x = cv2.triangulatePoints(triangulator.extrinsics[a], triangulator.extrinsics[b], pa.T, pb.T)
+            estimates.append((x[:3] / x[3]).T)
+        return np.nanmedian(np.stack(estimates), axis=0)
+
+    theirs = np.stack([opencv(u) for u in undistorted])
+    both = np.isfinite(ours).all(-1) & np.isfinite(theirs).all(-1)
+    ours_s = _time_per_call(triangulator.dlt, undistorted, 3)
+    theirs_s = _time_per_call(opencv, undistorted, 3)
+    return {"triangulate_peer": "OpenCV triangulatePoints pairwise medians (aniposelib could not run)",
+            "triangulate_max_diff_mm": float(np.abs(ours[both] - theirs[both]).max()),
+            "triangulate_speedup_vs_aniposelib": theirs_s / ours_s, "triangulate_us_per_frame": ours_s * 1e6}
+
+
+def detection_timing(basis, markers, n_frames: int, seed: int = 0) -> dict:
+    """Detection on the simulated rig's rendered images: ms per image and centroid error vs truth (px)."""
+    from livebridge.reconstruct.detect import detect_blobs
+    from livebridge.simulators.rig import RigConfig, SimRig
+
+    rig = SimRig(basis, markers, config=RigConfig(spurious_rate=2.0), seed=seed)
+    images, truths = [], []
+    for frameset in rig.framesets(n_frames):
+        images.append([frame.image for frame in frameset.frames])
+        truths.append(frameset.truth)
+    flat = [image for frameset in images for image in frameset]
+    seconds = _time_per_call(detect_blobs, flat, 1)
+    errors, found, expected = [], 0, 0
+    for frameset, truth in zip(images, truths):
+        for c, image in enumerate(frameset):
+            blobs = detect_blobs(image)
+            true = truth.points_2d[c][truth.visible[c]]
+            expected += len(true)
+            if len(blobs) and len(true):
+                distance = np.linalg.norm(blobs[:, None] - true[None], axis=-1).min(axis=0)
+                hit = distance < 1.5
+                found += int(hit.sum())
+                errors.append(distance[hit])
+    errors = np.concatenate(errors) if errors else np.zeros(0)
+    return {"detect_ms_per_image": seconds * 1e3,
+            "detect_centroid_rms_px": float(np.sqrt(np.mean(errors**2))) if len(errors) else float("nan"),
+            "detect_found_fraction": found / max(expected, 1)}
+
+
+def run(quick: bool, log) -> dict:
+    from livebridge.reconstruct.pipeline import Reconstructor
+
+    n_frames = 300 if quick else 3000
+    basis, markers = face_and_markers()
+    if basis is None:
+        raise RuntimeError("the reference data (../shared/data) is needed for this benchmark")
+    cameras = rig_cameras(basis)
+    log(f"simulating {n_frames} frames: {len(cameras)} cameras, {int(markers.face_mask.sum())} face + "
+        f"{int(markers.head_mask.sum())} head markers, 0.2 px noise, 10% occlusion, spurious highlights")
+    take = simulate(basis, markers, cameras, n_frames, seed=1)
+    reconstructor = Reconstructor(cameras, markers, basis)
+    start = time.perf_counter()
+    frames = reconstructor.run(take.frames_2d, take.t)
+    seconds = time.perf_counter() - start
+    result = {"frames": n_frames, "cameras": len(cameras), "markers": len(markers),
+              "ms_per_frame": seconds / n_frames * 1e3}
+    result |= evaluate(frames, take)
+    log("timing triangulation against aniposelib")
+    result |= triangulation_comparison(cameras, take.labelled_2d, min(n_frames, 300), log)
+    log("timing detection on rendered images")
+    result |= detection_timing(basis, markers, 5 if quick else 20)
+    result["pass"] = bool(result["triangulate_speedup_vs_aniposelib"] >= 20 and result["rmse_mm"] <= 0.2
+                          and result["swaps"] == 0
+                          and result["labelled_fraction_reconstructible"] >= 0.99
+                          and result.get("triangulate_max_diff_mm", 0.0) <= 1e-6)
+    return result
+
+

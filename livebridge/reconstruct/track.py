@@ -1,0 +1,220 @@
+"""Per-frame marker tracking: labels kept over time, in the head frame.
+
+Each marker's last known position and velocity are kept in the head (model) frame, and the head
+pose is extrapolated at constant velocity; the prediction for a marker is its head-frame position
+advanced by its velocity, carried into the world by the predicted head pose. Detections are
+assigned by gated optimal assignment (Hungarian); the gate widens while a marker is unseen, so a
+marker is picked up again after an occlusion of several frames (its head-frame position does not
+drift with head motion). An assignment is refused when the detection lies closer to another
+marker's prediction than to its own - the situation in which two labels could swap - and the
+refusals are counted. Detections that take no label are strays (reflections), ignored and counted.
+After the assignment the head pose is solved from the rigid head markers (Kabsch, scale fixed),
+or, when fewer than three are seen, from all labelled markers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from livebridge.reconstruct.label import gated_assignment
+from livebridge.reconstruct.stabilize import apply, head_pose
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """Tracking parameters (mm, frames).
+
+    Attributes
+    ----------
+    gate_mm : float
+        Gate for a marker seen in the previous frame.
+    gate_growth_mm : float
+        Extra gate per frame the marker has been unseen.
+    max_gate_mm : float
+        The gate never grows beyond this.
+    velocity_frames : int
+        A marker unseen for longer than this is predicted without velocity.
+    """
+
+    gate_mm: float = 4.0
+    gate_growth_mm: float = 0.75
+    max_gate_mm: float = 7.0
+    velocity_frames: int = 5
+
+
+@dataclass(frozen=True, eq=False)
+class TrackState:
+    """Tracker state between frames.
+
+    Attributes
+    ----------
+    t : float
+        Time of the last frame (s).
+    positions_model : ndarray, shape (n_markers, 3)
+        Last known position of every marker in the model (head) frame.
+    velocities_model : ndarray, shape (n_markers, 3)
+        Their velocity in the model frame (mm/s).
+    unseen : ndarray of int, shape (n_markers,)
+        Frames since each marker was last labelled (0: labelled in the last frame).
+    head2world : ndarray, shape (4, 4)
+        Head pose in the last frame.
+    head_motion : ndarray, shape (6,)
+        Head velocity, rotation vector (rad/s) then translation (mm/s), of ``head2world`` over time.
+    """
+
+    t: float
+    positions_model: np.ndarray
+    velocities_model: np.ndarray
+    unseen: np.ndarray
+    head2world: np.ndarray
+    head_motion: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class TrackFrame:
+    """Tracking output of one frame.
+
+    Attributes
+    ----------
+    labels : ndarray of int, shape (n_points,)
+        Marker index of each input point, -1 for strays.
+    positions_world : ndarray, shape (n_markers, 3)
+        Labelled positions in the world, NaN where unlabelled.
+    positions_model : ndarray, shape (n_markers, 3)
+        The same in the model (head) frame.
+    head2world : ndarray, shape (4, 4)
+    n_stray : int
+        Input points that took no label.
+    n_refused : int
+        Assignments refused as possible swaps.
+    """
+
+    labels: np.ndarray
+    positions_world: np.ndarray
+    positions_model: np.ndarray
+    head2world: np.ndarray
+    n_stray: int
+    n_refused: int
+
+
+def _pose_step(head2world: np.ndarray, motion: np.ndarray, dt: float) -> np.ndarray:
+    """``head2world`` advanced by ``dt`` seconds of constant motion (rotation about the pose's origin)."""
+    delta = np.eye(4)
+    delta[:3, :3] = cv2.Rodrigues(motion[:3] * dt)[0]
+    out = head2world.copy()
+    out[:3, :3] = delta[:3, :3] @ head2world[:3, :3]
+    out[:3, 3] = head2world[:3, 3] + motion[3:] * dt
+    return out
+
+
+def _pose_motion(before: np.ndarray, after: np.ndarray, dt: float) -> np.ndarray:
+    """Constant motion (6,) taking ``before`` to ``after`` in ``dt`` seconds (inverse of :func:`_pose_step`)."""
+    rotation = after[:3, :3] @ np.linalg.inv(before[:3, :3])
+    rotation = rotation / np.cbrt(np.linalg.det(rotation))
+    rotvec = cv2.Rodrigues(rotation)[0].ravel()
+    return np.concatenate([rotvec, after[:3, 3] - before[:3, 3]]) / dt
+
+
+class Tracker:
+    """Label tracker for one marker set.
+
+    Parameters
+    ----------
+    head_mask : ndarray of bool, shape (n_markers,)
+        The rigid head-rig markers.
+    head_reference_model : ndarray, shape (n_markers, 3)
+        Reference positions in the model frame (head rows are used for the head pose).
+    model_scale : float
+        World mm per model mm (from the coordinate alignment).
+    config : TrackConfig
+    """
+
+    def __init__(self, head_mask: np.ndarray, head_reference_model: np.ndarray, model_scale: float = 1.0,
+                 config: TrackConfig = TrackConfig()):
+        self.head_mask = np.asarray(head_mask, dtype=bool)
+        self.reference = np.asarray(head_reference_model, dtype=np.float64)
+        self.model_scale = float(model_scale)
+        self.config = config
+
+    def start(self, t: float, positions_model: np.ndarray, seen: np.ndarray, head2world: np.ndarray) -> TrackState:
+        """Initial state from a labelled first frame.
+
+        Parameters
+        ----------
+        t : float
+        positions_model : ndarray, shape (n_markers, 3)
+            Every marker's position in the model frame (labelled ones measured, the rest from the model).
+        seen : ndarray of bool, shape (n_markers,)
+        head2world : ndarray, shape (4, 4)
+        """
+        unseen = np.where(seen, 0, self.config.velocity_frames + 1).astype(np.int64)
+        return TrackState(float(t), np.array(positions_model, dtype=np.float64), np.zeros_like(positions_model),
+                          unseen, np.array(head2world, dtype=np.float64), np.zeros(6))
+
+    def predict(self, state: TrackState, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted head pose ``(4, 4)`` and world marker positions ``(n_markers, 3)`` at time ``t``."""
+        dt = t - state.t
+        head2world = _pose_step(state.head2world, state.head_motion, dt)
+        moving = (state.unseen <= self.config.velocity_frames)[:, None]
+        ahead = dt * (state.unseen[:, None] + 1)
+        positions = state.positions_model + np.where(moving, state.velocities_model * ahead, 0.0)
+        return head2world, apply(head2world, positions)
+
+    def step(self, state: TrackState, points_3d: np.ndarray, t: float) -> tuple[TrackState, TrackFrame]:
+        """Label one frame's unlabelled points.
+
+        Parameters
+        ----------
+        state : TrackState
+        points_3d : ndarray, shape (n_points, 3)
+            Unlabelled world points of this frame.
+        t : float
+            Seconds.
+
+        Returns
+        -------
+        (TrackState, TrackFrame)
+        """
+        config = self.config
+        points_3d = np.asarray(points_3d, dtype=np.float64).reshape(-1, 3)
+        n_markers = len(state.positions_model)
+        dt = max(t - state.t, 1e-6)
+        predicted_pose, predicted = self.predict(state, t)
+        gate = np.minimum(config.gate_mm + config.gate_growth_mm * state.unseen, config.max_gate_mm)
+        gate = gate * self.model_scale
+        cost = np.linalg.norm(predicted[:, None] - points_3d[None], axis=-1)  # (n_markers, n_points)
+        rows, cols = gated_assignment(cost, gate)
+        # refuse an assignment whose point is nearer another marker's prediction (a possible swap)
+        if len(rows):
+            nearest = np.argmin(cost[:, cols], axis=0)
+            keep = nearest == rows
+        else:
+            keep = np.zeros(0, dtype=bool)
+        n_refused = int((~keep).sum())
+        rows, cols = rows[keep], cols[keep]
+        labels = np.full(len(points_3d), -1, dtype=np.int64)
+        labels[cols] = rows
+        world = np.full((n_markers, 3), np.nan)
+        world[rows] = points_3d[cols]
+        head2world = head_pose(self.reference[self.head_mask], world[self.head_mask], self.model_scale)
+        if not np.isfinite(head2world).all():
+            # too few head markers: rigid fit of every labelled marker's last model-frame position
+            fallback = head_pose(state.positions_model, world, self.model_scale)
+            head2world = fallback if np.isfinite(fallback).all() else predicted_pose
+        world2head = np.linalg.inv(head2world)
+        model = apply(world2head, world)
+        seen = np.isfinite(model).all(axis=1)
+        continuing = seen & (state.unseen == 0)
+        velocities = state.velocities_model.copy()
+        velocities[continuing] = (model[continuing] - state.positions_model[continuing]) / dt
+        velocities[seen & ~continuing] = 0.0
+        positions = state.positions_model.copy()
+        positions[seen] = model[seen]
+        unseen = np.where(seen, 0, state.unseen + 1)
+        new_state = replace(state, t=float(t), positions_model=positions, velocities_model=velocities, unseen=unseen,
+                            head2world=head2world, head_motion=_pose_motion(state.head2world, head2world, dt))
+        frame = TrackFrame(labels, world, model, head2world, int(len(points_3d) - len(rows)), n_refused)
+        return new_state, frame
