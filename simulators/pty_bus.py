@@ -81,6 +81,15 @@ class PtyBus:
         """Stop serving and close both ends; re-raise an error the serving thread hit."""
         self._stop.set()
         self._thread.join(timeout=2.0)
+        # bytes the client wrote just before closing (a last torque-off) still reach the device
+        try:
+            while select.select([self.master], [], [], 0)[0]:
+                data = os.read(self.master, 65536)
+                if not data:
+                    break
+                self.handler(data)
+        except OSError:
+            pass
         for fd in (self.master, self.slave):
             try:
                 os.close(fd)
