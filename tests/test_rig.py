@@ -228,3 +228,30 @@ def test_generated_cameras_look_at_the_face(ict):
     pixels = cameras.project(centre[None])[:, 0]
     np.testing.assert_allclose(pixels, [[639.5, 399.5]] * 6, atol=1e-6)
     assert all(c.center[2] > centre[2] + 300 for c in cameras.cameras)  # in front of the face (+z)
+
+
+@pytest.mark.parametrize("spec", ["charuco:7x5:30:22:DICT_4X4_50", "chessboard:8x6:25"])
+def test_rig_renders_calibration_boards(face, spec):
+    from livebridge.calibration.boards import parse_board
+    from livebridge.calibration.detect import detect_board
+    from livebridge.simulators.rig import face_centre
+
+    basis, markers = face
+    board = parse_board(spec)
+    rig = SimRig(basis, markers, n_cameras=3, config=RigConfig(size=(640, 400), noise_sigma=1.0), seed=2)
+    board2world = np.eye(4)
+    board2world[:3, :3] = np.diag([1.0, -1.0, -1.0])  # printed side towards the cameras (+z)
+    width, height = board.size_mm
+    board2world[:3, 3] = face_centre(basis) + [-width / 2, height / 2, 60.0]
+    images = rig.render_board(board, board2world, blur_px=0.5)
+    assert len(images) == 3
+    corners_world = board.object_points @ board2world[:3, :3].T + board2world[:3, 3]
+    for camera, image in zip(rig.cameras.cameras, images):
+        assert image.shape == (400, 640) and image.dtype == np.uint8
+        found = detect_board(board, image)
+        seen = np.isfinite(found).all(axis=1)
+        assert seen.sum() >= 0.8 * len(found)
+        expected = camera.project(corners_world)
+        # a chessboard's corner order is ambiguous up to a half turn: match each corner to the nearest projection
+        error = np.linalg.norm(found[seen][:, None] - expected[None], axis=-1).min(axis=1)
+        assert np.sqrt((error ** 2).mean()) < 0.5
