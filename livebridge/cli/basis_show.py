@@ -141,8 +141,10 @@ def render_basis(basis, path: str | Path, markers=None, yaw_deg: float = 15.0, p
 @click.option("--dpi", default=90, show_default=True, type=click.IntRange(30, 600))
 @click.option("--muscle", "muscles", multiple=True, help="Only this element (repeatable; default: all).")
 @click.option("--panel-size", default=3.0, show_default=True, type=click.FloatRange(1, 20), help="Inches per panel.")
+@click.option("--crop-y", nargs=2, type=float, default=None, metavar="LOW HIGH",
+              help="Frame only this range of heights of the neutral face (mm), e.g. -100 90.")
 def show(basis_spec: str, out: Path, markers_spec: str | None, yaw: float, dpi: int, muscles: tuple[str, ...],
-         panel_size: float) -> None:
+         panel_size: float, crop_y: tuple[float, float] | None) -> None:
     """Render BASIS (a basis file, 'builtin' or 'ict'): the neutral face and each element, one panel each."""
     from livebridge.errors import InputError
     from livebridge.face.markers import MarkerSet
@@ -161,7 +163,7 @@ def show(basis_spec: str, out: Path, markers_spec: str | None, yaw: float, dpi: 
             raise click.ClickException(str(error)) from None
     try:
         render_basis(basis, out, markers=markers, yaw_deg=yaw, dpi=dpi, muscles=muscles or None,
-                     panel_inches=panel_size)
+                     panel_inches=panel_size, crop_y=crop_y)
     except InputError as error:
         raise click.ClickException(str(error)) from None
     click.echo(f"wrote {out}: neutral and {basis.n_muscles} elements of {basis_spec}")

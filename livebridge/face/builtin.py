@@ -279,8 +279,8 @@ def _mouth_coordinates(v: np.ndarray):
 def _orbicularis_oris(v: np.ndarray, n: np.ndarray) -> np.ndarray:
     """Sphincter of the mouth: lips narrow towards the centre and protrude (pucker)."""
     x, dy = _mouth_coordinates(v)
-    q = np.hypot(x / 30.0, dy / 20.0)
-    weight = 1.0 - _smoothstep((q - 0.55) / 1.0)
+    q = np.hypot(x / 28.0, dy / 14.0)
+    weight = 1.0 - _smoothstep((q - 0.5) / 0.9)
     weight *= v[:, 2] > 40
     displacement = np.stack([-0.4 * x, -0.12 * dy, 9.0 * np.ones(len(v))], axis=1) * weight[:, None]
     return _scale_to_peak(displacement, 12.0)
