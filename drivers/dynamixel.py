@@ -32,7 +32,6 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 from livebridge.drivers import dynamixel_protocol as dxl
-
 from livebridge.errors import InputError
 from livebridge.servo.bus import ServoInfo, ServoSetup, ServoStatus, url_options
 

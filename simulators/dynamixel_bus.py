@@ -176,10 +176,10 @@ class SimServo:
         return self.memory[64] == 1
 
     def stop(self, now: float) -> None:
+        """Halt where it is (torque off, shutdown, watchdog); the goal position item keeps its value."""
         if self.motion is not None:
             self.position, _ = self.motion.at(now)
         self.motion = None
-        self.set("goal_position", int(round(self.position)))
 
     def start_motion(self, goal: int, now: float) -> None:
         if self.motion is not None:

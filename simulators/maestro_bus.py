@@ -126,6 +126,12 @@ class MaestroSim:
         else:
             self.errors |= PROTOCOL_ERROR
             return 1, None
+        for k in range(offset, len(buf)):  # a byte with the high bit set starts a new command
+            if buf[k] & 0x80:
+                if k < offset + (2 if command == mp.SET_MULTIPLE_TARGETS else _LENGTHS.get(command, 0)):
+                    self.errors |= PROTOCOL_ERROR
+                    return k, None
+                break
         if command == mp.SET_MULTIPLE_TARGETS:
             if len(buf) < offset + 2:
                 return 0, None
@@ -142,7 +148,7 @@ class MaestroSim:
         used = offset + length
         if any(b & 0x80 for b in data):
             self.errors |= PROTOCOL_ERROR
-            return used, None
+            return offset + next(i for i, b in enumerate(data) if b & 0x80), None
         if device is not None and device != self.device:
             return used, None
         self.commands += 1

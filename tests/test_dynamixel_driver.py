@@ -6,8 +6,8 @@ import time
 
 import numpy as np
 import pytest
-from livebridge.drivers import dynamixel_protocol as dxl
 
+from livebridge.drivers import dynamixel_protocol as dxl
 from livebridge.errors import InputError
 from livebridge.servo.bus import ServoBus, ServoSetup, open_bus
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 import pytest
+
 from livebridge.drivers import dynamixel_protocol as dxl
 from livebridge.simulators.dynamixel_bus import DynamixelSim, parse_ids
 

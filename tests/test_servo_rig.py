@@ -124,6 +124,7 @@ def test_servo_output_lifecycle(tmp_path):
         out.close()
     # close eased to neutral, then torque off
     assert sim.servo(1).get("goal_position") == 2048 and not sim.servo(1).torque_on
+    assert sim.servo(1).position == pytest.approx(2048, abs=30)
 
 
 def test_servo_output_estop_and_bus_kinds():

@@ -198,5 +198,6 @@ class ServoOutput:
         while self.clock() < deadline:
             self.send(None)
             if np.all(np.abs(self.state.target - self.mapper.neutral) < 0.5):
+                time.sleep(2 * self.frame_period)  # let the servos finish the last profile
                 break
             time.sleep(self.frame_period)

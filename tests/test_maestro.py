@@ -1,0 +1,78 @@
+"""Pololu Maestro: golden bytes, the simulator, and the driver on it."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import serial
+
+from livebridge.drivers import maestro as mp
+from livebridge.servo.bus import ServoSetup, open_bus
+from livebridge.simulators.maestro_bus import PROTOCOL_ERROR, MaestroSim
+
+
+def test_golden_bytes():
+    # Pololu Maestro User's Guide: set target of channel 0 to 1500 µs (6000 quarter-µs).
+    assert mp.set_target(0, 6000) == bytes.fromhex("84 00 70 2E")
+    assert mp.set_target(0, 6000, device=12) == bytes.fromhex("AA 0C 04 00 70 2E")
+    assert mp.set_multiple_targets(0, [6000, 7000]) == bytes.fromhex("9F 02 00 70 2E 58 36")
+    assert mp.get_position(5) == bytes.fromhex("90 05")
+    assert mp.get_errors(device=12) == bytes.fromhex("AA 0C 21")
+    assert mp.set_speed(1, 140) == bytes.fromhex("87 01 0C 01")
+    assert mp.decode_u16(bytes([0x70, 0x17])) == 6000
+    with pytest.raises(ValueError):
+        mp.set_target(0, 1 << 14)
+
+
+@pytest.fixture
+def maestro():
+    sim = MaestroSim(channels=6, device=12)
+    port = serial.Serial(sim.start(), timeout=0.2)
+    yield sim, port
+    port.close()
+    sim.close()
+
+
+def test_simulator_both_protocols(maestro):
+    sim, port = maestro
+    port.write(mp.set_target(0, 6000) + mp.set_target(1, 7000, device=12) + mp.set_target(2, 5000, device=7))
+    port.write(mp.get_position(0) + mp.get_position(1, device=12) + mp.get_position(2))
+    assert port.read(6) == bytes([0x70, 0x17, 0x58, 0x1B, 0, 0])  # device 7 is someone else
+    port.write(bytes([0x84, 0x00, 0x90]))  # data byte with the high bit set: protocol error
+    port.write(mp.get_errors())
+    assert mp.decode_u16(port.read(2)) & PROTOCOL_ERROR
+    port.write(mp.get_errors())
+    assert mp.decode_u16(port.read(2)) == 0  # reading clears
+
+
+def test_speed_limit_moves_gradually(maestro):
+    sim, port = maestro
+    port.write(mp.set_target(3, 4000))
+    time.sleep(0.05)
+    port.write(mp.set_speed(3, 20) + mp.set_target(3, 8000))  # 20 * 0.25 µs / 10 ms = 500 µs/s
+    time.sleep(0.2)
+    port.write(mp.get_position(3))
+    middle = mp.decode_u16(port.read(2)) / 4
+    assert 1050 < middle < 1200
+    port.write(mp.get_moving_state())
+    assert port.read(1) == b"\x01"
+
+
+def test_driver_on_simulator():
+    bus = open_bus("simmaestro://?channels=8&device=12")
+    try:
+        sim = bus.simulator
+        assert [i.address for i in bus.scan()] == list(range(8))
+        bus.configure([ServoSetup(c, 1000, 2000, 1500, name=f"c{c}") for c in (0, 1, 2, 5)], 0.02)
+        assert all(v != v for v in bus.activate().values())  # no pulses yet: position unknown (NaN)
+        bus.write({0: 1200.0, 1: 900.0, 2: float("inf"), 5: 2500.0})
+        time.sleep(0.05)
+        assert sim.target[0] == 4800 and sim.target[1] == 4000 and sim.target[2] == 0 and sim.target[5] == 8000
+        status = bus.poll()
+        assert status[0].position == 1200
+        bus.estop()
+        time.sleep(0.05)
+        assert sim.target[:6] == [0] * 6
+    finally:
+        bus.close()
