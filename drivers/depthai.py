@@ -28,8 +28,8 @@ import threading
 import cv2
 import depthai as dai
 import numpy as np
-from livebridge.calibration.cameras import Camera, CameraGroup
 
+from livebridge.calibration.cameras import Camera, CameraGroup
 from livebridge.capture.frame import Frame
 from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase, SourceURL
 from livebridge.errors import InputError

@@ -3,7 +3,7 @@
 Each camera renders, per frame, the markers as bright anti-aliased discs whose radius follows their
 distance (``f * diameter / 2 / depth``) on a dark, faintly shaded face (Lambert shading of the basis'
 neutral mesh lit from the camera, as by an IR ring light), rendered once per camera and cached, and
-shifted with the head. A marker is hidden when the face surface lies in front of it (a per-frame depth
+shifted (translated) with the head. A marker is hidden when the face surface lies in front of it (a per-frame depth
 splat of the deformed, posed mesh) or when it faces away from the camera (more than ``max_view_deg``).
 Sensor noise comes from pre-generated noise tiles read at random offsets; optional motion blur smears
 each marker over the exposure, spurious highlights appear on the face, frames drop and timestamps jitter.
@@ -29,8 +29,8 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
-from livebridge.calibration.cameras import Camera, CameraGroup
 
+from livebridge.calibration.cameras import Camera, CameraGroup
 from livebridge.capture.frame import Frame, FrameSet
 from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase, SourceURL
 from livebridge.errors import InputError
@@ -86,7 +86,7 @@ class RigConfig:
     exposure_us : float
         Nominal exposure; brightness scales with ``exposure * gain`` relative to it.
     follow_head : bool
-        Shift the cached face background with the head (an affine warp per camera frame).
+        Shift the cached face background with the head (whole-pixel image translation of the face centre).
     """
 
     size: tuple[int, int] = (1280, 800)
@@ -684,9 +684,11 @@ class SimRig:
             return None, visible, pixels, radii, np.zeros((0, 2)), False
         exposure_us, gain = self._exposure[c]
         scale = exposure_us / config.exposure_us * gain
-        image = self._background(c, scale).copy()
+        background = self._background(c, scale)
         if config.follow_head and not np.allclose(state.head2world, np.eye(4), atol=1e-9):
-            image = self._follow_head(image, camera, state.head2world)
+            image = self._follow_head(background, camera, state.head2world)  # a new array
+        else:
+            image = background.copy()
         # spurious highlights: small bright blobs on visible face vertices
         spurious = np.zeros((0, 2))
         if config.spurious_rate > 0:
@@ -716,12 +718,23 @@ class SimRig:
         return frame, visible, pixels, radii, spurious, False
 
     def _follow_head(self, image: np.ndarray, camera: Camera, head2world: np.ndarray) -> np.ndarray:
-        """Warp the neutral-pose background by the affine map the head motion induces near the face centre."""
-        anchor = self._anchor + np.array([[0, 0, 0], [60.0, 0, 0], [0, 60.0, 0]])
-        before = camera.project(anchor).astype(np.float32)
-        after = camera.project(_apply(head2world, anchor)).astype(np.float32)
-        warp = cv2.getAffineTransform(before, after)
-        return cv2.warpAffine(image, warp, camera.size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        """Shift the neutral-pose background by the whole-pixel image motion of the face centre.
+
+        A translation only (the head turns by a few degrees at most): as cheap as a copy, and the faint
+        background is not what anyone measures."""
+        anchor = self._anchor[None]
+        shift = camera.project(_apply(head2world, anchor))[0] - camera.project(anchor)[0]
+        if not np.isfinite(shift).all():
+            return image.copy()
+        dx, dy = (int(v) for v in np.rint(shift))
+        height, width = image.shape
+        if dx == 0 and dy == 0:
+            return image.copy()
+        out = np.full_like(image, int(round(self.config.ambient_level)))
+        if abs(dx) < width and abs(dy) < height:
+            out[max(dy, 0):height + min(dy, 0), max(dx, 0):width + min(dx, 0)] = \
+                image[max(-dy, 0):height + min(-dy, 0), max(-dx, 0):width + min(-dx, 0)]
+        return out
 
 
 # -------------------------------------------------------------------------------------------- sources

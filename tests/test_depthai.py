@@ -12,9 +12,8 @@ import pytest
 
 dai = pytest.importorskip("depthai")
 
-from livebridge.drivers import depthai as oak  # noqa: E402
-
 from livebridge.capture.sources import CameraSource, open_sources  # noqa: E402
+from livebridge.drivers import depthai as oak  # noqa: E402
 from livebridge.errors import InputError  # noqa: E402
 
 

@@ -6,11 +6,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from livebridge.simulators.rig import RigConfig, SimRig, generate_cameras, generate_markers, render_discs
 
 from livebridge.capture.frame import Frame, FrameSet
 from livebridge.capture.sources import CameraSource, open_source, open_sources
 from livebridge.errors import InputError
+from livebridge.simulators.rig import RigConfig, SimRig, generate_cameras, generate_markers, render_discs
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,8 @@ import time
 import cv2
 import numpy as np
 import pytest
+
+from livebridge.capture.sources import CameraSource, open_source
 from livebridge.drivers.v4l2 import (
     V4L2Source,
     fourcc_code,
@@ -15,8 +17,6 @@ from livebridge.drivers.v4l2 import (
     list_devices,
     to_gray,
 )
-
-from livebridge.capture.sources import CameraSource, open_source
 from livebridge.errors import InputError
 
 
