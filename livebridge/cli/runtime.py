@@ -1,0 +1,103 @@
+"""``livebridge run SESSION`` and ``livebridge demo``: the live pipeline from the command line."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+
+def _log(message: str) -> None:
+    click.echo(message, err=True)
+
+
+def _print_summary(summary: dict, score=None) -> None:
+    click.echo(f"frame sets solved: {summary['solved']} ({summary['framesets']} reconstructed), "
+               f"{summary['fps']:.1f} per second, {summary['drops']} dropped")
+    click.echo(f"latency (frame set complete -> servo bytes written): p50 {summary['latency_p50_ms']:.2f} ms, "
+               f"p99 {summary['latency_p99_ms']:.2f} ms; render message sent: p50 "
+               f"{summary['render_latency_p50_ms']:.2f} ms, p99 {summary['render_latency_p99_ms']:.2f} ms")
+    click.echo(f"labelled markers {100 * summary['labelled_fraction']:.2f}%, marker error upper "
+               f"{summary['error_upper_mm']:.3f} mm, lower {summary['error_lower_mm']:.3f} mm; "
+               f"cameras alive {summary['cameras_alive']}")
+    if score is not None:
+        click.echo(f"contraction RMSE vs ground truth: {score.rmse:.4f} (worst {score.worst_abs:.3f}), "
+                   f"label swaps: {score.swaps}")
+
+
+@click.command()
+@click.argument("session", type=click.Path(dir_okay=False))
+@click.option("--frames", type=click.IntRange(min=0), default=None,
+              help="Stop after this many frame sets (default: the session's, or until Ctrl-C).")
+def run(session: str, frames: int | None) -> None:
+    """Run the live pipeline described by the session file SESSION (Ctrl-C stops it in order)."""
+    from livebridge.errors import InputError
+    from livebridge.runtime.build import build_pipeline
+    from livebridge.runtime.pipeline import run_until_stopped
+    from livebridge.runtime.session import load_session
+
+    try:
+        loaded = load_session(session)
+        pipeline = build_pipeline(loaded, log=_log)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
+
+    def started(p):
+        if p.render is not None:
+            click.echo(f"render client: {p.render.url}")
+        sys.stdout.flush()
+
+    summary = run_until_stopped(pipeline, frames if frames is not None else loaded.frames, log=_log,
+                                on_start=started)
+    _print_summary(summary)
+
+
+@click.command()
+@click.option("--frames", type=click.IntRange(min=0), default=0, help="End after N frame sets and print a summary.")
+@click.option("--cameras", type=click.IntRange(2, 8), default=4, show_default=True, help="Simulated cameras.")
+@click.option("--seed", type=int, default=1, show_default=True)
+@click.option("--fps", type=float, default=60.0, show_default=True, help="Camera frame rate.")
+@click.option("--size", default="1280x800", show_default=True, help="Simulated image size WxH.")
+@click.option("--host", default="127.0.0.1", show_default=True, help="Render client interface.")
+@click.option("--port", type=click.IntRange(0, 65535), default=8765, show_default=True,
+              help="Render client port (0: any free port).")
+@click.option("--unpaced", is_flag=True, help="Run the cameras as fast as the CPU allows instead of at --fps.")
+@click.option("--no-servo", is_flag=True, help="Leave out the simulated servo bus.")
+@click.option("--no-render", is_flag=True, help="Leave out the render client.")
+@click.option("--vmc", default=None, metavar="HOST:PORT", help="Also send VMC/OSC blendshapes there.")
+@click.option("--record", type=click.Path(file_okay=False), default=None, help="Record the take to this new folder.")
+def demo(frames, cameras, seed, fps, size, host, port, unpaced, no_servo, no_render, vmc, record) -> None:
+    """The whole pipeline on simulators: performer, 4-camera rig, servo bus, render client.
+
+    Prints the URL of the render page; Ctrl-C (or --frames N) ends it with a summary.
+    """
+    from livebridge.errors import InputError
+    from livebridge.runtime.demo import build_demo
+    from livebridge.runtime.pipeline import run_until_stopped
+
+    try:
+        width, height = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter("expected WxH, e.g. 1280x800", param_hint="--size") from None
+    vmc_target = None
+    if vmc:
+        vmc_host, _, vmc_port = vmc.rpartition(":")
+        if not vmc_host or not vmc_port.isdigit():
+            raise click.BadParameter("expected HOST:PORT", param_hint="--vmc")
+        vmc_target = (vmc_host, int(vmc_port))
+    try:
+        parts = build_demo(cameras=cameras, seed=seed, fps=fps, size=(width, height), realtime=not unpaced,
+                           servo=not no_servo, render=not no_render, host=host, port=port, vmc=vmc_target,
+                           record=record, log=_log)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
+
+    def started(p):
+        if p.render is not None:
+            click.echo(f"livebridge demo: open {p.render.url} in a browser (Ctrl-C to stop)")
+        else:
+            click.echo("livebridge demo running (Ctrl-C to stop)")
+        sys.stdout.flush()
+
+    summary = run_until_stopped(parts.pipeline, frames, log=_log, on_start=started)
+    _print_summary(summary, parts.score)

@@ -1,0 +1,657 @@
+"""The live pipeline: cameras -> frame sets -> markers -> contractions -> outputs, on threads.
+
+Stages and threads::
+
+    camera reader threads (one per source)       read a frame, detect its markers (2D centroids,
+        │                                        undistorted) right there -- OpenCV releases the GIL,
+        │                                        so the cameras' detections run in parallel
+    synchroniser (livebridge.capture.sync)       frame sets; bounded queue, keeps the newest
+        ▼
+    "reconstruct" thread                         correspondence + triangulation + labelling/tracking
+        │                                        (livebridge.reconstruct), then the contraction solve
+        │                                        (livebridge.solve.solver)
+    bounded queue, keeps the newest (1)
+        ▼
+    "outputs" thread                             servos first (ServoOutput: safety stage + one
+                                                 write per bus), then the render client (publish
+                                                 never blocks), VMC datagrams, the recorder
+
+Every frame set carries a :class:`FrameTiming` (monotonic seconds per stage). "Complete" is the
+moment the last frame of the set reached the host; latencies are measured from there to the servo
+bytes written and to the render message handed to a client socket.
+
+Stopping (:meth:`Pipeline.stop`, also on Ctrl-C / SIGTERM through :func:`run_until_stopped`) goes in
+order: the cameras stop, the frame sets in flight are finished, the servos ease to neutral and torque
+off, the recording is flushed and closed, then the render server and VMC socket close.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import signal
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from livebridge.face.basis import Basis
+from livebridge.face.markers import MarkerSet
+
+
+@dataclass(frozen=True)
+class FrameTiming:
+    """Monotonic seconds at each stage of one frame set.
+
+    Attributes
+    ----------
+    capture : float
+        Mean mid-exposure time of the frames of the set.
+    complete : float
+        The last frame of the set reached the host (its reader thread returned it).
+    detected : float
+        The last camera's detection of the set finished.
+    dequeued : float
+        The reconstruct stage took the set.
+    reconstructed, solved : float
+    servo : float
+        Servo bytes written (NaN without servos).
+    outputs : float
+        Every output done.
+    """
+
+    capture: float
+    complete: float
+    detected: float
+    dequeued: float
+    reconstructed: float
+    solved: float
+    servo: float = math.nan
+    outputs: float = math.nan
+
+
+@dataclass(frozen=True, eq=False)
+class SolvedFrame:
+    """One frame set through reconstruction and solve (what the outputs receive).
+
+    Attributes
+    ----------
+    seq : int
+        Frame number of the cameras (of the first camera present).
+    index : int
+        Frame-set number from the synchroniser.
+    timing : FrameTiming
+    contractions : ndarray, shape (n_muscles,)
+    positions_model : ndarray, shape (n_markers, 3)
+        Labelled markers in the model frame, NaN unlabelled.
+    positions_world : ndarray, shape (n_markers, 3)
+    displacements : ndarray, shape (n_markers, 3)
+    region_errors : tuple of float
+        RMS marker error (upper, lower), mm.
+    labelled_fraction : float
+    n_stray : int
+    n_cameras : int
+        Cameras that contributed a frame.
+    """
+
+    seq: int
+    index: int
+    timing: FrameTiming
+    contractions: np.ndarray
+    positions_model: np.ndarray
+    positions_world: np.ndarray
+    displacements: np.ndarray
+    region_errors: tuple[float, float]
+    labelled_fraction: float
+    n_stray: int
+    n_cameras: int
+
+
+class NewestQueue:
+    """A bounded queue that keeps the newest items: ``put`` never blocks, it drops the oldest."""
+
+    def __init__(self, maxsize: int = 1):
+        self._queue: queue.Queue = queue.Queue(maxsize=maxsize)
+        self.dropped = 0
+
+    def put(self, item) -> None:
+        while True:
+            try:
+                self._queue.put_nowait(item)
+                return
+            except queue.Full:
+                try:
+                    self._queue.get_nowait()
+                    self.dropped += 1
+                except queue.Empty:
+                    pass
+
+    def get(self, timeout: float | None = None):
+        try:
+            return self._queue.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+
+class DetectingSource:
+    """A camera source that detects its markers on its own reader thread.
+
+    Wraps any :class:`~livebridge.capture.sources.CameraSource`; ``read`` returns the frame as the
+    inner source does, after storing the frame's undistorted centroids and its arrival time, which
+    the reconstruct stage looks up by ``(source_id, seq)``.
+    """
+
+    def __init__(self, source, detect: Callable[[np.ndarray], np.ndarray], keep: int = 64):
+        self.source = source
+        self.source_id = source.source_id
+        self._detect = detect
+        self._results: dict[int, tuple[np.ndarray, float, float]] = {}
+        self._order: deque[int] = deque()
+        self._keep = keep
+        self._lock = threading.Lock()
+        self.cpu_s = 0.0
+        self.frames = 0
+
+    def start(self) -> None:
+        self.source.start()
+
+    def stop(self) -> None:
+        self.source.stop()
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    @property
+    def ended(self) -> bool:
+        return self.source.ended
+
+    @property
+    def error(self) -> str | None:
+        return self.source.error
+
+    @property
+    def capabilities(self):
+        return self.source.capabilities
+
+    def set_exposure(self, *args, **kwargs):
+        return self.source.set_exposure(*args, **kwargs)
+
+    def read(self, timeout: float | None = None):
+        frame = self.source.read(timeout)
+        if frame is None:
+            return None
+        arrived = time.monotonic()
+        cpu = time.thread_time()
+        points = self._detect(frame.image)
+        self.cpu_s += time.thread_time() - cpu
+        self.frames += 1
+        with self._lock:
+            self._results[frame.seq] = (points, arrived, time.monotonic())
+            self._order.append(frame.seq)
+            while len(self._order) > self._keep:
+                self._results.pop(self._order.popleft(), None)
+        return frame
+
+    def result(self, frame) -> tuple[np.ndarray, float, float]:
+        """``(points_2d (n, 2), arrival time, detection done time)`` of a frame this source returned."""
+        with self._lock:
+            found = self._results.get(frame.seq)
+        if found is not None:
+            return found
+        now = time.monotonic()  # not seen by read (should not happen): detect here
+        return self._detect(frame.image), now, time.monotonic()
+
+
+class Lockstep:
+    """Keeps unpaced sources in step, as hardware-triggered cameras running as fast as they can.
+
+    Sources with ``realtime=False`` (simulators, replays) would otherwise race each other, and the
+    synchroniser would have to give up on the laggards. :meth:`wrap` returns sources whose ``read``
+    lets no camera get more than one frame ahead of the slowest camera still running.
+    """
+
+    def __init__(self):
+        self._cond = threading.Condition()
+        self._reads: list[int] = []
+        self._live: list[bool] = []
+
+    def wrap(self, sources) -> list:
+        out = []
+        for source in sources:
+            self._reads.append(0)
+            self._live.append(True)
+            out.append(_LockstepSource(source, self, len(self._reads) - 1))
+        return out
+
+    def before_read(self, k: int, timeout: float | None) -> bool:
+        with self._cond:
+            return self._cond.wait_for(
+                lambda: self._reads[k] <= min(r for r, live in zip(self._reads, self._live) if live), timeout)
+
+    def after_read(self, k: int, got_frame: bool, ended: bool) -> None:
+        with self._cond:
+            if got_frame:
+                self._reads[k] += 1
+            if ended:
+                self._live[k] = False
+            self._cond.notify_all()
+
+
+class _LockstepSource:
+    def __init__(self, source, lockstep: Lockstep, k: int):
+        self.source, self._lockstep, self._k = source, lockstep, k
+        self.source_id = source.source_id
+
+    def __getattr__(self, name):
+        return getattr(self.source, name)
+
+    def start(self) -> None:
+        self.source.start()
+
+    def stop(self) -> None:
+        self.source.stop()
+        self._lockstep.after_read(self._k, False, True)
+
+    def read(self, timeout: float | None = None):
+        if not self._lockstep.before_read(self._k, timeout):
+            return None
+        frame = self.source.read(timeout)
+        self._lockstep.after_read(self._k, frame is not None, frame is None and self.source.ended)
+        return frame
+
+
+def _synced_capture(sources, period_s: float, realtime: bool, **options):
+    """The synchroniser on reader threads; unpaced sources get no wall-clock ticker (their time is frame time)."""
+    from livebridge.capture.sync import SyncedCapture
+
+    if realtime:
+        return SyncedCapture(sources, period_s, queue_size=1, **options)
+
+    class _Unpaced(SyncedCapture):
+        def _ticker(self) -> None:  # frame time, not host time, drives an unpaced synchroniser
+            return
+
+    return _Unpaced(sources, period_s, queue_size=1, **options)
+
+
+def _percentile(values, q) -> float:
+    values = np.asarray(values, dtype=np.float64)
+    values = values[np.isfinite(values)]
+    return float(np.percentile(values, q)) if values.size else math.nan
+
+
+@dataclass
+class PipelineStats:
+    """Counters and recent figures of a running pipeline (read by the status line and the summary)."""
+
+    framesets: int = 0
+    solved: int = 0
+    first_t: float = math.nan
+    last_t: float = math.nan
+    servo_latency: deque = field(default_factory=lambda: deque(maxlen=100_000))
+    solve_latency: deque = field(default_factory=lambda: deque(maxlen=100_000))
+    labelled: deque = field(default_factory=lambda: deque(maxlen=100_000))
+    errors: deque = field(default_factory=lambda: deque(maxlen=100_000))
+    cpu_reconstruct_s: float = 0.0
+    cpu_outputs_s: float = 0.0
+    recent_t: deque = field(default_factory=lambda: deque(maxlen=240))
+
+
+class Pipeline:
+    """The live pipeline (see the module docstring).
+
+    Parameters
+    ----------
+    sources : list of CameraSource
+        In the calibration's camera order (``cameras``).
+    cameras : CameraGroup
+        Calibration of the sources.
+    basis : Basis
+    markers : MarkerSet
+    period_s : float
+        Nominal frame period of the cameras.
+    reconstruct_config : ReconstructConfig, optional
+    solver_config : SolverConfig, optional
+    servo : ServoOutput, optional
+        Configured; the pipeline activates it on start and closes it (ease to neutral, torque off) on stop.
+    render : RenderServer, optional
+        Started by the pipeline; stopped on stop.
+    vmc : VMCOutput, optional
+    recorder : TakeRecorder, optional
+        Closed on stop.
+    sync_tolerance : float
+        Frame periods; cross-domain grouping tolerance.
+    realtime : bool
+        False for sources that run as fast as they can (``realtime=False`` simulators and replays):
+        they are kept in lockstep and the synchroniser follows frame time only.
+    log : callable, optional
+        Receives status lines and events.
+    on_frame : callable, optional
+        Called on the outputs thread with every :class:`SolvedFrame` (tests, the demo's scoring).
+    """
+
+    def __init__(self, sources, cameras, basis: Basis, markers: MarkerSet, period_s: float,
+                 reconstruct_config=None, solver_config=None, servo=None, render=None, vmc=None, recorder=None,
+                 sync_tolerance: float = 0.5, realtime: bool = True, log: Callable[[str], None] | None = None,
+                 on_frame: Callable[[SolvedFrame], None] | None = None, status_interval: float = 1.0):
+        from livebridge.reconstruct.detect import DetectConfig, detect_blobs
+        from livebridge.reconstruct.pipeline import ReconstructConfig, Reconstructor
+        from livebridge.solve.solver import SolverConfig
+
+        self.cameras = cameras
+        self.basis, self.markers = basis, markers
+        self.period_s = float(period_s)
+        self.reconstruct_config = reconstruct_config or ReconstructConfig()
+        self.solver_config = solver_config or SolverConfig()
+        self.reconstructor = Reconstructor(cameras, markers, basis, self.reconstruct_config)
+        detect_config = self.reconstruct_config.detect if hasattr(self.reconstruct_config, "detect") \
+            else DetectConfig()
+        if len(sources) != len(cameras):
+            raise ValueError(f"{len(sources)} camera sources for {len(cameras)} calibrated cameras")
+        if not realtime:
+            sources = Lockstep().wrap(sources)
+        self.sources = [
+            DetectingSource(source, lambda image, camera=camera: camera.undistort_points(
+                detect_blobs(image, detect_config)))
+            for source, camera in zip(sources, cameras.cameras)
+        ]
+        self.capture = _synced_capture(self.sources, self.period_s, realtime,
+                                       tolerance_s=sync_tolerance * self.period_s)
+        self.servo, self.render, self.vmc, self.recorder = servo, render, vmc, recorder
+        self.log = log or (lambda message: None)
+        self.on_frame = on_frame
+        self.status_interval = status_interval
+        self.stats = PipelineStats()
+        self._queue = NewestQueue(1)
+        self._stop = threading.Event()
+        self._finished = threading.Event()
+        self._ended = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._solver = None
+        self._solver_state = None
+        self._servo_scale = None
+        self.error: BaseException | None = None
+        self._stopped = False
+        self._next_status = math.inf
+        self._cpu_start = 0.0
+        self._wall_start = 0.0
+
+    # ------------------------------------------------------------------------------ lifecycle
+    def start(self) -> Pipeline:
+        """Activate the outputs, then start the cameras and the stage threads."""
+        if self.render is not None:
+            self.render.start()
+        if self.servo is not None:
+            self.servo.activate()
+            low, high = self.servo.mapper.low, self.servo.mapper.high
+            self._servo_scale = (low, np.where(high != low, high - low, 1.0))
+        self._cpu_start, self._wall_start = time.process_time(), time.monotonic()
+        self._next_status = time.monotonic() + self.status_interval
+        self.capture.start()
+        for name, target in (("reconstruct", self._reconstruct_loop), ("outputs", self._outputs_loop)):
+            thread = threading.Thread(target=self._guard(target), name=f"livebridge {name}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+        return self
+
+    def _guard(self, target):
+        def run():
+            try:
+                target()
+            except BaseException as error:  # a stage crashed: remember, stop everything in order
+                self.error = error
+                self.log(f"pipeline stage failed: {type(error).__name__}: {error}")
+                self._stop.set()
+                self._ended.set()
+                self._queue.put(None)
+        return run
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait until the pipeline ends by itself (every camera ended, or a stage failed)."""
+        return self._ended.wait(timeout)
+
+    @property
+    def running(self) -> bool:
+        return bool(self._threads) and not self._finished.is_set()
+
+    def stop(self) -> None:
+        """Shut down in order: cameras, stages, servos (ease to neutral, torque off), recorder, render, VMC."""
+        if self._stopped:
+            return
+        self._stopped = True
+        self._stop.set()
+        self.capture.stop()
+        for thread in self._threads:
+            thread.join(timeout=10)
+        self._threads.clear()
+        if self.servo is not None:
+            try:
+                self.servo.close(ease=True)
+            except Exception as error:  # noqa: BLE001 - report, and keep closing the rest
+                self.log(f"servo shutdown: {type(error).__name__}: {error}")
+        if self.recorder is not None:
+            self.recorder.close()
+        if self.render is not None:
+            self.render.stop()
+        if self.vmc is not None:
+            self.vmc.close()
+        self._finished.set()
+
+    def __enter__(self) -> Pipeline:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------------------ stages
+    def _reconstruct_loop(self) -> None:
+        state = self.reconstructor.initial_state()
+        cpu = 0.0
+        while not self._stop.is_set():
+            frameset = self.capture.read(timeout=0.05)
+            if frameset is None:
+                if all(s.ended for s in self.sources):
+                    self.log("every camera has ended")
+                    break
+                continue
+            t0 = time.thread_time()
+            dequeued = time.monotonic()
+            points_2d, complete, detected = [], -math.inf, -math.inf
+            present = 0
+            for source, frame in zip(self.sources, frameset.frames):
+                if frame is None:
+                    points_2d.append(np.zeros((0, 2)))
+                    continue
+                points, arrived, done = source.result(frame)
+                points_2d.append(points)
+                complete, detected = max(complete, arrived), max(detected, done)
+                present += 1
+            seq = next(f.seq for f in frameset.frames if f is not None)
+            state, labelled = self.reconstructor.step(state, points_2d, frameset.t)
+            reconstructed = time.monotonic()
+            if self._solver is None and state.alignment is not None:
+                from livebridge.solve.solver import ContractionSolver
+
+                self._solver = ContractionSolver(self.basis, state.alignment.markers, self.solver_config)
+                self._solver_state = self._solver.initial_state()
+            self.stats.framesets += 1
+            if self._solver is None:
+                cpu += time.thread_time() - t0
+                continue  # not labelled yet (the first frames must show the neutral face)
+            self._solver_state, result = self._solver.step(self._solver_state, labelled.displacements)
+            solved = time.monotonic()
+            timing = FrameTiming(frameset.t, complete, detected, dequeued, reconstructed, solved)
+            self._queue.put(SolvedFrame(
+                seq, frameset.index, timing, result.contractions, labelled.positions, labelled.positions_world,
+                labelled.displacements, (float(result.rms_error_mm[0]), float(result.rms_error_mm[1])),
+                labelled.labelled_fraction, labelled.n_stray, present))
+            cpu += time.thread_time() - t0
+            self.stats.cpu_reconstruct_s = cpu
+        self._ended.set()
+        self._queue.put(None)
+
+    def _outputs_loop(self) -> None:
+        cpu = 0.0
+        stats = self.stats
+        while True:
+            frame = self._queue.get(timeout=0.1)
+            if frame is None:
+                if self._ended.is_set():
+                    break
+                self._maybe_status()
+                continue
+            t0 = time.thread_time()
+            timing = frame.timing
+            servo_targets = None
+            t_servo = math.nan
+            if self.servo is not None:
+                self.servo.send(frame.contractions, timing.complete)
+                t_servo = time.monotonic()
+                low, span = self._servo_scale
+                servo_targets = (np.asarray(self.servo.last_targets, dtype=np.float64) - low) / span
+            if self.render is not None:
+                from livebridge.output.render_server import RenderFrame
+
+                self.render.publish(RenderFrame(frame.seq, timing.complete, frame.contractions,
+                                                frame.positions_model, frame.region_errors, servo_targets))
+            if self.vmc is not None:
+                self.vmc.send(frame.contractions)
+            if self.recorder is not None:
+                self.recorder.record(frame.seq, timing.capture, frame.contractions, frame.positions_world,
+                                     frame.displacements, frame.region_errors)
+            done = time.monotonic()
+            frame = SolvedFrame(frame.seq, frame.index,
+                                FrameTiming(timing.capture, timing.complete, timing.detected, timing.dequeued,
+                                            timing.reconstructed, timing.solved, t_servo, done),
+                                frame.contractions, frame.positions_model, frame.positions_world,
+                                frame.displacements, frame.region_errors, frame.labelled_fraction, frame.n_stray,
+                                frame.n_cameras)
+            stats.solved += 1
+            if math.isnan(stats.first_t):
+                stats.first_t = done
+            stats.last_t = done
+            stats.recent_t.append(done)
+            stats.servo_latency.append(t_servo - timing.complete)
+            stats.solve_latency.append(timing.solved - timing.complete)
+            stats.labelled.append(frame.labelled_fraction)
+            stats.errors.append(frame.region_errors)
+            if self.on_frame is not None:
+                self.on_frame(frame)
+            cpu += time.thread_time() - t0
+            stats.cpu_outputs_s = cpu
+            self._maybe_status()
+
+    # ------------------------------------------------------------------------------ reporting
+    def _maybe_status(self) -> None:
+        now = time.monotonic()
+        if now < self._next_status:
+            return
+        self._next_status = now + self.status_interval
+        line = self.status_line()
+        self.log(line)
+        if self.render is not None:
+            self.render.publish_status({"line": line})
+
+    def status_line(self) -> str:
+        """One line: fps, drops, latency p50/p99, labelled fraction, region errors, cameras."""
+        s = self.summary(recent=True)
+        return (f"fps {s['fps']:5.1f} | drops {s['drops']} | latency servo p50 {s['latency_p50_ms']:.2f} "
+                f"p99 {s['latency_p99_ms']:.2f} ms, render p99 {s['render_latency_p99_ms']:.2f} ms | "
+                f"labelled {100 * s['labelled_fraction']:.1f}% | error upper {s['error_upper_mm']:.3f} "
+                f"lower {s['error_lower_mm']:.3f} mm | cameras {s['cameras_alive']}/{len(self.sources)}")
+
+    def summary(self, recent: bool = False) -> dict:
+        """Figures of the run so far (``recent``: the last ~2 s for the rates and latencies)."""
+        stats = self.stats
+        window = 120 if recent else None
+
+        def tail(values):
+            values = list(values)
+            return values[-window:] if window else values
+
+        times = list(stats.recent_t) if recent else []
+        if recent and len(times) > 1:
+            fps = (len(times) - 1) / max(times[-1] - times[0], 1e-9)
+        elif stats.solved > 1:
+            fps = (stats.solved - 1) / max(stats.last_t - stats.first_t, 1e-9)
+        else:
+            fps = 0.0
+        servo_latency = np.array(tail(stats.servo_latency)) * 1e3
+        solve_latency = np.array(tail(stats.solve_latency)) * 1e3
+        render_latency = self.render.sent_latencies() * 1e3 if self.render is not None else np.zeros(0)
+        if window:
+            render_latency = render_latency[-window:]
+        primary = servo_latency if self.servo is not None else solve_latency
+        errors = np.array(tail(stats.errors)).reshape(-1, 2)
+        sync = self.capture.sync.stats
+        drops = int(self.capture.dropped_framesets + self._queue.dropped)
+        camera_drops = sum(sync.drops.values())
+        wall = time.monotonic() - self._wall_start
+        cpu = time.process_time() - self._cpu_start
+        detect_cpu = sum(s.cpu_s for s in self.sources)
+        return {
+            "framesets": stats.framesets,
+            "solved": stats.solved,
+            "fps": fps,
+            "drops": drops,
+            "camera_frame_drops": camera_drops,
+            "latency_p50_ms": _percentile(primary, 50),
+            "latency_p99_ms": _percentile(primary, 99),
+            "latency_max_ms": float(np.nanmax(primary)) if primary.size else math.nan,
+            "solve_latency_p50_ms": _percentile(solve_latency, 50),
+            "solve_latency_p99_ms": _percentile(solve_latency, 99),
+            "render_latency_p50_ms": _percentile(render_latency, 50),
+            "render_latency_p99_ms": _percentile(render_latency, 99),
+            "labelled_fraction": float(np.mean(tail(stats.labelled))) if stats.labelled else math.nan,
+            "error_upper_mm": float(np.nanmean(errors[:, 0])) if len(errors) else math.nan,
+            "error_lower_mm": float(np.nanmean(errors[:, 1])) if len(errors) else math.nan,
+            "cameras_alive": len(self.sources) - len(sync.dead),
+            "dead_cameras": list(sync.dead),
+            "cpu_per_frameset_ms": 1e3 * cpu / max(stats.solved, 1),
+            "pipeline_cpu_per_frameset_ms": 1e3 * (stats.cpu_reconstruct_s + stats.cpu_outputs_s + detect_cpu)
+            / max(stats.solved, 1),
+            "wall_s": wall,
+        }
+
+
+def run_until_stopped(pipeline: Pipeline, frames: int = 0, log: Callable[[str], None] = print,
+                      on_start: Callable[[Pipeline], None] | None = None) -> dict:
+    """Run until Ctrl-C, SIGTERM, every camera ending, or ``frames`` solved frame sets; stop in order.
+
+    ``on_start`` is called once the pipeline runs (e.g. to print the render URL).
+
+    Returns the pipeline's :meth:`~Pipeline.summary`.
+    """
+    stop = threading.Event()
+    previous = {}
+
+    def handler(signum, _frame):
+        log(f"{signal.Signals(signum).name}: stopping (servos to neutral, recording closed)")
+        stop.set()
+
+    in_main = threading.current_thread() is threading.main_thread()
+    if in_main:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            previous[signum] = signal.signal(signum, handler)
+    try:
+        pipeline.start()
+        if on_start is not None:
+            on_start(pipeline)
+        while not stop.is_set() and not pipeline.wait(0.05):
+            if frames and pipeline.stats.solved >= frames:
+                break
+    finally:
+        pipeline.stop()
+        if in_main:
+            for signum, old in previous.items():
+                signal.signal(signum, old)
+    if pipeline.error is not None:
+        raise pipeline.error
+    return pipeline.summary()
