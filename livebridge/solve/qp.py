@@ -87,6 +87,10 @@ class QPResult:
     converged: bool
 
 
+class _Singular(Exception):
+    """A free-set sub-matrix turned out (numerically) singular: regularise and start again."""
+
+
 class BoxQP:
     """``min 1/2 x^T Q x - c^T x`` s.t. ``lower <= x <= upper`` for one fixed ``Q`` and box.
 
@@ -99,49 +103,66 @@ class BoxQP:
         box for every variable, as for contractions) take a faster path.
     cache_size : int
         Working sets whose factorisations are kept.
-    check : bool
-        Validate and symmetrise ``gram`` (internal callers that built ``Q`` themselves skip it).
     """
 
-    def __init__(self, gram: np.ndarray, lower, upper, cache_size: int = 64, check: bool = True):
+    def __init__(self, gram: np.ndarray, lower, upper, cache_size: int = 64):
+        gram = np.asarray(gram, dtype=np.float64)
+        if gram.ndim != 2 or gram.shape[0] != gram.shape[1]:
+            raise ValueError(f"gram must be square, got shape {gram.shape}")
         n = len(gram)
-        if check:
-            gram = np.asarray(gram, dtype=np.float64)
-            if gram.ndim != 2 or gram.shape[0] != gram.shape[1]:
-                raise ValueError(f"gram must be square, got shape {gram.shape}")
-            gram = 0.5 * (gram + gram.T)
-        self.n = n
+        gram = 0.5 * (gram + gram.T)
         if np.ndim(lower) == 0 and np.ndim(upper) == 0:
-            self._low0, self._high0 = float(lower), float(upper)
-            self._lower = self._upper = None
+            low0, high0, lower_array, upper_array = float(lower), float(upper), None, None
+            if not (np.isfinite(low0) and low0 <= high0):
+                raise ValueError("bounds must satisfy finite lower <= upper")
         else:
-            self._low0 = self._high0 = None
-            self._lower = np.broadcast_to(np.asarray(lower, dtype=np.float64), (n,)).copy()
-            self._upper = np.broadcast_to(np.asarray(upper, dtype=np.float64), (n,)).copy()
-        if check and (not np.isfinite(self.lower).all() or np.isnan(self.upper).any()
-                      or (self.upper < self.lower).any()):
-            raise ValueError("bounds must satisfy finite lower <= upper")
-        self.scale = max(float(gram.trace()), 1e-300)
-        self._tolerance = KKT_TOLERANCE * self.scale * max(n, 1)
-        self.ridge = 0.0
-        if n:
+            low0 = high0 = None
+            lower_array = np.broadcast_to(np.asarray(lower, dtype=np.float64), (n,)).copy()
+            upper_array = np.broadcast_to(np.asarray(upper, dtype=np.float64), (n,)).copy()
+            if not np.isfinite(lower_array).all() or np.isnan(upper_array).any() or (upper_array < lower_array).any():
+                raise ValueError("bounds must satisfy finite lower <= upper")
+        self._setup(gram, low0, high0, float(gram.trace()), cache_size)
+        self._lower, self._upper = lower_array, upper_array
+        if n:  # decide up front whether Q is rank-deficient (internal callers find out lazily)
             factor, info = lapack.dpotrf(gram)
             if info == 0:
                 rcond, info = lapack.dpocon(factor, n * self.scale)
-                if rcond < RANK_TOLERANCE:
-                    info = -1
-            if info != 0:
-                self.ridge = RANK_TOLERANCE * self.scale
-                gram = gram + self.ridge * np.eye(n)
-                factor, info = lapack.dpotrf(gram)
-                if info != 0:
-                    raise ValueError("the Gram matrix is not positive semi-definite")
-        else:
-            factor = np.zeros((0, 0))
+            if info != 0 or rcond < RANK_TOLERANCE:
+                self._regularise()
+
+    @classmethod
+    def internal(cls, gram: np.ndarray, low0: float, high0: float, scale: float, cache_size: int = 64) -> BoxQP:
+        """A QP for a Gram matrix the caller built (symmetric, shape (n, n)) and a uniform box, without checks.
+
+        Rank deficiency is detected lazily, when a free-set factorisation has a tiny pivot.
+        ``scale`` is an upper bound of ``trace(Q)`` (it sets the tolerances).
+        """
+        qp = cls.__new__(cls)
+        qp._setup(gram, low0, high0, scale, cache_size)
+        qp._lower = qp._upper = None
+        return qp
+
+    def _setup(self, gram, low0, high0, scale, cache_size):
+        n = len(gram)
+        self.n = n
         self.gram = gram
-        self.full_factor = factor
+        self._low0, self._high0 = low0, high0
+        self.scale = max(scale, 1e-300)
+        self._tolerance = KKT_TOLERANCE * self.scale * max(n, 1)
+        self._pivot_floor = RANK_TOLERANCE * self.scale
+        self.ridge = 0.0
         self._entries: dict[bytes, tuple] = {}
         self._cache_size = int(cache_size)
+        self._all_free = np.zeros(n, dtype=np.int8)
+        self._all_free_key = self._all_free.tobytes()
+        self._all_index = np.arange(n)
+
+    def _regularise(self) -> None:
+        """Add the Tikhonov term ``1e-9 trace(Q) I`` (see the module docstring) and forget the factorisations."""
+        self.ridge = RANK_TOLERANCE * self.scale
+        self.gram = self.gram + self.ridge * np.eye(self.n)
+        self._pivot_floor = 0.0
+        self._entries = {}
 
     @property
     def lower(self) -> np.ndarray:
@@ -159,6 +180,7 @@ class BoxQP:
 
     @property
     def rank_deficient(self) -> bool:
+        """True once the Tikhonov term has been added."""
         return self.ridge > 0.0
 
     def _entry(self, working: np.ndarray, key: bytes) -> tuple:
@@ -166,11 +188,19 @@ class BoxQP:
         Q[:, F] (n, f), Q x_B (n,) or None, (Q x_B)_F (f,) or None, x_B (n,) with zeros at the free
         variables)``."""
         gram = self.gram
-        index = (working == FREE).nonzero()[0]
-        sub = gram.take(index, 0).take(index, 1)
-        factor, info = lapack.dpotrf(sub) if len(index) else (sub, 0)
-        if info != 0:  # cannot happen for a principal sub-matrix of a positive definite matrix
-            raise ValueError(f"Cholesky factorisation failed on free set {index}")
+        if key == self._all_free_key:
+            index, sub = self._all_index, gram
+        else:
+            index = (working == FREE).nonzero()[0]
+            sub = gram.take(index, 0).take(index, 1)
+        if len(index):
+            factor, info = lapack.dpotrf(sub)
+            if info != 0 or min(factor.diagonal().tolist()) ** 2 < self._pivot_floor:
+                if self.ridge:
+                    raise ValueError(f"Cholesky factorisation failed on free set {index}")
+                raise _Singular
+        else:
+            factor = sub
         if self._low0 == 0.0:
             if b"\x01" in key:  # a variable at its upper bound
                 bound_values = (working == AT_UPPER) * self._high0
@@ -184,11 +214,16 @@ class BoxQP:
         else:
             base = gram @ bound_values
             offset = base.take(index)
-        entry = (index, factor, sub, gram.take(index, 1), base, offset, bound_values)
+        entry = (index, factor, sub, sub if sub is gram else gram.take(index, 1), base, offset, bound_values)
         if len(self._entries) >= self._cache_size:
             self._entries.pop(next(iter(self._entries)))
         self._entries[key] = entry
         return entry
+
+    def _get(self, working: np.ndarray) -> tuple:
+        key = working.tobytes()
+        entry = self._entries.get(key)
+        return entry if entry is not None else self._entry(working, key)
 
     def _sub_solve(self, factor: np.ndarray, sub: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         z = lapack.dpotrs(factor, rhs)[0]
@@ -198,7 +233,14 @@ class BoxQP:
 
     def unconstrained(self, c: np.ndarray) -> np.ndarray:
         """The minimiser without bounds, ``Q^-1 c`` (regularised as described when ``Q`` is singular), shape (n,)."""
-        return self._sub_solve(self.full_factor, self.gram, c) if self.n else np.zeros(0)
+        if not self.n:
+            return np.zeros(0)
+        try:
+            entry = self._get(self._all_free)
+        except _Singular:
+            self._regularise()
+            entry = self._get(self._all_free)
+        return self._sub_solve(entry[1], entry[2], c)
 
     def solve(self, c: np.ndarray, active: np.ndarray | None = None,
               max_iterations: int | None = None) -> QPResult:
@@ -230,6 +272,13 @@ class BoxQP:
 
         ``working`` (int8) must be a valid working set (no ``+1`` on an infinite bound); it is not modified.
         """
+        try:
+            return self._solve(c, working, max_iterations)
+        except _Singular:
+            self._regularise()
+            return self._solve(c, working, max_iterations)
+
+    def _solve(self, c: np.ndarray, working: np.ndarray, max_iterations: int | None):
         n = self.n
         if n == 0:
             return np.zeros(0), working.copy(), 0, True
@@ -254,7 +303,8 @@ class BoxQP:
                     z += lapack.dpotrs(factor, rhs - sub @ z)[0]
                 gradient = cols @ z - c
                 if low0 is not None:
-                    outside = z.min() < low0 or z.max() > high0
+                    values = z.tolist()  # tiny arrays: Python's min/max beat numpy's reductions
+                    outside = min(values) < low0 or max(values) > high0
                 else:
                     outside = bool((z < self._lower.take(index)).any() or (z > self._upper.take(index)).any())
             else:
@@ -264,7 +314,7 @@ class BoxQP:
             if base is not None:
                 gradient += base
             violation = working * gradient
-            wrong = violation.max() > tolerance
+            wrong = max(violation.tolist()) > tolerance
             if not wrong and not outside:
                 if len(index) == n:
                     return z, working, iteration, True
@@ -295,9 +345,7 @@ class BoxQP:
         seen: set[bytes] = set()
         while iteration < limit:
             iteration += 1
-            key = working.tobytes()
-            entry = self._entries.get(key) or self._entry(working, key)
-            index, factor, sub = entry[:3]
+            index, factor, sub = self._get(working)[:3]
             low, high = lower.take(index), upper.take(index)
             if len(index):
                 z = self._sub_solve(factor, sub, (c - gram @ np.where(working == FREE, 0.0, x)).take(index))

@@ -176,10 +176,24 @@ class _BlockSpec:
     others: slice  # muscles whose prediction is subtracted when compensating, (M - k,)
     compensate: bool
     c_slice: slice  # where this block's D^T d lies in the per-frame product
+    n_rows: int  # k
     marker_rows: np.ndarray  # (n_face, k, M): each marker's contribution to the Gram rows (0 outside the region)
     rows: np.ndarray  # (k, M): the Gram rows with every marker visible
+    scale: float  # trace of the all-visible Gram matrix (bounds the trace of every pattern's)
     lower: float
     upper: float
+
+
+@dataclass(frozen=True, eq=False)
+class _SpecGroup:
+    """The block specs of one held-region combination, stacked so a pattern's downdate is one product."""
+
+    rows: np.ndarray  # (sum_b k_b M,): every block's all-visible Gram rows, flattened
+    marker_rows: np.ndarray  # (n_face, sum_b k_b M): each marker's contribution, flattened the same way
+    spans: list  # (start, stop) of each block in the flattened rows
+    held: np.ndarray  # (M,) bool, external order
+    held_internal: np.ndarray  # (M,) bool, internal order
+    held_regions: tuple
 
 
 @dataclass(eq=False)
@@ -258,6 +272,7 @@ class ContractionSolver:
         self._upper_bound = np.inf if self.config.exaggerate else 1.0
         self._patterns: OrderedDict[bytes, _Pattern] = OrderedDict()
         self._specs: dict[tuple[bool, ...], list[_BlockSpec]] = {}
+        self._spec_groups: dict[tuple[bool, ...], _SpecGroup] = {}
         self._sweeps = self.config.sweeps if self.config.mode == "split-compensated" else 1
         self._reference = backend != "active-set"
         self._shape = (self.n_markers, 3)
@@ -284,26 +299,23 @@ class ContractionSolver:
 
     def _build_pattern(self, visible: np.ndarray) -> _Pattern:
         counts = self._region_onehot @ visible
-        held_key = tuple(bool(count == 0) for count in counts)
+        held_key = (counts[0] == 0, counts[1] == 0)
         specs = self._specs.get(held_key)
         if specs is None:
             specs = self._specs[held_key] = self._block_specs(held_key)
-        missing = (~visible).nonzero()[0]
+        group = self._spec_groups[held_key]
+        if visible.all():
+            flat = group.rows
+        else:
+            # downdate the all-visible Gram rows by the missing markers' rank-3 contributions (one product)
+            flat = group.rows - (1.0 - visible) @ group.marker_rows
         blocks = []
-        for spec in specs:
-            rows = spec.rows
-            if len(missing):
-                # downdate the all-visible Gram rows by the missing markers' rank-3 contributions
-                rows = rows - spec.marker_rows[missing].sum(axis=0)
-            gram = rows[:, spec.muscles].copy()
-            qp = BoxQP(gram, spec.lower, spec.upper, cache_size=self.config.cache_size, check=False)
+        for spec, (start, stop) in zip(specs, group.spans):
+            rows = flat[start:stop].reshape(spec.n_rows, self.n_muscles)
+            qp = BoxQP.internal(rows[:, spec.muscles], 0.0, self._upper_bound, spec.scale, self.config.cache_size)
             blocks.append(_Block(spec, qp, rows[:, spec.others]))
-        held_internal = np.zeros(self.n_muscles, dtype=bool)
-        for r, is_held in enumerate(held_key):
-            held_internal[self._region_slices[r]] = is_held
-        held = held_internal[self._inverse_perm] if self._permuted else held_internal
-        return _Pattern(visible, bool(visible.all()), blocks, held, held_internal,
-                        tuple(region for region, h in zip(REGIONS, held_key) if h), counts)
+        return _Pattern(visible, bool(visible.all()), blocks, group.held, group.held_internal, group.held_regions,
+                        counts)
 
     def _block_specs(self, held_key: tuple[bool, ...]) -> list[_BlockSpec]:
         """The QPs to solve when the regions flagged in ``held_key`` have no visible marker."""
@@ -329,11 +341,27 @@ class ContractionSolver:
                 c_slice = slice(r * n_muscles + muscles.start, r * n_muscles + muscles.stop)
                 groups.append((r, muscles, others, compensate or bool(held_key[1 - r]), c_slice))
         specs = []
+        spans = []
+        start = 0
         for region, muscles, others, compensate, c_slice in groups:
             in_rows = np.ones(len(self.face_index), dtype=bool) if region < 0 else self.marker_region == region
             marker_rows = np.ascontiguousarray(self._marker_gram[:, muscles, :] * in_rows[:, None, None])
-            specs.append(_BlockSpec(region, muscles, others, compensate, c_slice, marker_rows,
-                                    marker_rows.sum(axis=0), 0.0, self._upper_bound))
+            rows = marker_rows.sum(axis=0)
+            n_rows = muscles.stop - muscles.start
+            specs.append(_BlockSpec(region, muscles, others, compensate, c_slice, n_rows, marker_rows, rows,
+                                    float(np.trace(rows[:, muscles])), 0.0, self._upper_bound))
+            spans.append((start, start + n_rows * n_muscles))
+            start += n_rows * n_muscles
+        held_internal = np.zeros(n_muscles, dtype=bool)
+        for r, is_held in enumerate(held_key):
+            held_internal[self._region_slices[r]] = is_held
+        n_face = len(self.face_index)
+        self._spec_groups[held_key] = _SpecGroup(
+            np.concatenate([spec.rows.ravel() for spec in specs]) if specs else np.zeros(0),
+            np.concatenate([spec.marker_rows.reshape(n_face, -1) for spec in specs], axis=1)
+            if specs else np.zeros((n_face, 0)),
+            spans, held_internal[self._inverse_perm] if self._permuted else held_internal, held_internal,
+            tuple(region for region, h in zip(REGIONS, held_key) if h))
         return specs
 
     # ------------------------------------------------------------------ solve
