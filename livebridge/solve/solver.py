@@ -231,10 +231,13 @@ class ContractionSolver:
         ``"active-set"`` is the product (:mod:`livebridge.solve.qp`); ``"scipy-bvls"`` solves each
         region's QP with ``scipy.optimize.lsq_linear(method="bvls")`` on the same rows instead, step
         for step (everything else shared): the reference for tests and benchmarks.
+    displacement : ndarray, shape (n_markers, n_muscles, 3), optional
+        ``d_ij`` to use instead of ``markers.displacement_matrix(basis)`` (basis refinement solves with
+        marker displacements that no mesh has yet).
     """
 
     def __init__(self, basis: Basis, markers: MarkerSet, config: SolverConfig | None = None,
-                 backend: str = "active-set"):
+                 backend: str = "active-set", displacement: np.ndarray | None = None):
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         self.config = config or SolverConfig()
@@ -258,7 +261,12 @@ class ContractionSolver:
         bounds = np.searchsorted(region_sorted, np.arange(n_regions + 1))
         self._region_slices = [slice(int(bounds[r]), int(bounds[r + 1])) for r in range(n_regions)]
         # d_ij of the face markers, (n_face, M, 3), external muscle order
-        self.displacement = markers.displacement_matrix(basis)[self.face_index]
+        if displacement is None:
+            displacement = markers.displacement_matrix(basis)
+        elif np.shape(displacement) != (self.n_markers, n_muscles, 3):
+            raise ValueError(f"displacement has shape {np.shape(displacement)}, "
+                             f"expected {(self.n_markers, n_muscles, 3)}")
+        self.displacement = np.asarray(displacement, dtype=np.float64)[self.face_index]
         internal = self.displacement[:, self._perm]
         # A (3 n_face, M): row 3j+k = coordinate k of marker j; internal muscle order
         self._a = np.ascontiguousarray(np.transpose(internal, (0, 2, 1)).reshape(3 * n_face, n_muscles))
