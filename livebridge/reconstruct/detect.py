@@ -77,11 +77,18 @@ def detect_blobs(image: np.ndarray, config: DetectConfig = DetectConfig()) -> np
     gray = image.astype(np.float32, copy=False)
     level = _threshold(gray, config)
     mask = (gray > level).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return np.zeros((0, 2))
+    # label only the region that holds bright pixels (plus the centroid margin)
+    m = config.margin
+    top, left = max(rows[0] - m, 0), max(cols[0] - m, 0)
+    gray = gray[top:rows[-1] + m + 1, left:cols[-1] + m + 1]
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask[top:rows[-1] + m + 1, left:cols[-1] + m + 1],
+                                                                connectivity=8)
     area = stats[1:, cv2.CC_STAT_AREA]
     keep = np.flatnonzero((area >= config.min_area) & (area <= config.max_area)) + 1
     height, width = gray.shape
-    m = config.margin
     out = []
     for label in keep:
         x0, y0, w, h = stats[label, :4]
@@ -106,7 +113,7 @@ def detect_blobs(image: np.ndarray, config: DetectConfig = DetectConfig()) -> np
         major, minor = (cxx + cyy) / 2 + spread, (cxx + cyy) / 2 - spread
         if major <= 0 or np.sqrt(max(minor, 0.0) / major) < config.min_circularity:
             continue
-        out.append((cx, cy))
+        out.append((cx + left, cy + top))
     return np.array(out, dtype=np.float64).reshape(-1, 2)
 
 

@@ -220,7 +220,8 @@ class Reconstructor:
         virtual = alignment.markers.neutral_positions(self.basis)
         neutral = np.where(seen[:, None], measured, virtual)
         head2world = np.linalg.inv(capture2model)
-        tracker = Tracker(self.markers.head_mask, neutral, transform_scale(head2world), config.track)
+        displacement = alignment.markers.displacement_matrix(self.basis)
+        tracker = Tracker(self.markers.head_mask, neutral, transform_scale(head2world), config.track, displacement)
         track = tracker.start(t, neutral, seen, head2world)
         positions = np.where(seen[:, None], measured, np.nan)
         frame = LabelledFrame(float(t), positions, positions - neutral, captured, head2world,

@@ -5,9 +5,14 @@ pose is extrapolated at constant velocity; the prediction for a marker is its he
 advanced by its velocity, carried into the world by the predicted head pose. Detections are
 assigned by gated optimal assignment (Hungarian); the gate widens while a marker is unseen, so a
 marker is picked up again after an occlusion of several frames (its head-frame position does not
-drift with head motion). An assignment is refused when the detection lies closer to another
-marker's prediction than to its own - the situation in which two labels could swap - and the
-refusals are counted. Detections that take no label are strays (reflections), ignored and counted.
+drift with head motion). Markers returning from a gap are predicted from the face model when a
+displacement matrix is given: contractions are fitted (non-negative least squares) to the markers
+tracked continuously, and the returning marker is placed where the model puts it, plus the offset
+it had from the model when last seen - neighbouring markers can move in opposite directions
+(upper and lower lip), so plain neighbour interpolation would not do. An assignment is refused when
+the detection is not clearly nearer its own marker's prediction than any other marker's
+(``ratio``) - the situation in which two labels could swap - and the refusals are counted.
+Detections that take no label are strays (reflections), ignored and counted.
 After the assignment the head pose is solved from the rigid head markers (Kabsch, scale fixed),
 or, when fewer than three are seen, from all labelled markers.
 """
@@ -18,6 +23,7 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
+from scipy.optimize import nnls
 
 from livebridge.reconstruct.label import gated_assignment
 from livebridge.reconstruct.stabilize import apply, head_pose
@@ -37,12 +43,16 @@ class TrackConfig:
         The gate never grows beyond this.
     velocity_frames : int
         A marker unseen for longer than this is predicted without velocity.
+    ratio : float
+        A point is labelled only if its distance to its marker's prediction is below ``ratio`` times
+        its distance to every other marker's prediction.
     """
 
     gate_mm: float = 4.0
     gate_growth_mm: float = 0.75
     max_gate_mm: float = 7.0
-    velocity_frames: int = 5
+    velocity_frames: int = 3
+    ratio: float = 0.6
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,6 +73,8 @@ class TrackState:
         Head pose in the last frame.
     head_motion : ndarray, shape (6,)
         Head velocity, rotation vector (rad/s) then translation (mm/s), of ``head2world`` over time.
+    model_offsets : ndarray, shape (n_markers, 3)
+        Each marker's offset from the face model's prediction when last seen (model frame).
     """
 
     t: float
@@ -71,6 +83,7 @@ class TrackState:
     unseen: np.ndarray
     head2world: np.ndarray
     head_motion: np.ndarray
+    model_offsets: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -130,14 +143,18 @@ class Tracker:
     model_scale : float
         World mm per model mm (from the coordinate alignment).
     config : TrackConfig
+    displacement_matrix : ndarray, shape (n_markers, n_muscles, 3), optional
+        The face model's per-marker displacements (``MarkerSet.displacement_matrix``); predicts
+        markers returning from a gap. Without it they are predicted at their last position.
     """
 
     def __init__(self, head_mask: np.ndarray, head_reference_model: np.ndarray, model_scale: float = 1.0,
-                 config: TrackConfig = TrackConfig()):
+                 config: TrackConfig = TrackConfig(), displacement_matrix: np.ndarray | None = None):
         self.head_mask = np.asarray(head_mask, dtype=bool)
         self.reference = np.asarray(head_reference_model, dtype=np.float64)
         self.model_scale = float(model_scale)
         self.config = config
+        self.displacement = None if displacement_matrix is None else np.asarray(displacement_matrix, dtype=np.float64)
 
     def start(self, t: float, positions_model: np.ndarray, seen: np.ndarray, head2world: np.ndarray) -> TrackState:
         """Initial state from a labelled first frame.
@@ -151,8 +168,9 @@ class Tracker:
         head2world : ndarray, shape (4, 4)
         """
         unseen = np.where(seen, 0, self.config.velocity_frames + 1).astype(np.int64)
-        return TrackState(float(t), np.array(positions_model, dtype=np.float64), np.zeros_like(positions_model),
-                          unseen, np.array(head2world, dtype=np.float64), np.zeros(6))
+        positions = np.array(positions_model, dtype=np.float64)
+        return TrackState(float(t), positions, np.zeros_like(positions), unseen, np.array(head2world, dtype=np.float64),
+                          np.zeros(6), positions - self.reference)
 
     def predict(self, state: TrackState, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Predicted head pose ``(4, 4)`` and world marker positions ``(n_markers, 3)`` at time ``t``."""
@@ -186,11 +204,17 @@ class Tracker:
         gate = np.minimum(config.gate_mm + config.gate_growth_mm * state.unseen, config.max_gate_mm)
         gate = gate * self.model_scale
         cost = np.linalg.norm(predicted[:, None] - points_3d[None], axis=-1)  # (n_markers, n_points)
+        contractions = None
+        returning = state.unseen > 0
+        if self.displacement is not None and returning.any():
+            contractions, predicted = self._model_prediction(state, points_3d, cost, gate, predicted_pose, predicted)
+            cost = np.linalg.norm(predicted[:, None] - points_3d[None], axis=-1)
         rows, cols = gated_assignment(cost, gate)
-        # refuse an assignment whose point is nearer another marker's prediction (a possible swap)
+        # refuse an assignment unless the point is clearly nearer its own prediction than any other (swap guard)
         if len(rows):
-            nearest = np.argmin(cost[:, cols], axis=0)
-            keep = nearest == rows
+            others = cost[:, cols].copy()
+            others[rows, np.arange(len(rows))] = np.inf
+            keep = cost[rows, cols] < config.ratio * others.min(axis=0)
         else:
             keep = np.zeros(0, dtype=bool)
         n_refused = int((~keep).sum())
@@ -214,7 +238,46 @@ class Tracker:
         positions = state.positions_model.copy()
         positions[seen] = model[seen]
         unseen = np.where(seen, 0, state.unseen + 1)
+        offsets = state.model_offsets
+        if self.displacement is not None:
+            if contractions is None:
+                contractions = self._contractions(model, seen & ~self.head_mask)
+            if contractions is not None:
+                offsets = offsets.copy()
+                fitted = np.einsum("nmd,m->nd", self.displacement[seen], contractions)
+                offsets[seen] = model[seen] - self.reference[seen] - fitted
         new_state = replace(state, t=float(t), positions_model=positions, velocities_model=velocities, unseen=unseen,
-                            head2world=head2world, head_motion=_pose_motion(state.head2world, head2world, dt))
+                            head2world=head2world, head_motion=_pose_motion(state.head2world, head2world, dt),
+                            model_offsets=offsets)
         frame = TrackFrame(labels, world, model, head2world, int(len(points_3d) - len(rows)), n_refused)
         return new_state, frame
+
+    def _contractions(self, model: np.ndarray, use: np.ndarray) -> np.ndarray | None:
+        """Non-negative contractions ``(n_muscles,)`` fitting the model-frame positions of the markers in ``use``."""
+        if use.sum() < 3:
+            return None
+        a = self.displacement[use].transpose(0, 2, 1).reshape(-1, self.displacement.shape[1])
+        b = (model[use] - self.reference[use]).reshape(-1)
+        return nnls(a, b)[0]
+
+    def _model_prediction(self, state, points_3d, cost, gate, predicted_pose, predicted):
+        """Predictions of markers returning from a gap from the face model, fitted to the continuing markers."""
+        continuing = state.unseen == 0
+        rows, cols = gated_assignment(np.where(continuing[:, None], cost, np.inf), gate)
+        if len(rows) < 3:
+            return None, predicted
+        world = np.full_like(predicted, np.nan)
+        world[rows] = points_3d[cols]
+        pose = head_pose(self.reference[self.head_mask], world[self.head_mask], self.model_scale)
+        if not np.isfinite(pose).all():
+            pose = predicted_pose
+        model = apply(np.linalg.inv(pose), world)
+        seen = np.isfinite(model).all(axis=1)
+        contractions = self._contractions(model, seen & ~self.head_mask)
+        if contractions is None:
+            return None, predicted
+        returning = ~continuing
+        expected = self.reference + np.einsum("nmd,m->nd", self.displacement, contractions) + state.model_offsets
+        predicted = predicted.copy()
+        predicted[returning] = apply(pose, expected[returning])
+        return contractions, predicted
