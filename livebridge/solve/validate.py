@@ -149,8 +149,10 @@ def refit_displacements(observed: np.ndarray, contractions: np.ndarray, ridge: f
     observed : ndarray, shape (n_frames, n_markers, 3)
         NaN rows unseen.
     contractions : ndarray, shape (n_frames, n_muscles)
-    ridge : float
-        Tikhonov weight relative to ``trace(X^T X) / n_muscles``; pulls towards ``prior`` (default 0).
+    ridge : float or ndarray, shape (n_markers, n_muscles)
+        A float: Tikhonov weight relative to ``trace(X^T X) / n_muscles``. An array: absolute weights per
+        marker and muscle (a Gaussian prior ``d_ij ~ N(prior_ij, sigma^2 / ridge_ij)``). Pulls towards
+        ``prior`` (default 0).
     prior : ndarray, shape (n_markers, n_muscles, 3), optional
 
     Returns
@@ -164,12 +166,16 @@ def refit_displacements(observed: np.ndarray, contractions: np.ndarray, ridge: f
     # normal equations of every marker at once: G_j = sum_t seen_tj x_t x_t^T, b_j = sum_t seen_tj x_t d_tj^T
     gram = np.einsum("tj,tm,tl->jml", seen.astype(float), contractions, contractions)
     rhs = np.einsum("tm,tjk->jmk", contractions, data)
-    scale = np.trace(gram, axis1=1, axis2=2)[:, None, None] / n_muscles
-    lam = ridge * np.maximum(scale, 1e-12)
-    eye = np.eye(n_muscles)[None]
+    if np.ndim(ridge) == 0:
+        scale = np.trace(gram, axis1=1, axis2=2)[:, None] / n_muscles
+        lam = ridge * np.maximum(scale, 1e-12) * np.ones((1, n_muscles))  # (n, M)
+    else:
+        lam = np.asarray(ridge, dtype=np.float64)
     if prior is not None:
-        rhs = rhs + lam * prior
-    return np.linalg.solve(gram + lam * eye, rhs)
+        rhs = rhs + lam[:, :, None] * prior
+    index = np.arange(n_muscles)
+    gram[:, index, index] += lam
+    return np.linalg.solve(gram, rhs)
 
 
 def check_basis(basis: Basis, markers: MarkerSet, displacements: np.ndarray, t: np.ndarray | None = None,

@@ -1,0 +1,102 @@
+"""``livebridge basis check`` and ``livebridge basis refine``: validate and refine a basis on a training take."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+_MODES = click.Choice(["split-compensated", "split", "joint"])
+
+
+def _load(basis_path: Path, markers_path: Path, take_path: Path):
+    """Basis, marker set and the take's displacements in the marker set's order (n_frames, n_markers, 3)."""
+    import numpy as np
+
+    from livebridge.errors import InputError
+    from livebridge.face.basis import Basis
+    from livebridge.face.markers import MarkerSet
+    from livebridge.take import Take
+
+    basis = Basis.load(basis_path)
+    markers = MarkerSet.load(markers_path)
+    markers.check_mesh(len(basis.triangles))
+    take = Take.load(take_path)
+    if take.displacements is None:
+        raise InputError("the take has marker positions but no displacements in the model frame; "
+                         "run it through the tracker first", take_path, "displacements")
+    column = {name: i for i, name in enumerate(take.marker_names)}
+    face_names = [name for name, role in zip(markers.names, markers.roles) if role == "face"]
+    if not any(name in column for name in face_names):
+        raise InputError(f"no marker of {markers_path} appears in the take", take_path, "marker_names")
+    displacements = np.full((take.n_frames, len(markers), 3), np.nan)
+    for j, name in enumerate(markers.names):
+        if name in column:
+            displacements[:, j] = take.displacements[:, column[name]]
+    return basis, markers, take, displacements
+
+
+@click.command()
+@click.option("--basis", "basis_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Basis file (.npz).")
+@click.option("--markers", "markers_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Marker set (.toml).")
+@click.option("--take", "take_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Training take (.npz) with marker displacements.")
+@click.option("--out-dir", type=click.Path(file_okay=False, path_type=Path),
+              help="Where the summary (.txt) and plot (.png) go (default: beside the take).")
+@click.option("--mode", type=_MODES, default="split-compensated", show_default=True, help="Region mode.")
+def check(basis_path: Path, markers_path: Path, take_path: Path, out_dir: Path | None, mode: str) -> None:
+    """Validate a basis on a training take: per-muscle range excursions and misfit, per-region marker error."""
+    from livebridge.errors import InputError
+    from livebridge.solve.solver import SolverConfig
+    from livebridge.solve.validate import check_basis, plot_report
+
+    try:
+        basis, markers, take, displacements = _load(basis_path, markers_path, take_path)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
+    report = check_basis(basis, markers, displacements, take.t, SolverConfig(mode=mode), progress=True)
+    out_dir = out_dir or take_path.parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = take_path.stem
+    summary = report.summary()
+    (out_dir / f"{stem}.basis-check.txt").write_text(summary + "\n")
+    plot_report(report, out_dir / f"{stem}.basis-check.png")
+    click.echo(summary)
+    click.echo(f"wrote {out_dir / (stem + '.basis-check.txt')} and {out_dir / (stem + '.basis-check.png')}")
+
+
+@click.command()
+@click.option("--basis", "basis_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Draft basis file (.npz).")
+@click.option("--markers", "markers_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Marker set (.toml).")
+@click.option("--take", "take_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Training take (.npz) with marker displacements; every muscle should reach full contraction.")
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Refined basis (.npz).")
+@click.option("--mode", type=_MODES, default="split-compensated", show_default=True, help="Region mode.")
+@click.option("--anchor", type=click.Choice(["extremes", "norm"]), default="extremes", show_default=True,
+              help="Pin each element's scale by the take's full contractions, or by the draft's norm.")
+@click.option("--max-iterations", type=click.IntRange(1), default=30, show_default=True)
+@click.option("--tolerance", type=float, default=1e-3, show_default=True,
+              help="Stop when the total error falls by less than this fraction.")
+def refine(basis_path: Path, markers_path: Path, take_path: Path, out: Path, mode: str, anchor: str,
+           max_iterations: int, tolerance: float) -> None:
+    """Refine a basis on a training take (fixed-point re-fit at the markers, thin-plate densification)."""
+    from livebridge.errors import InputError
+    from livebridge.solve.refine import refine_basis
+    from livebridge.solve.solver import SolverConfig
+
+    try:
+        basis, markers, _, displacements = _load(basis_path, markers_path, take_path)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
+    result = refine_basis(basis, markers, displacements, SolverConfig(mode=mode), anchor=anchor,
+                          max_iterations=max_iterations, tolerance=tolerance, progress=True, log=click.echo)
+    result.basis.save(out)
+    scales = ", ".join(f"{name} {scale:.3f}" for name, scale in zip(basis.names, result.scales))
+    click.echo(f"kept {result.iterations} re-fit(s); marker RMS {result.rms_mm[0]:.4f} -> {result.rms_mm[-1]:.4f} mm; "
+               f"densified to the mesh within {result.densify_error_mm:.4f} mm at the markers")
+    click.echo(f"element scale factors ({anchor}): {scales}")
+    click.echo(f"wrote {out}")
