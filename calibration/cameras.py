@@ -104,13 +104,57 @@ class Camera:
         out = np.full_like(points_2d, np.nan)
         valid = np.isfinite(points_2d).all(axis=1)
         if valid.any():
-            pixels = points_2d[valid].reshape(-1, 1, 2)
-            if self.fisheye:
-                result = cv2.fisheye.undistortPoints(pixels, self.matrix, self.distortions[:4], P=self.matrix)
-            else:
-                result = cv2.undistortPoints(pixels, self.matrix, self.distortions, P=self.matrix)
-            out[valid] = result.reshape(-1, 2)
+            normalised = undistort_normalised(points_2d[valid], self.matrix, self.distortions, self.fisheye)
+            out[valid] = normalised * self.matrix[[0, 1], [0, 1]] + self.matrix[:2, 2]
         return out
+
+    def normalised_rays(self, points_2d: np.ndarray) -> np.ndarray:
+        """Distorted pixels to undistorted normalised image coordinates ``(x/z, y/z)``.
+
+        Parameters
+        ----------
+        points_2d : ndarray, shape (n_points, 2)
+
+        Returns
+        -------
+        ndarray, shape (n_points, 2); NaN rows stay NaN.
+        """
+        points_2d = np.asarray(points_2d, dtype=np.float64).reshape(-1, 2)
+        out = np.full_like(points_2d, np.nan)
+        valid = np.isfinite(points_2d).all(axis=1)
+        if valid.any():
+            out[valid] = undistort_normalised(points_2d[valid], self.matrix, self.distortions, self.fisheye)
+        return out
+
+
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+
+
+def undistort_normalised(points_2d: np.ndarray, matrix: np.ndarray, distortions: np.ndarray,
+                         fisheye: bool = False) -> np.ndarray:
+    """Invert the lens model to high precision (OpenCV's default stops after 5 iterations).
+
+    Parameters
+    ----------
+    points_2d : ndarray, shape (n_points, 2)
+        Distorted pixels, all finite.
+    matrix : ndarray, shape (3, 3)
+    distortions : ndarray, shape (5,) or (4,) for fisheye
+
+    Returns
+    -------
+    ndarray, shape (n_points, 2): undistorted normalised coordinates.
+    """
+    pixels = np.asarray(points_2d, dtype=np.float64).reshape(-1, 1, 2)
+    matrix = np.asarray(matrix, dtype=np.float64)
+    distortions = np.asarray(distortions, dtype=np.float64)
+    if fisheye:
+        result = cv2.fisheye.undistortPoints(pixels, matrix, distortions[:4], criteria=_UNDISTORT_CRITERIA)
+    elif hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
+        result = cv2.undistortPointsIter(pixels, matrix, distortions, None, None, _UNDISTORT_CRITERIA)
+    else:  # OpenCV 5: undistortPoints takes the criteria
+        result = cv2.undistortPoints(pixels, matrix, distortions, None, np.eye(3), np.eye(3), _UNDISTORT_CRITERIA)
+    return result.reshape(-1, 2)
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,0 +1,163 @@
+"""``livebridge calibrate``: print boards, calibrate cameras, show a calibration file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.group()
+def calibrate() -> None:
+    """Multi-camera calibration with a chessboard or ChArUco board."""
+
+
+def _pairs(values: tuple[str, ...], option: str) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for value in values:
+        name, sep, target = value.partition("=")
+        if not sep or not name or not target:
+            raise click.BadParameter(f"expected NAME=PATH, got {value!r}", param_hint=option)
+        if name in out:
+            raise click.BadParameter(f"camera name {name!r} given twice", param_hint=option)
+        out[name] = target
+    return out
+
+
+@calibrate.command("board")
+@click.argument("spec")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Output file, .png or .pdf.")
+@click.option("--dpi", default=300, show_default=True, help="Print resolution.")
+def board_command(spec: str, out: Path, dpi: int) -> None:
+    """Write a print-ready board for SPEC at exact physical size, with a scale bar.
+
+    SPEC is 'chessboard:COLSxROWS:SQUARE_MM' (inner corners) or
+    'charuco:COLSxROWS:SQUARE_MM:MARKER_MM:DICT[:legacy]' (squares).
+    """
+    from livebridge.calibration.boards import parse_board
+    from livebridge.calibration.printout import write_board
+    from livebridge.errors import InputError
+
+    try:
+        width, height = write_board(parse_board(spec), out, dpi)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
+    click.echo(f"wrote {out}: page {width:g} x {height:g} mm; print at 100% and check the scale bar")
+
+
+@calibrate.command("run")
+@click.option("--images", multiple=True, metavar="NAME=DIR",
+              help="A camera's folder of images (or a glob such as 'dir/left*.jpg'); repeat per camera.")
+@click.option("--videos", multiple=True, metavar="NAME=FILE", help="A camera's video file; repeat per camera.")
+@click.option("--sources", multiple=True, metavar="NAME=URL", help="A live camera source URL; repeat per camera.")
+@click.option("--board", "board_spec", required=True, help="Board spec, e.g. 'charuco:7x5:40:30:DICT_4X4_50'.")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Calibration file to write (TOML).")
+@click.option("--fisheye", is_flag=True, help="Fisheye lens model (k1..k4) instead of pinhole with 5 terms.")
+@click.option("--up", type=click.Choice(["y", "z"]), default="y", show_default=True, help="World axis that is up.")
+@click.option("--origin-view", type=int, default=None,
+              help="Index of the view whose board defines the world frame (default: the best-seen view).")
+@click.option("--board-pose", type=click.Choice(["upright", "flat"]), default="upright", show_default=True,
+              help="How the board stands in the origin view: upright facing the cameras, or flat printed side up.")
+@click.option("--every", type=int, default=10, show_default=True, help="Videos/sources: use every N-th frame.")
+@click.option("--frames", type=int, default=300, show_default=True, help="Sources: frame sets to grab.")
+@click.option("--report", "report_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Folder for the report (default: next to --out, named after it).")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def run_command(images, videos, sources, board_spec, out, fisheye, up, origin_view, board_pose, every, frames,
+                report_dir, quiet) -> None:
+    """Calibrate cameras from board images, videos or live sources.
+
+    Images in a folder pair across cameras by file name (identical names, else the
+    last number in the name, else sorted order); videos pair by frame index.
+    """
+    from livebridge.errors import InputError
+
+    chosen = [name for name, given in (("--images", images), ("--videos", videos), ("--sources", sources)) if given]
+    if len(chosen) != 1:
+        raise click.UsageError("give exactly one of --images, --videos or --sources (one NAME=... per camera)")
+    try:
+        _run(images, videos, sources, board_spec, out, fisheye, up, origin_view, board_pose, every, frames,
+             report_dir, quiet)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
+
+
+def _run(images, videos, sources, board_spec, out, fisheye, up, origin_view, board_pose, every, frames,
+         report_dir, quiet) -> None:
+    from livebridge.calibration.boards import parse_board
+    from livebridge.calibration.calibfile import save_calibration
+    from livebridge.calibration.detect import detect_frames, detect_images, read_videos
+    from livebridge.calibration.report import summary, write_report
+    from livebridge.calibration.run import calibrate as run_calibration
+
+    board = parse_board(board_spec)
+    progress = not quiet
+    if images:
+        detections = detect_images(board, _pairs(images, "--images"), progress=progress)
+    elif videos:
+        named = _pairs(videos, "--videos")
+        frame_sets, total = read_videos(named)
+        detections = detect_frames(board, list(named), frame_sets, progress, total, every=max(1, every))
+    else:
+        named = _pairs(sources, "--sources")
+        detections = detect_frames(board, list(named), _source_frames(named, frames), progress, frames,
+                                   every=max(1, every))
+    found = detections.counts() >= board.min_corners
+    click.echo("board found in: " + ", ".join(f"{n} {int(k)}/{detections.n_views}"
+                                               for n, k in zip(detections.camera_names, found.sum(axis=1))), err=True)
+    result = run_calibration(detections, board, fisheye=fisheye, up=up, origin_view=origin_view,
+                             board_pose=board_pose, log=lambda line: click.echo(line, err=True))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_calibration(out, result.group, result.metadata())
+    folder = report_dir or out.with_name(out.stem + "_report")
+    write_report(result, folder)
+    click.echo(summary(result))
+    click.echo(f"wrote {out} and report in {folder}")
+
+
+def _source_frames(named: dict[str, str], n_frames: int):
+    """Synchronised frame sets from live sources (the camera source registry, ``livebridge.capture``)."""
+    from livebridge.errors import InputError
+
+    try:
+        from livebridge.capture.sources import open_source
+    except ImportError:
+        raise InputError("live sources are not available yet (livebridge.capture.sources.open_source is missing); "
+                         "record videos or images and use --videos / --images", field="--sources") from None
+    opened = [open_source(url) for url in named.values()]
+    try:
+        for _ in range(n_frames):
+            frame_set = []
+            for source in opened:
+                frame = source.read() if hasattr(source, "read") else next(iter(source))
+                image = getattr(frame, "image", frame)
+                frame_set.append(image)
+            yield frame_set
+    finally:
+        for source in opened:
+            close = getattr(source, "close", None)
+            if close is not None:
+                close()
+
+
+@calibrate.command("show")
+@click.argument("path", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+def show_command(path: Path) -> None:
+    """Print the cameras of a calibration file (ours or aniposelib's)."""
+    from livebridge.calibration.calibfile import load_calibration, load_metadata
+    from livebridge.errors import InputError
+
+    try:
+        group = load_calibration(path)
+        metadata = load_metadata(path)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
+    for camera in group.cameras:
+        rms = metadata.get("rms_px", {}).get(camera.name)
+        click.echo(f"{camera.name:12s} {camera.size[0]}x{camera.size[1]} f={camera.matrix[0, 0]:.1f} "
+                   f"centre=({', '.join(f'{v:.1f}' for v in camera.center)}) mm"
+                   + (f" RMS {rms:.3f} px" if rms is not None else ""))
+    if "world_frame" in metadata:
+        click.echo(f"world frame: {metadata['world_frame']}")

@@ -1,0 +1,214 @@
+"""Render a calibration board held in front of a calibrated camera.
+
+The board's printed image (OpenCV's own ChArUco image, or a drawn chessboard)
+is mapped into the camera by inverse mapping: every output sample pixel is
+undistorted to a ray through the exact camera model (distortion included,
+pinhole or fisheye), intersected with the board plane and looked up in the
+board texture. Samples are supersampled (anti-aliased), then blurred and
+given Gaussian noise from the caller's seeded generator, so the same inputs
+give the same image bit for bit.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from livebridge.calibration.boards import Board, parse_board
+from livebridge.calibration.cameras import Camera, CameraGroup, undistort_normalised
+
+BACKGROUND = 110.0  # grey level behind the board
+
+
+def render_board_view(board: Board | str, camera: Camera, board2world: np.ndarray, blur_px: float = 0.0,
+                      noise: float = 0.0, rng: np.random.Generator | None = None, supersample: int = 3,
+                      background: float = BACKGROUND) -> np.ndarray:
+    """Grayscale image of ``board`` seen by ``camera``.
+
+    Parameters
+    ----------
+    board : Board or str
+        Board or board spec.
+    camera : Camera
+        Intrinsics, distortion and ``world2cam`` of the viewing camera (mm).
+    board2world : ndarray, shape (4, 4)
+        Pose of the board frame (see :mod:`livebridge.calibration.boards`) in the world, mm.
+    blur_px : float
+        Gaussian blur sigma in output pixels (0: none).
+    noise : float
+        Standard deviation of additive Gaussian noise in grey levels (0: none).
+    rng : numpy.random.Generator, optional
+        Source of the noise; required when ``noise > 0``.
+    supersample : int
+        Samples per pixel along each axis (anti-aliasing).
+    background : float
+        Grey level where no board is seen.
+
+    Returns
+    -------
+    ndarray, shape (height, width), uint8
+    """
+    board = parse_board(board)
+    board2world = np.asarray(board2world, dtype=np.float64)
+    if board2world.shape != (4, 4):
+        raise ValueError(f"board2world must be (4, 4), got {board2world.shape}")
+    if noise > 0 and rng is None:
+        raise ValueError("noise > 0 needs a seeded rng")
+    board2cam = camera.world2cam @ board2world
+    rotation, translation = board2cam[:3, :3], board2cam[:3, 3]
+    rays = _rays(camera.size, camera.matrix.tobytes(), camera.distortions.tobytes(), camera.fisheye, supersample)
+
+    # Intersect each ray (x, y, 1) with the board plane z_board = 0: in board axes the ray is rays @ R.
+    along = rays @ rotation
+    offset = rotation.T @ translation
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = offset[2] / along[..., 2]
+    visible = np.isfinite(depth) & (depth > 0)
+    board_xy = along[..., :2] * depth[..., None] - offset[:2]
+
+    texture, px_per_mm, margin_px = _texture(board, camera, board2cam)
+    map_x = (board_xy[..., 0] * px_per_mm + margin_px - 0.5).astype(np.float32)
+    map_y = (board_xy[..., 1] * px_per_mm + margin_px - 0.5).astype(np.float32)
+    map_x[~visible] = -1e6
+    map_y[~visible] = -1e6
+    samples = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                        borderValue=float(background))
+    width, height = camera.size
+    image = samples.reshape(height, supersample, width, supersample).mean(axis=(1, 3))
+    if blur_px > 0:
+        image = cv2.GaussianBlur(image, (0, 0), blur_px)
+    if noise > 0:
+        image = image + rng.normal(0.0, noise, image.shape)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def _texture(board: Board, camera: Camera, board2cam: np.ndarray) -> tuple[np.ndarray, float, int]:
+    """Board image at a resolution finer than one output sample, plus its mm->px scale and margin."""
+    distance = max(float(np.linalg.norm(board2cam[:3, 3])), 1.0)
+    focal = float(camera.matrix[0, 0])
+    square_px_in_view = focal * board.square_mm / distance
+    px_per_square = int(np.clip(np.ceil(square_px_in_view * 4 / 8) * 8, 32, 400))
+    return _board_texture(board, px_per_square) + (px_per_square / board.square_mm,
+                                                   int(round(0.5 * px_per_square)))
+
+
+@lru_cache(maxsize=16)
+def _board_texture(board: Board, px_per_square: int) -> tuple[np.ndarray]:
+    return (board.image(px_per_square, margin_squares=0.5).astype(np.float32),)
+
+
+@lru_cache(maxsize=8)
+def _rays(size: tuple[int, int], matrix: bytes, distortions: bytes, fisheye: bool, supersample: int) -> np.ndarray:
+    """Undistorted normalised rays ``(x, y, 1)`` of every sample, shape (h*s, w*s, 3), cached per camera."""
+    width, height = size
+    k = np.frombuffer(matrix).reshape(3, 3)
+    d = np.frombuffer(distortions)
+    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+    u = (np.arange(width)[:, None] + offsets[None, :]).ravel()
+    v = (np.arange(height)[:, None] + offsets[None, :]).ravel()
+    uu, vv = np.meshgrid(u, v)
+    pixels = np.stack([uu.ravel(), vv.ravel()], axis=1)
+    normalised = undistort_normalised(pixels, k, d, fisheye)
+    normalised = normalised.reshape(len(v), len(u), 2)
+    rays = np.concatenate([normalised, np.ones(normalised.shape[:2] + (1,))], axis=2)
+    rays.setflags(write=False)
+    return rays
+
+
+# ---------------------------------------------------------------- synthetic calibration scenes
+
+
+def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 1.0, 0.0)) -> np.ndarray:
+    """``world2cam`` (4, 4) of a camera at ``center`` (3,) looking at ``target`` (3,), image up along ``up``."""
+    center, target, up = (np.asarray(a, dtype=np.float64) for a in (center, target, up))
+    forward = target - center
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    world2cam = np.eye(4)
+    world2cam[:3, :3] = np.stack([right, down, forward])
+    world2cam[:3, 3] = -world2cam[:3, :3] @ center
+    return world2cam
+
+
+def example_rig(n_cams: int = 4, size: tuple[int, int] = (800, 600), distance_mm: float = 1000.0,
+                fisheye: bool = False, seed: int = 0) -> CameraGroup:
+    """Cameras on an arc ``distance_mm`` from the origin, all looking at it (world +y up, +z towards them).
+
+    Each camera gets its own focal length, principal point and lens distortion (seeded).
+    """
+    from livebridge.calibration.bundle import rotation_vector
+
+    rng = np.random.default_rng(seed)
+    width, height = size
+    cameras = []
+    for i, azimuth in enumerate(np.radians(np.linspace(-35, 35, n_cams))):
+        elevation = np.radians(rng.uniform(-10, 15))
+        center = distance_mm * np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation),
+                                         np.cos(azimuth) * np.cos(elevation)])
+        world2cam = look_at(center, rng.uniform(-40, 40, 3))
+        focal = width * rng.uniform(1.0, 1.3)
+        matrix = np.array([[focal, 0, width / 2 + rng.uniform(-15, 15)],
+                           [0, focal * rng.uniform(0.995, 1.005), height / 2 + rng.uniform(-15, 15)], [0, 0, 1]])
+        if fisheye:
+            distortions = np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.02, 0.02), 0.0, 0.0])
+        else:
+            distortions = np.array([rng.uniform(-0.25, -0.05), rng.uniform(0.0, 0.12), rng.uniform(-1e-3, 1e-3),
+                                    rng.uniform(-1e-3, 1e-3), rng.uniform(-0.02, 0.0)])
+        cameras.append(Camera(f"cam{i}", size, matrix, distortions, rotation_vector(world2cam[:3, :3]),
+                              world2cam[:3, 3], fisheye))
+    return CameraGroup(cameras)
+
+
+def example_board_poses(board: Board | str, n_views: int, seed: int = 0, spread_mm: float = 150.0,
+                        tilt_deg: float = 30.0) -> np.ndarray:
+    """``board2world`` (n_views, 4, 4): the board held upright facing +z near the origin, varied (seeded)."""
+    board = parse_board(board)
+    rng = np.random.default_rng(seed)
+    centre = np.array([board.size_mm[0] / 2, board.size_mm[1] / 2, 0.0])
+    upright = np.diag([1.0, -1.0, -1.0])  # board x = world x, board y = down, board z = into the board
+    poses = np.tile(np.eye(4), (n_views, 1, 1))
+    for v in range(n_views):
+        angles = np.radians(rng.uniform(-1, 1, 3) * np.array([tilt_deg, tilt_deg, 25.0]))
+        rotation = cv2.Rodrigues(angles)[0] @ upright
+        position = rng.uniform(-1, 1, 3) * np.array([spread_mm, spread_mm * 0.7, spread_mm])
+        poses[v, :3, :3] = rotation
+        poses[v, :3, 3] = position - rotation @ centre
+    return poses
+
+
+def project_board(board: Board | str, group: CameraGroup, board2world: np.ndarray, noise_px: float = 0.0,
+                  rng: np.random.Generator | None = None, min_corners: int | None = None) -> np.ndarray:
+    """Synthetic detections without rendering: projected corners plus Gaussian pixel noise.
+
+    Corners behind a camera, outside its image, or on a board seen edge-on or from behind are NaN; views
+    with fewer than ``min_corners`` (default ``board.min_corners``) visible corners are all NaN.
+
+    Returns
+    -------
+    corners : ndarray, shape (n_cams, n_views, n_corners, 2)
+    """
+    board = parse_board(board)
+    minimum = board.min_corners if min_corners is None else min_corners
+    n_views = len(board2world)
+    out = np.full((len(group), n_views, board.n_corners, 2), np.nan)
+    for c, camera in enumerate(group.cameras):
+        for v in range(n_views):
+            board2cam = camera.world2cam @ board2world[v]
+            in_cam = board.object_points @ board2cam[:3, :3].T + board2cam[:3, 3]
+            facing = board2cam[:3, 2] @ board2cam[:3, 3] / np.linalg.norm(board2cam[:3, 3])
+            if facing < 0.25 or (in_cam[:, 2] <= 0).any():
+                continue
+            world = board.object_points @ board2world[v, :3, :3].T + board2world[v, :3, 3]
+            pixels = camera.project(world)
+            if noise_px > 0:
+                pixels = pixels + rng.normal(0.0, noise_px, pixels.shape)
+            inside = (pixels[:, 0] >= 0) & (pixels[:, 0] <= camera.size[0] - 1) & \
+                (pixels[:, 1] >= 0) & (pixels[:, 1] <= camera.size[1] - 1)
+            if board.kind == "chessboard" and not inside.all() or inside.sum() < minimum:
+                continue
+            out[c, v, inside] = pixels[inside]
+    return out
