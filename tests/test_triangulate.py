@@ -116,3 +116,12 @@ def test_refinement_does_not_increase_pixel_error(rng):
     before = np.nansum(triangulator.residuals(linear, points_2d) ** 2, axis=0)
     after = np.nansum(triangulator.residuals(refined, points_2d) ** 2, axis=0)
     assert (after <= before + 1e-9).all() and after.sum() < before.sum()
+
+
+def test_skewed_intrinsics(rng):
+    cameras = ring_cameras()
+    skewed = CameraGroup([Camera(c.name, c.size, c.matrix + np.array([[0, 3.0, 0], [0, 0, 0], [0, 0, 0]]),
+                                 c.distortions, c.rotation, c.translation) for c in cameras.cameras])
+    triangulator = Triangulator(skewed)
+    noisy = observe(skewed, rng.normal(scale=60.0, size=(50, 3)), rng, noise_px=0.5, hide=0.2)
+    assert np.nanmax(np.abs(triangulator.dlt(noisy) - svd_reference(triangulator, noisy))) < 1e-6

@@ -62,16 +62,23 @@ class Triangulator:
 
     def __init__(self, cameras: CameraGroup):
         self.cameras = cameras
-        matrices = np.stack([camera.matrix for camera in cameras.cameras])  # (c, 3, 3)
-        self.inverse_matrices = np.linalg.inv(matrices)
+        self.inverse_matrices = np.linalg.inv(np.stack([camera.matrix for camera in cameras.cameras]))
         self.extrinsics = np.stack([camera.world2cam[:3] for camera in cameras.cameras])  # (c, 3, 4)
         self.projections = np.stack([camera.projection for camera in cameras.cameras])  # (c, 3, 4)
         # AᵀA = Σ_cams (x²+y²) P3P3ᵀ - x (P3P1ᵀ+P1P3ᵀ) - y (P3P2ᵀ+P2P3ᵀ) + P1P1ᵀ + P2P2ᵀ
         rt = self.extrinsics
         outer = np.einsum("cai,cbj->cabij", rt, rt)
-        forms = np.stack([outer[:, 2, 2], -(outer[:, 2, 0] + outer[:, 0, 2]), -(outer[:, 2, 1] + outer[:, 1, 2]),
-                          outer[:, 0, 0] + outer[:, 1, 1]], axis=1)  # (c, 4, 4, 4)
-        self._forms = forms.reshape(-1, 16)  # (c * 4, 16)
+        q33, q_x, q_y = outer[:, 2, 2], -(outer[:, 2, 0] + outer[:, 0, 2]), -(outer[:, 2, 1] + outer[:, 1, 2])
+        q_1 = outer[:, 0, 0] + outer[:, 1, 1]
+        # in pixels, x = a u + b and y = g v + d (no skew): the forms of (u², v², u, v, 1) per camera
+        k = self.inverse_matrices
+        self._skewed = bool(np.abs(k[:, 0, 1]).max() > 0)
+        if self._skewed:  # normalise first (x = u, y = v below)
+            k = np.tile(np.eye(3), (len(k), 1, 1))
+        a, b, g, d = (k[:, 0, 0, None, None], k[:, 0, 2, None, None], k[:, 1, 1, None, None], k[:, 1, 2, None, None])
+        forms = np.stack([a * a * q33, g * g * q33, 2 * a * b * q33 + a * q_x, 2 * g * d * q33 + g * q_y,
+                          (b * b + d * d) * q33 + b * q_x + d * q_y + q_1], axis=1)  # (c, 5, 4, 4)
+        self._forms = forms.reshape(-1, 16)  # (c * 5, 16)
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -99,18 +106,19 @@ class Triangulator:
         n_cams, n_points = points_2d.shape[:2]
         if n_points == 0:
             return np.zeros((0, 3))
-        normalized = self.normalize(points_2d)
-        seen = np.isfinite(normalized).all(axis=-1)  # (c, n)
-        x = np.where(seen, normalized[..., 0], 0.0)
-        y = np.where(seen, normalized[..., 1], 0.0)
-        features = np.empty((n_points, n_cams, 4))
-        features[..., 0] = (x * x + y * y).T
-        features[..., 1] = x.T
-        features[..., 2] = y.T
-        features[..., 3] = seen.T
+        if self._skewed:  # rare: a skewed intrinsic matrix, so work in normalised coordinates
+            points_2d = self.normalize(points_2d)
+        seen = ~np.isnan(points_2d[..., 0])  # (c, n)
+        pixels = np.where(seen[..., None], points_2d, 0.0).transpose(1, 0, 2)  # (n, c, 2), unseen -> 0
+        features = np.empty((n_points, n_cams, 5))
+        np.square(pixels, out=features[..., :2])
+        features[..., 2:4] = pixels
+        features[..., 4] = seen.T
         normal = (features.reshape(n_points, -1) @ self._forms).reshape(n_points, 4, 4)
         enough = seen.sum(axis=0) >= 2
-        normal[~enough] = np.eye(4)
+        all_enough = bool(enough.all())
+        if not all_enough:
+            normal[~enough] = np.eye(4)
         with np.errstate(all="ignore"):
             try:
                 inverse = np.linalg.inv(normal)
@@ -121,7 +129,8 @@ class Triangulator:
                 for _ in range(INVERSE_ITERATIONS):
                     vector = inverse @ vector
             points_3d = vector[:, :3, 0] / vector[:, 3:, 0]
-        points_3d[~enough] = np.nan
+        if not all_enough:
+            points_3d[~enough] = np.nan
         return points_3d
 
     def residuals(self, points_3d: np.ndarray, points_2d: np.ndarray) -> np.ndarray:
