@@ -48,7 +48,8 @@ class BundleResult:
         """RMS reprojection error per camera, shape (n_cams,)."""
         errors = np.where(self.inliers, self.errors, np.nan) if inliers_only else self.errors
         flat = errors.reshape(len(errors), -1)
-        return np.sqrt(np.nanmean(flat ** 2, axis=1))
+        count = np.isfinite(flat).sum(axis=1)
+        return np.sqrt(np.nansum(flat ** 2, axis=1) / np.maximum(count, 1)) + np.where(count, 0.0, np.nan)
 
 
 def rodrigues(rvecs: np.ndarray) -> np.ndarray:

@@ -56,6 +56,11 @@ def advice(calibration: Calibration) -> list[str]:
             lines.append(f"{name}: corners cover only {covered:.0%} of the image; move the board into the "
                          f"{', '.join(empty[:6])}{' ...' if len(empty) > 6 else ''} (lens distortion there is "
                          "extrapolated)")
+        detected = np.isfinite(calibration.errors[c]).any(axis=1)
+        dropped = detected & ~calibration.inliers[c].any(axis=1)
+        if dropped.sum() > 0.2 * max(detected.sum(), 1):
+            lines.append(f"{name}: {dropped.sum()} of {detected.sum()} board views disagree with the other cameras and "
+                         "were dropped; check that the images are paired correctly across cameras (same instant)")
         tilt = tilt_range_deg(calibration, c)
         if tilt < MIN_TILT_ADVICE_DEG:
             lines.append(f"{name}: the board's orientation varies by only {tilt:.0f} degrees across views, so the "

@@ -66,7 +66,9 @@ class Calibration:
     def rms_px(self, inliers_only: bool = True) -> np.ndarray:
         """RMS reprojection error per camera, shape (n_cams,)."""
         errors = np.where(self.inliers, self.errors, np.nan) if inliers_only else self.errors
-        return np.sqrt(np.nanmean(errors.reshape(len(errors), -1) ** 2, axis=1))
+        flat = errors.reshape(len(errors), -1)
+        count = np.isfinite(flat).sum(axis=1)
+        return np.sqrt(np.nansum(flat ** 2, axis=1) / np.maximum(count, 1)) + np.where(count, 0.0, np.nan)
 
     def views_used(self) -> np.ndarray:
         """Views with inlier corners per camera, int (n_cams,)."""
