@@ -50,7 +50,8 @@ def board_command(spec: str, out: Path, dpi: int) -> None:
 @click.option("--images", multiple=True, metavar="NAME=DIR",
               help="A camera's folder of images (or a glob such as 'dir/left*.jpg'); repeat per camera.")
 @click.option("--videos", multiple=True, metavar="NAME=FILE", help="A camera's video file; repeat per camera.")
-@click.option("--sources", multiple=True, metavar="NAME=URL", help="A live camera source URL; repeat per camera.")
+@click.option("--sources", multiple=True, metavar="NAME=URL",
+              help="A live camera source URL (e.g. v4l2:///dev/video0); repeat per camera. Hold the board still.")
 @click.option("--board", "board_spec", required=True, help="Board spec, e.g. 'charuco:7x5:40:30:DICT_4X4_50'.")
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Calibration file to write (TOML).")
@@ -118,28 +119,35 @@ def _run(images, videos, sources, board_spec, out, fisheye, up, origin_view, boa
 
 
 def _source_frames(named: dict[str, str], n_frames: int):
-    """Synchronised frame sets from live sources (the camera source registry, ``livebridge.capture``)."""
+    """Frame sets from live sources (``livebridge.capture.sources``): one frame per camera, read in turn.
+
+    Frames are matched by read order, not by hardware sync, so hold the board still for a moment in each pose.
+    """
     from livebridge.errors import InputError
 
     try:
         from livebridge.capture.sources import open_source
     except ImportError:
-        raise InputError("live sources are not available yet (livebridge.capture.sources.open_source is missing); "
+        raise InputError("live sources are not available (livebridge.capture.sources is missing); "
                          "record videos or images and use --videos / --images", field="--sources") from None
     opened = [open_source(url) for url in named.values()]
+    started = []
     try:
+        for source in opened:
+            source.start()
+            started.append(source)
         for _ in range(n_frames):
             frame_set = []
-            for source in opened:
-                frame = source.read() if hasattr(source, "read") else next(iter(source))
-                image = getattr(frame, "image", frame)
-                frame_set.append(image)
+            for name, source in zip(named, opened):
+                frame = source.read(timeout=2.0)
+                if frame is None and source.ended:
+                    raise InputError(f"camera stopped delivering frames ({source.error or 'ended'})",
+                                     named[name], f"--sources {name}")
+                frame_set.append(None if frame is None else frame.image)
             yield frame_set
     finally:
-        for source in opened:
-            close = getattr(source, "close", None)
-            if close is not None:
-                close()
+        for source in started:
+            source.stop()
 
 
 @calibrate.command("show")
