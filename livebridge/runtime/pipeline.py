@@ -233,7 +233,8 @@ class Lockstep:
     def before_read(self, k: int, timeout: float | None) -> bool:
         with self._cond:
             return self._cond.wait_for(
-                lambda: self._reads[k] <= min(r for r, live in zip(self._reads, self._live) if live), timeout)
+                lambda: self._reads[k] <= min((r for r, live in zip(self._reads, self._live) if live),
+                                              default=self._reads[k]), timeout)
 
     def after_read(self, k: int, got_frame: bool, ended: bool) -> None:
         with self._cond:
@@ -275,7 +276,14 @@ def _synced_capture(sources, period_s: float, realtime: bool, **options):
         return SyncedCapture(sources, period_s, queue_size=1, **options)
 
     class _Unpaced(SyncedCapture):
-        def _ticker(self) -> None:  # frame time, not host time, drives an unpaced synchroniser
+        """Frame time, not host time, drives an unpaced synchroniser: no ticker, and polls keep frame time."""
+
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            poll = self.sync.poll
+            self.sync.poll = lambda now: poll(-math.inf)  # time advances with the frames only
+
+        def _ticker(self) -> None:
             return
 
     return _Unpaced(sources, period_s, queue_size=1, **options)
@@ -293,6 +301,7 @@ class PipelineStats:
 
     framesets: int = 0
     solved: int = 0
+    unlabelled_attempts: int = 0
     first_t: float = math.nan
     last_t: float = math.nan
     servo_latency: deque = field(default_factory=lambda: deque(maxlen=100_000))
@@ -474,7 +483,11 @@ class Pipeline:
                 complete, detected = max(complete, arrived), max(detected, done)
                 present += 1
             seq = next(f.seq for f in frameset.frames if f is not None)
+            if not state.labelled and present < len(self.sources) - len(self.capture.sync.dead):
+                continue  # the first labelling (on the neutral face) waits for a frame set from every camera
             state, labelled = self.reconstructor.step(state, points_2d, frameset.t)
+            if not state.labelled:
+                self.stats.unlabelled_attempts += 1
             reconstructed = time.monotonic()
             if self._solver is None and state.alignment is not None:
                 from livebridge.solve.solver import ContractionSolver
@@ -562,6 +575,10 @@ class Pipeline:
     def status_line(self) -> str:
         """One line: fps, drops, latency p50/p99, labelled fraction, region errors, cameras."""
         s = self.summary(recent=True)
+        if not self.stats.solved and self.stats.unlabelled_attempts:
+            return (f"waiting for the first labelling: show the neutral face to every camera "
+                    f"({self.stats.unlabelled_attempts} frame sets tried) | cameras "
+                    f"{s['cameras_alive']}/{len(self.sources)}")
         return (f"fps {s['fps']:5.1f} | drops {s['drops']} | latency servo p50 {s['latency_p50_ms']:.2f} "
                 f"p99 {s['latency_p99_ms']:.2f} ms, render p99 {s['render_latency_p99_ms']:.2f} ms | "
                 f"labelled {100 * s['labelled_fraction']:.1f}% | error upper {s['error_upper_mm']:.3f} "
