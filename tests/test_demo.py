@@ -1,0 +1,52 @@
+"""End to end: the demo pipeline (performer, 4-camera rig, real driver on a simulated servo bus, render
+client) against the simulator's ground truth."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from livebridge.runtime.demo import build_demo
+from livebridge.runtime.pipeline import run_until_stopped
+
+
+def test_demo_end_to_end_matches_ground_truth():
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    received = []
+    parts = build_demo(realtime=False, port=0, log=lambda m: None)  # 1280x800 cameras, 16 servos, render client
+    pipeline = parts.pipeline
+    stop = threading.Event()
+
+    def client(url):
+        with connect(url, max_size=None) as ws:
+            while not stop.is_set():
+                try:
+                    message = ws.recv(timeout=0.5)
+                except TimeoutError:
+                    continue
+                except ConnectionClosed:
+                    return
+                if isinstance(message, bytes):
+                    received.append(message[:4])
+
+    def started(p):
+        thread = threading.Thread(target=client, args=(f"ws://127.0.0.1:{p.render.port}/ws",), daemon=True)
+        thread.start()
+
+    try:
+        summary = run_until_stopped(pipeline, frames=300, log=lambda m: None, on_start=started)
+    finally:
+        stop.set()
+    score = parts.score
+    assert summary["solved"] >= 300 and score.frames >= 300
+    assert score.rmse <= 0.03, score.rmse
+    assert score.swaps == 0
+    assert summary["labelled_fraction"] > 0.95  # markers seen by fewer than 2 cameras are never labelled
+    assert summary["error_upper_mm"] < 0.5 and summary["error_lower_mm"] < 0.5
+    assert np.isfinite(summary["latency_p99_ms"]) and np.isfinite(summary["render_latency_p50_ms"])
+    assert received[0] == (1).to_bytes(4, "little") and len(received) > 10  # the mesh, then frames
+    servo = pipeline.servo
+    assert servo.frames >= 300 and not servo.faults()
