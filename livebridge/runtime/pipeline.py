@@ -634,6 +634,9 @@ class Pipeline:
             "cpu_per_frameset_ms": 1e3 * cpu / max(stats.solved, 1),
             "pipeline_cpu_per_frameset_ms": 1e3 * (stats.cpu_reconstruct_s + stats.cpu_outputs_s + detect_cpu)
             / max(stats.solved, 1),
+            "detect_cpu_per_frameset_ms": 1e3 * detect_cpu / max(stats.solved, 1),
+            "reconstruct_solve_cpu_per_frameset_ms": 1e3 * stats.cpu_reconstruct_s / max(stats.solved, 1),
+            "outputs_cpu_per_frameset_ms": 1e3 * stats.cpu_outputs_s / max(stats.solved, 1),
             "wall_s": wall,
         }
 
