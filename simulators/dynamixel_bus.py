@@ -37,7 +37,7 @@ import time
 from dataclasses import dataclass, field
 
 from livebridge.drivers import dynamixel_protocol as dxl
-from livebridge.simulators.pty_bus import PtyBus, Reply
+from livebridge.simulators.pty_bus import PtyDevice, Reply
 
 _TABLE_SIZE = 256
 SHUTDOWN_DELAY_S = 1.0  # overload must persist this long
@@ -198,7 +198,7 @@ class SimServo:
         self.motion = _Motion(self.position, float(goal), now, duration, min(t_acc, duration / 2))
 
 
-class DynamixelSim:
+class DynamixelSim(PtyDevice):
     """Several X-series servos on one simulated Protocol 2.0 bus.
 
     Parameters
@@ -218,6 +218,8 @@ class DynamixelSim:
     return_delay_time : int, optional
         Override address 9 (2 µs units) of every servo; default the model's 250.
     """
+
+    tick_period = 0.01
 
     def __init__(self, ids=(1,), model: str | dict[int, str] = "XL330-M288", baud: int = 1_000_000,
                  corrupt_rate: float = 0.0, drop_rate: float = 0.0, seed: int = 0,
@@ -250,32 +252,14 @@ class DynamixelSim:
             servo.update(now, 0.0, ambient)
             self.servos[servo_id] = servo
         self._last_tick = now
-        self.pty: PtyBus | None = None
 
     # -- serving -----------------------------------------------------------------------------------------------
-
-    def start(self) -> str:
-        """Serve on a new pseudo-terminal; returns its path."""
-        self.pty = PtyBus(self.handle, tick=self.tick, tick_period=0.01)
-        return self.pty.path
 
     @property
     def path(self) -> str:
         if self.pty is None:
             raise RuntimeError("simulator not started")
         return self.pty.path
-
-    def close(self) -> None:
-        if self.pty is not None:
-            self.pty.close()
-            self.pty = None
-
-    def __enter__(self):
-        self.start()
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
     def tick(self) -> None:
         with self.lock:
@@ -335,17 +319,14 @@ class DynamixelSim:
 
     def _inject(self, reply: Reply) -> Reply | None:
         delay, data = reply
-        if self.drop_rate and self.random.random() < self.drop_rate:
+        sent = self.inject_fault(data)
+        if sent is None:
             self.stats["dropped_out"] += 1
             return None
-        if self.corrupt_rate and self.random.random() < self.corrupt_rate:
+        if sent != data:
             self.stats["corrupted_out"] += 1
-            data = bytearray(data)
-            i = self.random.randrange(len(data))
-            data[i] ^= 1 << self.random.randrange(8)
-            data = bytes(data)
         self.stats["replies"] += 1
-        return delay, data
+        return delay, sent
 
     def _find(self, servo_id: int) -> SimServo | None:
         for servo in self.servos.values():

@@ -18,15 +18,17 @@ import threading
 import time
 
 from livebridge.drivers import maestro as mp
-from livebridge.simulators.pty_bus import PtyBus, Reply
+from livebridge.simulators.pty_bus import PtyDevice, Reply
 
 _LENGTHS = {mp.SET_TARGET: 3, mp.SET_SPEED: 3, mp.SET_ACCELERATION: 3, mp.GET_POSITION: 1,
             mp.GET_MOVING_STATE: 0, mp.GET_ERRORS: 0, mp.GO_HOME: 0}
 PROTOCOL_ERROR = 1 << 4
 
 
-class MaestroSim:
+class MaestroSim(PtyDevice):
     """A Maestro with ``channels`` servo channels, device number ``device``."""
+
+    tick_period = 0.01
 
     def __init__(self, channels: int = 24, device: int = 12, range_us=(500.0, 2500.0), home_us: float = 0.0,
                  corrupt_rate: float = 0.0, drop_rate: float = 0.0, seed: int = 0, clock=time.monotonic):
@@ -48,23 +50,6 @@ class MaestroSim:
         self.target_log: list[tuple[int, int]] = []  # (channel, quarter-µs) of every target received
         self.commands = 0
         self._last = clock()
-        self.pty: PtyBus | None = None
-
-    def start(self) -> str:
-        self.pty = PtyBus(self.handle, tick=self.tick, tick_period=0.01)
-        return self.pty.path
-
-    def close(self) -> None:
-        if self.pty is not None:
-            self.pty.close()
-            self.pty = None
-
-    def __enter__(self):
-        self.start()
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
     def tick(self) -> None:
         with self.lock:
@@ -100,15 +85,7 @@ class MaestroSim:
                 del self.buffer[:used]
                 if reply:
                     replies.append(reply)
-        out = []
-        for reply in replies:
-            if self.drop_rate and self.random.random() < self.drop_rate:
-                continue
-            if self.corrupt_rate and self.random.random() < self.corrupt_rate:
-                reply = bytearray(reply)
-                reply[self.random.randrange(len(reply))] ^= 1 << self.random.randrange(8)
-            out.append((0.0, bytes(reply)))
-        return out
+        return [(0.0, reply) for reply in map(self.inject_fault, replies) if reply is not None]
 
     def _parse(self) -> tuple[int, bytes | None]:
         """Consume one command from the buffer: (bytes used, reply); (0, None) when incomplete."""

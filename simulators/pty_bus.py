@@ -4,11 +4,14 @@ The transport only moves bytes: whatever the client writes to the slave side
 (``/dev/pts/N``, opened with pyserial or a vendor SDK like any serial port)
 is handed to ``handler(data) -> replies``; each reply is written back after
 its delay. The device logic lives in the handler, as pure framing + state.
+:class:`PtyDevice` is the lifecycle (start, close, context manager) and the
+reply fault injection that the device simulators share.
 """
 
 from __future__ import annotations
 
 import os
+import random
 import select
 import threading
 import time
@@ -103,3 +106,58 @@ class PtyBus:
 
     def __exit__(self, *exc):
         self.close()
+
+
+class PtyDevice:
+    """Base of a simulated device served on a :class:`PtyBus`.
+
+    A subclass defines ``handle(data) -> list[Reply]`` and, when
+    ``tick_period`` is not None, ``tick()`` (called about every
+    ``tick_period`` seconds on the serving thread). For reply fault
+    injection it sets ``random`` (a ``random.Random``), ``drop_rate`` and
+    ``corrupt_rate``.
+    """
+
+    tick_period: float | None = None
+    pty: PtyBus | None = None
+    random: random.Random
+    drop_rate: float
+    corrupt_rate: float
+
+    def handle(self, data: bytes) -> Iterable[Reply]:
+        raise NotImplementedError
+
+    def tick(self) -> None:
+        raise NotImplementedError
+
+    def start(self) -> str:
+        """Serve on a new pseudo-terminal; returns its path."""
+        if self.tick_period is None:
+            self.pty = PtyBus(self.handle)
+        else:
+            self.pty = PtyBus(self.handle, tick=self.tick, tick_period=self.tick_period)
+        return self.pty.path
+
+    def close(self) -> None:
+        if self.pty is not None:
+            self.pty.close()
+            self.pty = None
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def inject_fault(self, data: bytes) -> bytes | None:
+        """``data`` dropped (None) with probability ``drop_rate``, else one bit flipped with ``corrupt_rate``.
+
+        A corrupted reply always differs from ``data`` (exactly one bit is flipped).
+        """
+        if self.drop_rate and self.random.random() < self.drop_rate:
+            return None
+        if self.corrupt_rate and self.random.random() < self.corrupt_rate:
+            data = bytearray(data)
+            data[self.random.randrange(len(data))] ^= 1 << self.random.randrange(8)
+        return bytes(data)

@@ -15,13 +15,13 @@ import re
 import threading
 import time
 
-from livebridge.simulators.pty_bus import PtyBus, Reply
+from livebridge.simulators.pty_bus import PtyDevice, Reply
 
 _TOKEN = re.compile(rb"#(\d+)|P(\d+)|S(\d+)|T(\d+)|QP\s*(\d+)|Q|VER|STOP\s*(\d+)", re.I)
 VERSION = b"SSC32-V2.50USB"
 
 
-class SSC32Sim:
+class SSC32Sim(PtyDevice):
     """32 channels, pulse widths in µs (0 = off)."""
 
     def __init__(self, channels: int = 32, corrupt_rate: float = 0.0, drop_rate: float = 0.0, seed: int = 0,
@@ -38,23 +38,6 @@ class SSC32Sim:
         self.buffer = bytearray()
         self.move_log: list[tuple[int, int]] = []  # (channel, µs) of every pulse width commanded
         self.commands = 0
-        self.pty: PtyBus | None = None
-
-    def start(self) -> str:
-        self.pty = PtyBus(self.handle)
-        return self.pty.path
-
-    def close(self) -> None:
-        if self.pty is not None:
-            self.pty.close()
-            self.pty = None
-
-    def __enter__(self):
-        self.start()
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
     def pulse(self, channel: int, now: float | None = None) -> float:
         """Pulse width being output on ``channel`` now, µs."""
@@ -77,15 +60,7 @@ class SSC32Sim:
                 reply = self._line(line)
                 if reply:
                     replies.append(reply)
-        out = []
-        for reply in replies:
-            if self.drop_rate and self.random.random() < self.drop_rate:
-                continue
-            if self.corrupt_rate and self.random.random() < self.corrupt_rate:
-                reply = bytearray(reply)
-                reply[self.random.randrange(len(reply))] ^= 1 << self.random.randrange(8)
-            out.append((0.0, bytes(reply)))
-        return out
+        return [(0.0, reply) for reply in map(self.inject_fault, replies) if reply is not None]
 
     def _line(self, line: bytes) -> bytes | None:
         now = self.clock()
