@@ -32,6 +32,7 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 from livebridge.drivers import dynamixel_protocol as dxl
+from livebridge.drivers.serial_bus import SerialServoBus, clamp_whole, open_simulated, url_device
 from livebridge.errors import InputError
 from livebridge.servo.bus import ServoInfo, ServoSetup, ServoStatus, url_options
 
@@ -52,7 +53,7 @@ def latency_timer_hint(port: str) -> str | None:
             f"Set it to 1 ms: echo 1 | sudo tee {timer}")
 
 
-class DynamixelBus:
+class DynamixelBus(SerialServoBus):
     """A Protocol 2.0 bus of X-series servos (see the module docstring).
 
     Parameters
@@ -301,8 +302,7 @@ class DynamixelBus:
         return positions
 
     def _clamp(self, servo_id: int, value: float) -> int:
-        setup = self.servos[servo_id]
-        return int(min(math.floor(setup.high), max(math.ceil(setup.low), round(value))))
+        return clamp_whole(self.servos[servo_id], value)
 
     def write(self, targets: Mapping[int, float]) -> None:
         values = {}
@@ -317,9 +317,7 @@ class DynamixelBus:
         now = self.clock()
         ids = list(self.servos)
         got = self.sync_read(ADDR["present_position"], 4, ids)
-        slow = self._polls % self.status_every == 0
-        self._polls += 1
-        if slow:
+        if self._status_due():
             for servo_id, (data, _) in self.sync_read(ADDR["present_temperature"], 1, ids).items():
                 self._temperature[servo_id] = float(data[0])
             for servo_id, (data, _) in self.sync_read(ADDR["hardware_error_status"], 1, ids).items():
@@ -387,14 +385,9 @@ class DynamixelBus:
         self._sync_write("torque_enable", {i: 0 for i in self.servos})
         self.ph.write1ByteTxOnly(self.port, dxl.BROADCAST_ID, ADDR["torque_enable"], 0)
 
-    def close(self) -> None:
-        try:
-            if self.port.is_open:
-                self.port.closePort()
-        finally:
-            if self.simulator is not None:
-                self.simulator.close()
-                self.simulator = None
+    def _close_port(self) -> None:
+        if self.port.is_open:
+            self.port.closePort()
 
 
 def _hardware_error_text(bits: int) -> str:
@@ -424,14 +417,7 @@ def open_url(url: str, **options) -> DynamixelBus:
                                return_delay_time=int(query["delay"]) if "delay" in query else None)
         except ValueError as error:
             raise InputError(str(error), url) from None
-        path = sim.start()
         options.setdefault("timeout_margin_ms", 150.0)
-        try:
-            return DynamixelBus(path, baud=baud, url=url, simulator=sim, **options)
-        except BaseException:
-            sim.close()
-            raise
-    port = parts.path or parts.netloc
-    if not port:
-        raise InputError("no serial device in the URL (dynamixel:///dev/ttyUSB0)", url)
+        return open_simulated(sim, lambda path: DynamixelBus(path, baud=baud, url=url, simulator=sim, **options))
+    port = url_device(url, "dynamixel:///dev/ttyUSB0")
     return DynamixelBus(port, baud=baud, url=url, **options)

@@ -22,6 +22,7 @@ import time
 from collections.abc import Mapping, Sequence
 from urllib.parse import urlsplit
 
+from livebridge.drivers.serial_bus import PySerialServoBus, open_simulated, url_device
 from livebridge.errors import InputError
 from livebridge.servo.bus import ServoInfo, ServoSetup, ServoStatus, url_options
 
@@ -107,7 +108,7 @@ def error_text(bits: int) -> str:
     return ", ".join(name for bit, name in ERROR_NAMES.items() if bits & (1 << bit)) or "none"
 
 
-class MaestroBus:
+class MaestroBus(PySerialServoBus):
     """A Maestro on a serial port (USB command port ``/dev/ttyACM0`` or TTL).
 
     Parameters
@@ -128,8 +129,6 @@ class MaestroBus:
     def __init__(self, port: str, baud: int = 115200, device: int | None = None, url: str | None = None,
                  simulator=None, multiple: bool = True, status_every: int = 10, estop: str = "stop",
                  timeout: float = 0.05, clock=time.monotonic, log=None):
-        import serial
-
         self.url = url or f"maestro://{port}"
         self.simulator = simulator
         self.device = device
@@ -138,10 +137,7 @@ class MaestroBus:
         self.estop_mode = estop
         self.clock = clock
         self.log = log or (lambda message: None)
-        try:
-            self.serial = serial.Serial(port, baudrate=baud, timeout=timeout, write_timeout=1.0)
-        except (serial.SerialException, ValueError) as error:
-            raise InputError(f"cannot open serial port ({error})", self.url) from None
+        self._open_serial(port, baud, timeout)
         self.servos: dict[int, ServoSetup] = {}
         self.status: dict[int, ServoStatus] = {}
         self.faults: dict[int, str] = {}
@@ -149,10 +145,6 @@ class MaestroBus:
         self.errors = 0
         self._polls = 0
         self.stats = {"frames": 0, "tx_bytes": 0}
-
-    def _send(self, data: bytes) -> None:
-        self.serial.write(data)
-        self.stats["tx_bytes"] += len(data)
 
     def _query(self, data: bytes, n: int) -> bytes | None:
         self.serial.reset_input_buffer()
@@ -215,9 +207,7 @@ class MaestroBus:
 
     def poll(self) -> dict[int, ServoStatus]:
         now = self.clock()
-        slow = self._polls % self.status_every == 0
-        self._polls += 1
-        if not slow:
+        if not self._status_due():
             return dict(self.status)
         bits = self.read_errors()
         if bits:
@@ -239,14 +229,6 @@ class MaestroBus:
         for channel in self.servos:
             self._send(set_target(channel, 0, self.device))
 
-    def close(self) -> None:
-        try:
-            self.serial.close()
-        finally:
-            if self.simulator is not None:
-                self.simulator.close()
-                self.simulator = None
-
 
 def open_url(url: str, **options) -> MaestroBus:
     """``maestro:///dev/ttyACM0?device=12`` or ``simmaestro://?channels=12&device=12``."""
@@ -263,13 +245,7 @@ def open_url(url: str, **options) -> MaestroBus:
         sim = MaestroSim(channels=int(query.get("channels", 24)), device=device if device is not None else 12,
                          corrupt_rate=float(query.get("corrupt", 0)), drop_rate=float(query.get("drop", 0)),
                          seed=int(query.get("seed", 0)))
-        path = sim.start()
-        try:
-            return MaestroBus(path, baud=baud, device=device, url=url, simulator=sim, **options)
-        except BaseException:
-            sim.close()
-            raise
-    port = parts.path or parts.netloc
-    if not port:
-        raise InputError("no serial device in the URL (maestro:///dev/ttyACM0)", url)
+        return open_simulated(sim, lambda path: MaestroBus(path, baud=baud, device=device, url=url,
+                                                           simulator=sim, **options))
+    port = url_device(url, "maestro:///dev/ttyACM0")
     return MaestroBus(port, baud=baud, device=device, url=url, **options)

@@ -21,6 +21,7 @@ import time
 from collections.abc import Mapping, Sequence
 from urllib.parse import urlsplit
 
+from livebridge.drivers.serial_bus import PySerialServoBus, clamp_whole, open_simulated, url_device
 from livebridge.errors import InputError
 from livebridge.servo.bus import ServoInfo, ServoSetup, ServoStatus, url_options
 
@@ -57,7 +58,7 @@ def decode_pulses(reply: bytes) -> list[int]:
     return [b * 10 for b in reply]
 
 
-class SSC32Bus:
+class SSC32Bus(PySerialServoBus):
     """An SSC-32U on a serial port; one group move per frame, timed to the frame period."""
 
     kind = "ssc32"
@@ -65,28 +66,19 @@ class SSC32Bus:
     def __init__(self, port: str, baud: int = 115200, url: str | None = None, simulator=None,
                  status_every: int = 10, estop: str = "stop", timeout: float = 0.05, clock=time.monotonic,
                  log=None):
-        import serial
-
         self.url = url or f"ssc32://{port}?baud={baud}"
         self.simulator = simulator
         self.status_every = max(1, int(status_every))
         self.estop_mode = estop
         self.clock = clock
         self.log = log or (lambda message: None)
-        try:
-            self.serial = serial.Serial(port, baudrate=baud, timeout=timeout, write_timeout=1.0)
-        except (serial.SerialException, ValueError) as error:
-            raise InputError(f"cannot open serial port ({error})", self.url) from None
+        self._open_serial(port, baud, timeout)
         self.servos: dict[int, ServoSetup] = {}
         self.status: dict[int, ServoStatus] = {}
         self.faults: dict[int, str] = {}
         self.frame_ms = 20.0
         self._polls = 0
         self.stats = {"frames": 0, "tx_bytes": 0}
-
-    def _send(self, data: bytes) -> None:
-        self.serial.write(data)
-        self.stats["tx_bytes"] += len(data)
 
     def firmware(self) -> str | None:
         self.serial.reset_input_buffer()
@@ -124,17 +116,14 @@ class SSC32Bus:
         pulses = {}
         for channel, value in targets.items():
             if channel in self.servos and math.isfinite(value):
-                setup = self.servos[channel]
-                pulses[channel] = min(math.floor(setup.high), max(math.ceil(setup.low), round(value)))
+                pulses[channel] = clamp_whole(self.servos[channel], value)
         if pulses:
             self._send(move(pulses, self.frame_ms))
         self.stats["frames"] += 1
 
     def poll(self) -> dict[int, ServoStatus]:
         now = self.clock()
-        slow = self._polls % self.status_every == 0
-        self._polls += 1
-        if slow and self.servos:
+        if self._status_due() and self.servos:
             positions = self.pulses(sorted(self.servos)) or {}
             for channel in self.servos:
                 self.status[channel] = ServoStatus(channel, positions.get(channel), None, 0, None, now)
@@ -152,14 +141,6 @@ class SSC32Bus:
         if self.servos:
             self._send(("".join(f"#{c}P0" for c in sorted(self.servos)) + "\r").encode("ascii"))
 
-    def close(self) -> None:
-        try:
-            self.serial.close()
-        finally:
-            if self.simulator is not None:
-                self.simulator.close()
-                self.simulator = None
-
 
 def open_url(url: str, **options) -> SSC32Bus:
     """``ssc32:///dev/ttyUSB1?baud=115200`` or ``simssc32://``."""
@@ -174,13 +155,6 @@ def open_url(url: str, **options) -> SSC32Bus:
 
         sim = SSC32Sim(corrupt_rate=float(query.get("corrupt", 0)), drop_rate=float(query.get("drop", 0)),
                        seed=int(query.get("seed", 0)))
-        path = sim.start()
-        try:
-            return SSC32Bus(path, baud=baud, url=url, simulator=sim, **options)
-        except BaseException:
-            sim.close()
-            raise
-    port = parts.path or parts.netloc
-    if not port:
-        raise InputError("no serial device in the URL (ssc32:///dev/ttyUSB1)", url)
+        return open_simulated(sim, lambda path: SSC32Bus(path, baud=baud, url=url, simulator=sim, **options))
+    port = url_device(url, "ssc32:///dev/ttyUSB1")
     return SSC32Bus(port, baud=baud, url=url, **options)

@@ -1,0 +1,99 @@
+"""What the serial servo-controller drivers share (Maestro, SSC-32U, DYNAMIXEL).
+
+- :class:`SerialServoBus`: closing the port and then the simulator the bus
+  owns (``sim...://`` URLs), and the cadence of the slow status reads;
+- :class:`PySerialServoBus`: the same on a pyserial port (open with an
+  :class:`~livebridge.errors.InputError` that names the URL, counted writes);
+- :func:`open_simulated` and :func:`url_device`: the two halves of an
+  ``open_url`` (a simulator on a pseudo-terminal, or a device path);
+- :func:`clamp_whole`: a raw target clamped to a servo's limits in whole units.
+
+pyserial is imported inside :meth:`PySerialServoBus._open_serial` only.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import TypeVar
+from urllib.parse import urlsplit
+
+from livebridge.errors import InputError
+from livebridge.servo.bus import ServoSetup
+
+Bus = TypeVar("Bus")
+
+
+def clamp_whole(setup: ServoSetup, value: float) -> int:
+    """``value`` rounded and clamped to ``[ceil(setup.low), floor(setup.high)]``."""
+    return int(min(math.floor(setup.high), max(math.ceil(setup.low), round(value))))
+
+
+def open_simulated(sim, make: Callable[[str], Bus]) -> Bus:
+    """Start ``sim`` on a pseudo-terminal and ``make(path)`` the bus on it; the simulator is closed if that fails."""
+    path = sim.start()
+    try:
+        return make(path)
+    except BaseException:
+        sim.close()
+        raise
+
+
+def url_device(url: str, example: str) -> str:
+    """The serial device of ``url`` (``scheme:///dev/ttyUSB0``); ``example`` is quoted when there is none."""
+    parts = urlsplit(url)
+    port = parts.path or parts.netloc
+    if not port:
+        raise InputError(f"no serial device in the URL ({example})", url)
+    return port
+
+
+class SerialServoBus:
+    """Base of a servo bus on a serial port that may own the simulator serving that port.
+
+    A subclass sets ``url``, ``simulator`` (or None), ``status_every`` and
+    ``_polls = 0``, and defines :meth:`_close_port`.
+    """
+
+    url: str
+    simulator = None
+    status_every: int
+    _polls: int
+
+    def _close_port(self) -> None:
+        raise NotImplementedError
+
+    def _status_due(self) -> bool:
+        """Count a poll; True on every ``status_every``-th one, the first included."""
+        due = self._polls % self.status_every == 0
+        self._polls += 1
+        return due
+
+    def close(self) -> None:
+        try:
+            self._close_port()
+        finally:
+            if self.simulator is not None:
+                self.simulator.close()
+                self.simulator = None
+
+
+class PySerialServoBus(SerialServoBus):
+    """A :class:`SerialServoBus` on a pyserial port ``self.serial``; ``stats["tx_bytes"]`` counts what is sent."""
+
+    stats: dict[str, int]
+
+    def _open_serial(self, port: str, baud: int, timeout: float) -> None:
+        import serial
+
+        try:
+            self.serial = serial.Serial(port, baudrate=baud, timeout=timeout, write_timeout=1.0)
+        except (serial.SerialException, ValueError) as error:
+            raise InputError(f"cannot open serial port ({error})", self.url) from None
+
+    def _send(self, data: bytes) -> None:
+        self.serial.write(data)
+        self.stats["tx_bytes"] += len(data)
+
+    def _close_port(self) -> None:
+        self.serial.close()
