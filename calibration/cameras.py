@@ -100,13 +100,7 @@ class Camera:
         -------
         ndarray, shape (n_points, 2); NaN rows stay NaN.
         """
-        points_2d = np.asarray(points_2d, dtype=np.float64).reshape(-1, 2)
-        out = np.full_like(points_2d, np.nan)
-        valid = np.isfinite(points_2d).all(axis=1)
-        if valid.any():
-            normalised = undistort_normalised(points_2d[valid], self.matrix, self.distortions, self.fisheye)
-            out[valid] = normalised * self.matrix[[0, 1], [0, 1]] + self.matrix[:2, 2]
-        return out
+        return self.normalised_rays(points_2d) * self.matrix[[0, 1], [0, 1]] + self.matrix[:2, 2]
 
     def normalised_rays(self, points_2d: np.ndarray) -> np.ndarray:
         """Distorted pixels to undistorted normalised image coordinates ``(x/z, y/z)``.
