@@ -9,8 +9,39 @@ import click
 _MODES = click.Choice(["split-compensated", "split", "joint"])
 
 
+def _inputs(basis_help: str, take_help: str):
+    """The ``--basis``, ``--markers`` and ``--take`` options both commands read with :func:`_load`."""
+    options = [
+        click.option("--basis", "basis_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+                     help=basis_help),
+        click.option("--markers", "markers_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+                     help="Marker set (.toml)."),
+        click.option("--take", "take_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+                     help=take_help),
+    ]
+
+    def decorate(command):
+        for option in reversed(options):
+            command = option(command)
+        return command
+
+    return decorate
+
+
 def _load(basis_path: Path, markers_path: Path, take_path: Path):
-    """Basis, marker set and the take's displacements in the marker set's order (n_frames, n_markers, 3)."""
+    """Basis, marker set and the take's displacements in the marker set's order (n_frames, n_markers, 3).
+
+    Bad input (an :class:`~livebridge.errors.InputError`) becomes a ``click.ClickException``.
+    """
+    from livebridge.errors import InputError
+
+    try:
+        return _read(basis_path, markers_path, take_path)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
+
+
+def _read(basis_path: Path, markers_path: Path, take_path: Path):
     import numpy as np
 
     from livebridge.errors import InputError
@@ -37,25 +68,16 @@ def _load(basis_path: Path, markers_path: Path, take_path: Path):
 
 
 @click.command()
-@click.option("--basis", "basis_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Basis file (.npz).")
-@click.option("--markers", "markers_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Marker set (.toml).")
-@click.option("--take", "take_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Training take (.npz) with marker displacements.")
+@_inputs("Basis file (.npz).", "Training take (.npz) with marker displacements.")
 @click.option("--out-dir", type=click.Path(file_okay=False, path_type=Path),
               help="Where the summary (.txt) and plot (.png) go (default: beside the take).")
 @click.option("--mode", type=_MODES, default="split-compensated", show_default=True, help="Region mode.")
 def check(basis_path: Path, markers_path: Path, take_path: Path, out_dir: Path | None, mode: str) -> None:
     """Validate a basis on a training take: per-muscle range excursions and misfit, per-region marker error."""
-    from livebridge.errors import InputError
     from livebridge.solve.solver import SolverConfig
     from livebridge.solve.validate import check_basis, plot_report
 
-    try:
-        basis, markers, take, displacements = _load(basis_path, markers_path, take_path)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    basis, markers, take, displacements = _load(basis_path, markers_path, take_path)
     report = check_basis(basis, markers, displacements, take.t, SolverConfig(mode=mode), progress=True)
     out_dir = out_dir or take_path.parent
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -68,12 +90,8 @@ def check(basis_path: Path, markers_path: Path, take_path: Path, out_dir: Path |
 
 
 @click.command()
-@click.option("--basis", "basis_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Draft basis file (.npz).")
-@click.option("--markers", "markers_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Marker set (.toml).")
-@click.option("--take", "take_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Training take (.npz) with marker displacements; every muscle should reach full contraction.")
+@_inputs("Draft basis file (.npz).",
+         "Training take (.npz) with marker displacements; every muscle should reach full contraction.")
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Refined basis (.npz).")
 @click.option("--mode", type=_MODES, default="split-compensated", show_default=True, help="Region mode.")
 @click.option("--anchor", type=click.Choice(["extremes", "norm"]), default="extremes", show_default=True,
@@ -84,14 +102,10 @@ def check(basis_path: Path, markers_path: Path, take_path: Path, out_dir: Path |
 def refine(basis_path: Path, markers_path: Path, take_path: Path, out: Path, mode: str, anchor: str,
            max_iterations: int, tolerance: float) -> None:
     """Refine a basis on a training take (fixed-point re-fit at the markers, thin-plate densification)."""
-    from livebridge.errors import InputError
     from livebridge.solve.refine import refine_basis
     from livebridge.solve.solver import SolverConfig
 
-    try:
-        basis, markers, _, displacements = _load(basis_path, markers_path, take_path)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    basis, markers, _, displacements = _load(basis_path, markers_path, take_path)
     result = refine_basis(basis, markers, displacements, SolverConfig(mode=mode), anchor=anchor,
                           max_iterations=max_iterations, tolerance=tolerance, progress=True, log=click.echo)
     result.basis.save(out)
