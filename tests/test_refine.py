@@ -5,12 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from test_solver import random_markers
+from solver_factories import noisy_training
 
 from livebridge.bench.refine import perturbed_basis
 from livebridge.cli import main
 from livebridge.face.basis import Basis
-from livebridge.simulators.performer import perform
 from livebridge.solve.refine import densify, refine_basis
 from livebridge.take import Take
 
@@ -18,9 +17,7 @@ from livebridge.take import Take
 @pytest.fixture(scope="module")
 def setup(ict):
     rng = np.random.default_rng(31)
-    markers = random_markers(ict, 64, rng)
-    training = perform(ict, markers, 1950, seed=4, script="training", head_motion=False)
-    observed = training.marker_displacements + rng.normal(scale=0.2, size=training.marker_displacements.shape)
+    markers, training, observed = noisy_training(ict, rng, seed=4)
     draft, scales = perturbed_basis(ict, markers, rng)
     return markers, training, observed, draft, scales
 

@@ -5,23 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from factories import random_basis
+from solver_factories import random_markers
 
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
 from livebridge.solve.solver import MODES, ContractionSolver, SolverConfig, solve_take
-
-
-def random_markers(basis: Basis, n_markers: int, rng: np.random.Generator, n_head: int = 0) -> MarkerSet:
-    """Markers on random triangles of ``basis``; a face marker's region is the region whose muscles move it most."""
-    triangles = rng.choice(len(basis.triangles), size=n_markers + n_head, replace=False)
-    barycentric = rng.dirichlet(np.ones(3), size=n_markers + n_head)
-    magnitude = np.linalg.norm(basis.elements, axis=2)[:, basis.triangles[triangles]].mean(axis=2)  # (M, n)
-    upper = basis.region_mask("upper")
-    regions = tuple("upper" if magnitude[upper, k].max() >= magnitude[~upper, k].max() else "lower"
-                    for k in range(n_markers + n_head))
-    roles = ("face",) * n_markers + ("head",) * n_head
-    return MarkerSet(tuple(f"m{i}" for i in range(n_markers + n_head)), triangles, barycentric, regions, roles)
 
 
 def smooth_contractions(n_frames: int, n_muscles: int, rng: np.random.Generator, peak: float = 1.0) -> np.ndarray:

@@ -6,21 +6,16 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from scipy.spatial.transform import Rotation
-from test_solver import random_markers
+from solver_factories import noisy_training
 
 from livebridge.cli import main
-from livebridge.simulators.performer import perform
 from livebridge.solve.validate import check_basis
 from livebridge.take import Take
 
 
 @pytest.fixture(scope="module")
 def training(ict):
-    rng = np.random.default_rng(21)
-    markers = random_markers(ict, 64, rng)
-    performance = perform(ict, markers, 1950, seed=3, script="training", head_motion=False)
-    observed = performance.marker_displacements + rng.normal(scale=0.2, size=performance.marker_displacements.shape)
-    return markers, performance, observed
+    return noisy_training(ict, np.random.default_rng(21), seed=3)
 
 
 def test_a_correct_basis_is_not_flagged(ict, training):
