@@ -76,18 +76,16 @@ class Camera:
         -------
         ndarray, shape (n_points, 2); NaN rows stay NaN.
         """
-        points_3d = np.asarray(points_3d, dtype=np.float64).reshape(-1, 3)
-        out = np.full((len(points_3d), 2), np.nan)
-        valid = np.isfinite(points_3d).all(axis=1)
-        if valid.any():
-            objects = points_3d[valid].reshape(-1, 1, 3)
-            if self.fisheye:
-                pixels, _ = cv2.fisheye.projectPoints(objects, self.rotation, self.translation, self.matrix,
-                                                      self.distortions[:4])
-            else:
-                pixels, _ = cv2.projectPoints(objects, self.rotation, self.translation, self.matrix, self.distortions)
-            out[valid] = pixels.reshape(-1, 2)
-        return out
+        return _on_finite_rows(np.asarray(points_3d, dtype=np.float64).reshape(-1, 3), self._project_finite)
+
+    def _project_finite(self, points_3d: np.ndarray) -> np.ndarray:
+        objects = points_3d.reshape(-1, 1, 3)
+        if self.fisheye:
+            pixels, _ = cv2.fisheye.projectPoints(objects, self.rotation, self.translation, self.matrix,
+                                                  self.distortions[:4])
+        else:
+            pixels, _ = cv2.projectPoints(objects, self.rotation, self.translation, self.matrix, self.distortions)
+        return pixels.reshape(-1, 2)
 
     def undistort_points(self, points_2d: np.ndarray) -> np.ndarray:
         """Distorted pixels to undistorted pixels (same intrinsic matrix).
@@ -113,12 +111,22 @@ class Camera:
         -------
         ndarray, shape (n_points, 2); NaN rows stay NaN.
         """
-        points_2d = np.asarray(points_2d, dtype=np.float64).reshape(-1, 2)
-        out = np.full_like(points_2d, np.nan)
-        valid = np.isfinite(points_2d).all(axis=1)
-        if valid.any():
-            out[valid] = undistort_normalised(points_2d[valid], self.matrix, self.distortions, self.fisheye)
-        return out
+        return _on_finite_rows(np.asarray(points_2d, dtype=np.float64).reshape(-1, 2),
+                               lambda finite: undistort_normalised(finite, self.matrix, self.distortions, self.fisheye))
+
+
+def _on_finite_rows(points: np.ndarray, function) -> np.ndarray:
+    """``function(finite rows) -> (n_finite, 2)`` on the rows of ``points`` (n, d) that are all finite.
+
+    Returns
+    -------
+    ndarray, shape (n, 2); rows with a NaN (or inf) are NaN.
+    """
+    out = np.full((len(points), 2), np.nan)
+    valid = np.isfinite(points).all(axis=1)
+    if valid.any():
+        out[valid] = function(points[valid])
+    return out
 
 
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
