@@ -93,11 +93,7 @@ class DynamixelBus(SerialServoBus):
                 self.packet_timeout = self.tx_time_per_byte * packet_length + margin_ms
 
         margin_ms = float(timeout_margin_ms)
-        self.url = url or f"dynamixel://{port}?baud={baud}"
-        self.simulator = simulator
-        self.clock = clock
-        self.log = log or (lambda message: None)
-        self.status_every = max(1, int(status_every))
+        super().__init__(url or f"dynamixel://{port}?baud={baud}", simulator, status_every, clock, log)
         self.fast_read = fast_read
         self.bus_watchdog_s = bus_watchdog_s
         self.return_delay_us = return_delay_us
@@ -115,15 +111,11 @@ class DynamixelBus(SerialServoBus):
         self.hint = latency_timer_hint(port)
         if self.hint:
             self.log(self.hint)
-        self.servos: dict[int, ServoSetup] = {}
         self.infos: dict[int, ServoInfo] = {}
-        self.faults: dict[int, str] = {}
         self.events: list[tuple[float, int, str]] = []
-        self.status: dict[int, ServoStatus] = {}
         self._silent: dict[int, int] = {}
         self._temperature: dict[int, float] = {}
         self._hw_error: dict[int, int] = {}
-        self._polls = 0
         self._use_fast = False
         self._writer = None
         self.frame_period = 0.02

@@ -129,22 +129,11 @@ class MaestroBus(PySerialServoBus):
     def __init__(self, port: str, baud: int = 115200, device: int | None = None, url: str | None = None,
                  simulator=None, multiple: bool = True, status_every: int = 10, estop: str = "stop",
                  timeout: float = 0.05, clock=time.monotonic, log=None):
-        self.url = url or f"maestro://{port}"
-        self.simulator = simulator
         self.device = device
         self.multiple = multiple
-        self.status_every = max(1, int(status_every))
-        self.estop_mode = estop
-        self.clock = clock
-        self.log = log or (lambda message: None)
-        self._open_serial(port, baud, timeout)
-        self.servos: dict[int, ServoSetup] = {}
-        self.status: dict[int, ServoStatus] = {}
-        self.faults: dict[int, str] = {}
+        super().__init__(port, baud, url or f"maestro://{port}", simulator, status_every, estop, timeout, clock, log)
         self.events: list[tuple[float, int, str]] = []
         self.errors = 0
-        self._polls = 0
-        self.stats = {"frames": 0, "tx_bytes": 0}
 
     def _query(self, data: bytes, n: int) -> bytes | None:
         self.serial.reset_input_buffer()

@@ -1,14 +1,15 @@
 """What the serial servo-controller drivers share (Maestro, SSC-32U, DYNAMIXEL).
 
-- :class:`SerialServoBus`: closing the port and then the simulator the bus
-  owns (``sim...://`` URLs), and the cadence of the slow status reads;
+- :class:`SerialServoBus`: the state every driver keeps (URL, servos,
+  status, faults, clock, log), closing the port and then the simulator the
+  bus owns (``sim...://`` URLs), and the cadence of the slow status reads;
 - :class:`PySerialServoBus`: the same on a pyserial port (open with an
   :class:`~livebridge.errors.InputError` that names the URL, counted writes);
 - :func:`open_simulated` and :func:`url_device`: the two halves of an
   ``open_url`` (a simulator on a pseudo-terminal, or a device path);
 - :func:`clamp_whole`: a raw target clamped to a servo's limits in whole units.
 
-pyserial is imported inside :meth:`PySerialServoBus._open_serial` only.
+pyserial is imported inside :meth:`PySerialServoBus.__init__` only.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import TypeVar
 from urllib.parse import urlsplit
 
 from livebridge.errors import InputError
-from livebridge.servo.bus import ServoSetup
+from livebridge.servo.bus import ServoSetup, ServoStatus
 
 Bus = TypeVar("Bus")
 
@@ -51,14 +52,19 @@ def url_device(url: str, example: str) -> str:
 class SerialServoBus:
     """Base of a servo bus on a serial port that may own the simulator serving that port.
 
-    A subclass sets ``url``, ``simulator`` (or None), ``status_every`` and
-    ``_polls = 0``, and defines :meth:`_close_port`.
+    A subclass opens its port after :meth:`__init__` and defines :meth:`_close_port`.
     """
 
-    url: str
-    simulator = None
-    status_every: int
-    _polls: int
+    def __init__(self, url: str, simulator, status_every: int, clock: Callable[[], float], log):
+        self.url = url
+        self.simulator = simulator
+        self.status_every = max(1, int(status_every))
+        self.clock = clock
+        self.log = log or (lambda message: None)
+        self.servos: dict[int, ServoSetup] = {}
+        self.status: dict[int, ServoStatus] = {}
+        self.faults: dict[int, str] = {}
+        self._polls = 0
 
     def _close_port(self) -> None:
         raise NotImplementedError
@@ -79,17 +85,22 @@ class SerialServoBus:
 
 
 class PySerialServoBus(SerialServoBus):
-    """A :class:`SerialServoBus` on a pyserial port ``self.serial``; ``stats["tx_bytes"]`` counts what is sent."""
+    """A :class:`SerialServoBus` on a pyserial port ``self.serial``; ``stats["tx_bytes"]`` counts what is sent.
 
-    stats: dict[str, int]
+    ``estop`` is kept as ``estop_mode`` (``"stop"`` or ``"home"``).
+    """
 
-    def _open_serial(self, port: str, baud: int, timeout: float) -> None:
+    def __init__(self, port: str, baud: int, url: str, simulator, status_every: int, estop: str, timeout: float,
+                 clock: Callable[[], float], log):
         import serial
 
+        super().__init__(url, simulator, status_every, clock, log)
+        self.estop_mode = estop
         try:
             self.serial = serial.Serial(port, baudrate=baud, timeout=timeout, write_timeout=1.0)
         except (serial.SerialException, ValueError) as error:
             raise InputError(f"cannot open serial port ({error})", self.url) from None
+        self.stats = {"frames": 0, "tx_bytes": 0}
 
     def _send(self, data: bytes) -> None:
         self.serial.write(data)

@@ -66,19 +66,9 @@ class SSC32Bus(PySerialServoBus):
     def __init__(self, port: str, baud: int = 115200, url: str | None = None, simulator=None,
                  status_every: int = 10, estop: str = "stop", timeout: float = 0.05, clock=time.monotonic,
                  log=None):
-        self.url = url or f"ssc32://{port}?baud={baud}"
-        self.simulator = simulator
-        self.status_every = max(1, int(status_every))
-        self.estop_mode = estop
-        self.clock = clock
-        self.log = log or (lambda message: None)
-        self._open_serial(port, baud, timeout)
-        self.servos: dict[int, ServoSetup] = {}
-        self.status: dict[int, ServoStatus] = {}
-        self.faults: dict[int, str] = {}
+        super().__init__(port, baud, url or f"ssc32://{port}?baud={baud}", simulator, status_every, estop, timeout,
+                         clock, log)
         self.frame_ms = 20.0
-        self._polls = 0
-        self.stats = {"frames": 0, "tx_bytes": 0}
 
     def firmware(self) -> str | None:
         self.serial.reset_input_buffer()
