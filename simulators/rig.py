@@ -87,6 +87,11 @@ class RigConfig:
         Nominal exposure; brightness scales with ``exposure * gain`` relative to it.
     follow_head : bool
         Shift the cached face background with the head (whole-pixel image translation of the face centre).
+    buffers : int
+        Frames a paced (``realtime``) simulated camera driver holds. A reader that falls behind never gets a
+        backlog: it skips to the newest frame whose exposure has ended, or to an older one still among the
+        newest ``buffers`` if another camera of the rig already delivered that one (so a late host still
+        gets frames of one instant from every camera, as from a synchronised grabber).
     """
 
     size: tuple[int, int] = (1280, 800)
@@ -109,6 +114,7 @@ class RigConfig:
     max_view_deg: float = 80.0
     exposure_us: float = 2000.0
     follow_head: bool = True
+    buffers: int = 3
 
     def __post_init__(self):
         if self.sync not in SYNC_MODES:
@@ -118,6 +124,8 @@ class RigConfig:
         for name in ("drop_rate",):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise InputError(f"{name} must be in [0, 1), got {getattr(self, name)}", field=name)
+        if self.buffers < 1:
+            raise InputError(f"buffers must be >= 1, got {self.buffers}", field="buffers")
         for name in ("noise_sigma", "spurious_rate", "jitter_s", "marker_diameter_mm"):
             if getattr(self, name) < 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}", field=name)
@@ -434,6 +442,8 @@ class SimRig:
         self._frames_iter = None
         self._next_seq = 0
         self._states: OrderedDict[int, _State] = OrderedDict()
+        self._performed: OrderedDict = OrderedDict()  # recent performer frames by seq (cheap to keep)
+        self._grabbed: int | None = None  # the newest frame any paced camera has taken
         self._lock = threading.RLock()
         self._window = 256
         n_cams = len(self.cameras)
@@ -553,6 +563,33 @@ class SimRig:
             self._exposure[camera] = (exposure_us, gain)
         return ExposureSetting(True, exposure_us, gain)
 
+    def ready_time(self, seq: int, camera: int) -> float:
+        """Host monotonic time at which frame ``seq`` of camera ``camera`` has been exposed (end of exposure
+        window of a frame period centred on its capture time)."""
+        self.start()
+        return self.t0 + (seq + 0.5) * self.period + float(self._offsets[camera])
+
+    def due_seq(self, now: float, camera: int) -> int:
+        """The newest frame of camera ``camera`` fully exposed at host time ``now`` (-1 before the first)."""
+        self.start()
+        return int(math.floor((now - self.t0 - float(self._offsets[camera])) / self.period - 0.5))
+
+    def grab(self, next_seq: int, due: int) -> int:
+        """The frame a late reader takes (see ``RigConfig.buffers``): ``due``, or the newest frame another camera
+        took if that one is still buffered (not older than ``due - buffers + 1``) and not before ``next_seq``."""
+        with self._lock:
+            taken = self._grabbed
+            if taken is not None and next_seq <= taken <= due and taken > due - self.config.buffers:
+                return taken
+            self._took(due)
+            return due
+
+    def _took(self, seq: int) -> None:
+        """Remember the newest frame any camera of the rig has taken (late readers align to it)."""
+        with self._lock:
+            if self._grabbed is None or seq > self._grabbed:
+                self._grabbed = seq
+
     def sources(self, realtime: bool = True) -> list[SimCameraSource]:
         """One camera source per camera, sharing this rig."""
         return [SimCameraSource(self, k, realtime) for k in range(self.n_cameras)]
@@ -586,22 +623,26 @@ class SimRig:
             state = self._states.get(seq)
             if state is not None:
                 return state
-            if seq < self._next_seq:
-                self._frames_iter = None  # evicted: restart the deterministic performer from 0
-            if self._frames_iter is None:
-                self._frames_iter = iter(self._performer.frames())
-                self._next_seq = 0
-                self._last = None
-            while self._next_seq <= seq:
-                frame = next(self._frames_iter)
-                previous = self._last.marker_positions if self._last is not None else frame.marker_positions
-                self._last = frame
-                self._next_seq += 1
-                if frame.seq >= seq - 1:
-                    self._states[frame.seq] = self._make_state(frame, previous)
-                    while len(self._states) > self._window:
-                        self._states.popitem(last=False)
-            return self._states[seq]
+            frame = self._performed.get(seq)
+            if frame is None:
+                if seq < self._next_seq:
+                    self._frames_iter = None  # evicted: restart the deterministic performer from 0
+                if self._frames_iter is None:
+                    self._frames_iter = iter(self._performer.frames())
+                    self._next_seq = 0
+                    self._performed.clear()
+                while self._next_seq <= seq:
+                    performed = next(self._frames_iter)
+                    self._next_seq += 1
+                    self._performed[performed.seq] = performed
+                    while len(self._performed) > 2 * self._window:
+                        self._performed.popitem(last=False)
+                frame = self._performed[seq]
+            previous = self._performed.get(seq - 1, frame)
+            state = self._states[seq] = self._make_state(frame, previous.marker_positions)
+            while len(self._states) > self._window:
+                self._states.popitem(last=False)
+            return state
 
     def _make_state(self, frame, previous: np.ndarray) -> _State:
         contractions = np.asarray(frame.contractions, dtype=np.float64)
@@ -742,8 +783,11 @@ class SimRig:
 class SimCameraSource(SourceBase):
     """One camera of a :class:`SimRig` as a camera source.
 
-    Frames come in order of the rig's frame numbers; dropped frames are skipped. With ``realtime`` a
-    frame is delivered no earlier than the end of its exposure on the host clock.
+    Unpaced (``realtime=False``): every frame, in order, as fast as the reader asks. Paced (``realtime``)
+    like a real camera driver: a frame is delivered no earlier than the end of its exposure on the host
+    clock, and a reader that falls behind never works through a backlog -- it skips to the newest frame
+    that is due (see ``RigConfig.buffers``); the skipped frames are counted in ``skipped``. Frames the
+    simulated sensor drops (``RigConfig.drop_rate``) are counted in ``dropped``.
     """
 
     def __init__(self, rig: SimRig, camera: int, realtime: bool = True):
@@ -752,6 +796,9 @@ class SimCameraSource(SourceBase):
         self._seq = 0
         self._running = False
         self._stop_at: int | None = None
+        self.skipped = 0
+        self.dropped = 0
+        self.delivered = 0
 
     def start(self) -> None:
         self.rig.start()
@@ -772,22 +819,31 @@ class SimCameraSource(SourceBase):
             raise RuntimeError(f"{self.source_id}: read() before start()")
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            if self._stop_at is not None and self._seq > self._stop_at:
-                self._end(f"{self.source_id}: camera stopped delivering after frame {self._stop_at} (simulated)")
-                return None
             seq = self._seq
             if self.realtime:
-                ready = self.rig.t0 + (seq + 0.5) * self.rig.period
-                wait = ready - time.monotonic()
-                if deadline is not None and ready > deadline:
-                    time.sleep(max(0.0, deadline - time.monotonic()))
-                    return None
-                if wait > 0:
-                    time.sleep(wait)
-            self._seq += 1
+                now = time.monotonic()
+                due = self.rig.due_seq(now, self.camera)
+                if due > seq:  # the reader is late: no backlog, take the newest frame (see RigConfig.buffers)
+                    taken = self.rig.grab(seq, due)
+                    self.skipped += taken - seq
+                    seq = taken
+                else:
+                    ready = self.rig.ready_time(seq, self.camera)
+                    if deadline is not None and ready > deadline:
+                        time.sleep(max(0.0, deadline - now))
+                        return None
+                    if ready > now:
+                        time.sleep(ready - now)
+                    self.rig._took(seq)
+            if self._stop_at is not None and seq > self._stop_at:
+                self._end(f"{self.source_id}: camera stopped delivering after frame {self._stop_at} (simulated)")
+                return None
+            self._seq = seq + 1
             frame = self.rig.camera_frame(seq, self.camera)
             if frame is not None:
+                self.delivered += 1
                 return frame
+            self.dropped += 1
 
     def set_exposure(self, manual: bool, exposure_us: float | None = None, gain: float | None = None):
         current_exposure, current_gain = self.rig._exposure[self.camera]

@@ -211,6 +211,27 @@ def test_realtime_source_is_paced():
     assert [f.seq for f in frames] == list(range(6))
 
 
+def test_late_realtime_reader_skips_to_the_newest_frame_without_a_backlog(face):
+    """Like a camera driver: a reader that falls behind gets the newest due frame, the skipped are counted."""
+    import time
+
+    basis, markers = face
+    rig = SimRig(basis, markers, n_cameras=2, config=RigConfig(size=(160, 100), fps=50, noise_sigma=0), seed=0)
+    first, second = rig.sources(realtime=True)
+    with first, second:
+        assert first.read(timeout=1.0).seq == 0
+        time.sleep(10 * rig.period)  # the consumer is late by ~10 frames
+        late = first.read(timeout=1.0)
+        due = rig.due_seq(time.monotonic(), 0)
+        assert due - 2 <= late.seq <= due and late.seq >= 9  # the newest frame, not frame 1
+        assert first.skipped == late.seq - 1 and first.delivered == 2
+        assert time.monotonic() - late.t_capture < 4 * rig.period  # no backlog: the frame is recent
+        # the other camera, as late, takes the frame the first one took while that one is still buffered
+        assert second.read(timeout=1.0).seq == late.seq
+        following = [first.read(timeout=1.0).seq for _ in range(3)]  # back on time: every frame, paced
+        assert following == [late.seq + 1, late.seq + 2, late.seq + 3]
+
+
 def test_killed_camera_ends_cleanly(face):
     basis, markers = face
     rig = SimRig(basis, markers, n_cameras=2, config=RigConfig(size=(320, 200)), seed=0)

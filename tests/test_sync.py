@@ -150,3 +150,62 @@ def test_synced_capture_with_sim_rig_and_an_unplugged_camera(ict):
     assert sum(fs["cam0"] is not None and fs["cam1"] is not None for fs in late_sets) >= 0.8 * len(late_sets)
     assert all(b.t > a.t for a, b in zip(got, got[1:]))
     assert max(fs.skew for fs in got) <= 0.5 * rig.period
+
+
+class _DelayedCamera:
+    """A paced 60 fps camera whose frames reach the host ``delay`` seconds after mid-exposure (or, unpaced,
+    a camera that is simply slow: every read takes ``delay``)."""
+
+    def __init__(self, name, delay, paced=True, period=1 / 60):
+        self.source_id, self.delay, self.paced, self.period = name, delay, paced, period
+        self.ended, self.error, self.k, self.t0 = False, None, 0, 0.0
+
+    def start(self):
+        import time
+
+        self.t0 = time.monotonic() + 0.01
+
+    def stop(self):
+        self.ended = True
+
+    def read(self, timeout=None):
+        import time
+
+        if self.ended:
+            return None
+        t = self.t0 + self.k * self.period
+        wait = (t + self.delay - time.monotonic()) if self.paced else self.delay
+        time.sleep(max(0.0, wait))
+        self.k += 1
+        return Frame(IMAGE, t, self.k - 1, self.source_id, sync_domain="hw")
+
+
+def test_realtime_capture_tolerates_a_uniformly_slow_host():
+    """Frames arriving together but 0.4 s after exposure (longer than dead_after_s) are not a dead rig."""
+    cameras = [_DelayedCamera(f"c{k}", 0.4) for k in range(3)]
+    got = []
+    with SyncedCapture(cameras, 1 / 60, queue_size=256) as capture:
+        assert capture.realtime and any(t.name == "sync ticker" for t in capture._threads)
+        while len(got) < 40:
+            fs = capture.read(timeout=2.0)
+            assert fs is not None
+            got.append(fs)
+        stats = capture.sync.stats
+        assert 0.35 < capture.delivery_delay < 0.6
+    assert not stats.dead and stats.complete == stats.framesets, stats
+    assert all(fs.complete for fs in got)
+
+
+def test_unpaced_capture_follows_frame_time_only():
+    """realtime=False: no ticker, and sources slower than their frame period are not reported dead."""
+    cameras = [_DelayedCamera(f"c{k}", 0.03, paced=False, period=1 / 120) for k in range(3)]
+    got = []
+    with SyncedCapture(cameras, 1 / 120, queue_size=256, realtime=False, dead_after_s=0.05) as capture:
+        assert not capture.realtime and len(capture._threads) == 3  # reader threads only
+        while len(got) < 15:
+            fs = capture.read(timeout=2.0)
+            assert fs is not None
+            got.append(fs)
+        stats = capture.sync.stats
+    assert not stats.dead and all(fs.complete for fs in got), stats
+    assert [fs.frames[0].seq for fs in got] == list(range(15))

@@ -15,8 +15,10 @@ Rules (:class:`Synchronizer`):
   sets no longer wait for it). It comes back to life with its next frame.
 
 The synchroniser keeps no clock of its own: time advances with the frames' ``t_capture`` and with
-``poll(now)``, so it runs identically live and in tests. :class:`SyncedCapture` runs live sources on
-reader threads and hands out frame sets through a bounded queue that keeps the newest.
+``poll(now)``, so it runs identically live and in tests. :class:`SyncedCapture` runs sources on
+reader threads and hands out frame sets through a bounded queue that keeps the newest; with
+``realtime=True`` (live cameras) a ticker also polls with the host clock, with ``realtime=False``
+(unpaced simulators and replays) time follows the frames only.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ from collections import deque
 from dataclasses import dataclass, field
 
 from livebridge.capture.frame import Frame, FrameSet
+
+MAX_DELIVERY_DELAY_S = 1.0  # a live synchroniser's host clock lags by at most this much (see SyncedCapture)
 
 
 @dataclass(frozen=True)
@@ -255,23 +259,39 @@ class SyncedCapture:
     sources : list of CameraSource
     period_s : float
     queue_size : int
+    realtime : bool
+        True (live cameras): besides the frames' own times, a ticker advances the synchroniser with the host
+        clock, so frame sets leave and silent cameras are reported even when no frame arrives. The host
+        clock is taken minus the recent delivery delay of the frames (arrival minus ``t_capture``, the
+        largest of the last second, at most ``MAX_DELIVERY_DELAY_S``), so a uniformly slow host -- frames that
+        arrive late but together -- does not make every camera look dead. False (unpaced sources:
+        simulators or replays run as fast as possible): time follows the frames only, no ticker.
     **sync_options
         Passed to :class:`Synchronizer`.
     """
 
-    def __init__(self, sources, period_s: float, queue_size: int = 2, **sync_options):
+    def __init__(self, sources, period_s: float, queue_size: int = 2, realtime: bool = True, **sync_options):
         self.sources = list(sources)
+        self.realtime = bool(realtime)
         self.sync = Synchronizer([s.source_id for s in self.sources], period_s, **sync_options)
         self._lock = threading.Lock()
         self._queue: queue.Queue[FrameSet] = queue.Queue(maxsize=queue_size)
         self._threads: list[threading.Thread] = []
         self._running = threading.Event()
+        self._delays: deque[tuple[float, float]] = deque(maxlen=1024)  # (arrival, arrival - t_capture)
+        self._first_arrival: float | None = None
         self.dropped_framesets = 0
 
     @property
     def events(self) -> list[str]:
         with self._lock:
             return list(self.sync.events)
+
+    @property
+    def delivery_delay(self) -> float:
+        """Recent largest delay from mid-exposure to a frame reaching the synchroniser, seconds (0 unknown)."""
+        with self._lock:
+            return self._delivery_delay(time.monotonic())
 
     def start(self) -> None:
         self._running.set()
@@ -282,9 +302,10 @@ class SyncedCapture:
                                       daemon=True)
             thread.start()
             self._threads.append(thread)
-        ticker = threading.Thread(target=self._ticker, name="sync ticker", daemon=True)
-        ticker.start()
-        self._threads.append(ticker)
+        if self.realtime:
+            ticker = threading.Thread(target=self._ticker, name="sync ticker", daemon=True)
+            ticker.start()
+            self._threads.append(ticker)
 
     def stop(self) -> None:
         self._running.clear()
@@ -320,6 +341,21 @@ class SyncedCapture:
                     except queue.Empty:
                         pass
 
+    def _delivery_delay(self, now: float) -> float:
+        """Largest delivery delay of the frames that arrived in the last second (call with the lock held)."""
+        while self._delays and now - self._delays[0][0] > 1.0:
+            self._delays.popleft()
+        if not self._delays:
+            return 0.0
+        return min(max(0.0, max(delay for _, delay in self._delays)), MAX_DELIVERY_DELAY_S)
+
+    def _host_poll(self) -> list[FrameSet]:
+        """Advance the synchroniser to host time (minus the delivery delay); frame time only when unpaced."""
+        if not self.realtime or self._first_arrival is None:  # host time means nothing before the first frame
+            return self.sync.poll(-math.inf)
+        now = time.monotonic()
+        return self.sync.poll(now - self._delivery_delay(now))
+
     def _reader(self, source) -> None:
         while self._running.is_set():
             frame = source.read(timeout=0.1)
@@ -327,11 +363,16 @@ class SyncedCapture:
                 if source.ended:
                     with self._lock:
                         self.sync.mark_dead(source.source_id, source.error or "source ended")
-                        ready = self.sync.poll(time.monotonic())
+                        ready = self._host_poll()
                     self._offer(ready)
                     return
                 continue
+            arrival = time.monotonic()
             with self._lock:
+                if self._first_arrival is None:
+                    self._first_arrival = arrival
+                if self.realtime:
+                    self._delays.append((arrival, arrival - frame.t_capture))
                 ready = self.sync.push(frame)
             self._offer(ready)
 
@@ -339,5 +380,5 @@ class SyncedCapture:
         while self._running.is_set():
             time.sleep(self.sync.period_s / 2)
             with self._lock:
-                ready = self.sync.poll(time.monotonic())
+                ready = self._host_poll()
             self._offer(ready)
