@@ -5,11 +5,18 @@ muscles from upper-face markers and lower-face muscles from lower-face markers. 
 each region's displacement matrix ``D_r (3 n_r, m_r)`` (markers x muscles of that region) is well
 conditioned, and stays so when a marker is occluded.
 
-:func:`design_markers` picks face-marker sites greedily, per region, to maximise the D-optimal
-criterion ``log det(D_r^T D_r)`` (each step adds the candidate with the largest
-``log det(I_3 + A_k F^-1 A_k^T)``, ``A_k (3, m_r)`` its displacement rows, ``F`` the information so far),
-under a minimum spacing between markers, then swaps in observers until every muscle is seen by at
-least ``min_observers`` markers. Candidates are triangle centroids on the front of the face (normal
+:func:`design_markers` picks face-marker sites greedily, per region (the regions the solver splits
+the muscles by), under a minimum spacing between markers (face markers and head markers alike). The
+score (:func:`_score`) is D-optimal, ``(1/m) log det(D_r^T D_r)``, plus a robustness term (the
+first-order change of that log-determinant when markers go missing at random: a direction carried by
+a single marker is punished) and a conditioning term (``log lambda_min`` and, weakly, ``-log
+lambda_max``). Each step scores, in full, the candidates with the largest D-optimal gain
+``log det(I_3 + A_k F^-1 A_k^T)`` (``A_k (3, m_r)`` its displacement rows, ``F`` the information so
+far). Markers are then swapped in until every muscle is seen by at least ``min_observers`` markers,
+and single-marker exchanges (Fedorov) improve the score while keeping spacing and observers.
+(A pure conditioning criterion buys a low condition number by avoiding the most informative sites,
+which costs the solve accuracy; a pure A-optimal one concentrates a muscle on one marker and loses it
+under occlusion.) Candidates are triangle centroids on the front of the face (normal
 towards +z, the cameras' side) that move with expression. The region of a candidate comes from a
 horizontal boundary between the upper and lower face, fitted to where upper and lower muscles move
 the surface. Rigid head markers (role ``head``) go on well-spread front-facing sites of the upper
@@ -30,6 +37,11 @@ from livebridge.face.markers import MarkerSet
 OBSERVE_FRACTION = 0.2  # a marker observes a muscle that moves it by >= this share of the muscle's peak ...
 OBSERVE_MIN_MM = 0.5  # ... and by at least this many mm
 MIN_FACING = 0.3  # candidates' normals point towards the cameras (+z) at least this much
+DROPOUT_WEIGHT = 1.0  # weight of the marker-loss term of the design score (see _score)
+FLOOR_WEIGHT = 1.0  # weight of log lambda_min in the design score
+CEILING_WEIGHT = 0.25  # weight of -log lambda_max in the design score
+POOL = 256  # candidates (largest D-optimal gains) scored in full at each step
+EXCHANGE_PASSES = 3  # sweeps of single-marker exchanges after the greedy design
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -130,22 +142,79 @@ def _allocate(counts: dict[str, int], total: int) -> dict[str, int]:
     return alloc
 
 
-def _criterion(information: np.ndarray) -> np.ndarray:
-    """Design score of information matrices ``F (..., m, m)``: higher is better.
+def _d_gain(rows: np.ndarray, inverse: np.ndarray) -> np.ndarray:
+    """D-optimal gain ``log det(I_3 + A_k F^-1 A_k^T)`` of adding each candidate, shape (n,).
 
-    ``(1/m) log det F - log(lambda_max / lambda_min)``: the D-optimal term (mean log eigenvalue:
-    signal in every direction) plus a conditioning term (``cond(D) = sqrt(lambda_max / lambda_min)``), which
-    D-optimality alone ignores because ``det`` is blind to how unevenly muscles are seen.
+    Parameters
+    ----------
+    rows : ndarray, shape (n, 3, m)
+        Candidates' displacement rows ``A_k``.
+    inverse : ndarray, shape (m, m)
+        ``F^-1``, the inverse of the information so far.
     """
-    eigen = np.maximum(np.linalg.eigvalsh(information), 1e-300)
-    return np.log(eigen).mean(axis=-1) + np.log(eigen[..., 0]) - np.log(eigen[..., -1])
+    inner = np.einsum("kdm,mn,ken->kde", rows, inverse, rows) + np.eye(3)
+    return np.linalg.slogdet(inner)[1]
+
+
+def _score(information: np.ndarray, chosen_rows: np.ndarray, candidate_rows: np.ndarray) -> np.ndarray:
+    """Design score (higher is better) of the layouts ``chosen + one candidate``, shape (n,).
+
+    With ``F = information + A_c^T A_c`` (``A_c`` the candidate's rows) and ``H_j = A_j F^-1 A_j^T`` the
+    leverage of marker ``j`` (``I - H_j`` is what is left of the information along ``A_j`` without it)::
+
+        score = (1/m) log det F                      D-optimal: signal in every direction
+              + (w/m) sum_j log det(I_3 - H_j)       robustness: marker j lost
+              + FLOOR_WEIGHT log lambda_min(F)        the weakest direction (whole-face conditioning)
+              - CEILING_WEIGHT log lambda_max(F)
+
+    The robustness term is the first-order change of ``E[log det F]`` when each marker is missing with
+    probability ``w``: it punishes a direction carried by one marker (``H_j -> I``), which costs the solve
+    most when that marker is occluded. ``w = DROPOUT_WEIGHT`` is larger than the dropout rate we design for
+    (10%), to stand in for the double losses that a first-order term does not see. The two eigenvalue terms
+    trade a little determinant for a much better condition number.
+
+    Parameters
+    ----------
+    information : ndarray, shape (m, m)
+        ``ridge I + sum_j A_j^T A_j`` over the chosen markers.
+    chosen_rows : ndarray, shape (s, 3, m)
+    candidate_rows : ndarray, shape (n, 3, m)
+    """
+    n, _, m = candidate_rows.shape
+    full = information[None] + np.einsum("kdm,kdn->kmn", candidate_rows, candidate_rows)
+    eigen = np.maximum(np.linalg.eigvalsh(full), 1e-300)
+    score = np.log(eigen).mean(axis=1) + FLOOR_WEIGHT * np.log(eigen[:, 0]) - CEILING_WEIGHT * np.log(eigen[:, -1])
+    rows = np.concatenate([np.broadcast_to(chosen_rows, (n,) + chosen_rows.shape), candidate_rows[:, None]], axis=1)
+    projected = np.einsum("ksdm,kmn->ksdn", rows, np.linalg.inv(full))
+    leverage = np.einsum("ksdm,ksem->ksde", projected, rows)
+    left = np.linalg.slogdet(np.eye(3) * (1 + 1e-12) - leverage)[1]
+    return score + DROPOUT_WEIGHT * left.sum(axis=1) / m
+
+
+def _outer(rows: np.ndarray) -> np.ndarray:
+    return np.einsum("kdm,kdn->kmn", rows, rows)
+
+
+def _best(rows: np.ndarray, information: np.ndarray, chosen: list[int], options: np.ndarray, keep: int | None = None):
+    """Best of ``options`` to add to ``chosen`` by :func:`_score`, on a pool of the best D-optimal gains.
+
+    Returns ``(score, candidate)``; ``keep`` (a candidate) is always scored, so a caller can compare.
+    """
+    gain = _d_gain(rows[options], np.linalg.inv(information))
+    pool = options[np.argsort(-gain, kind="stable")[:POOL]]
+    if keep is not None and keep not in pool:
+        pool = np.append(pool, keep)
+    scores = _score(information, rows[chosen], rows[pool])
+    best = int(np.argmax(scores))
+    return float(scores[best]), int(pool[best]), (float(scores[np.flatnonzero(pool == keep)[0]]) if keep is not None
+                                                   else None)
 
 
 def _greedy_design(rows: np.ndarray, centroids: np.ndarray, count: int, spacing: float, ridge: float) -> list[int]:
-    """Greedy choice of ``count`` candidates at least ``spacing`` apart, maximising :func:`_criterion`.
+    """Greedy choice of ``count`` candidates at least ``spacing`` apart, maximising :func:`_score`.
 
-    The first ``ceil(m / 3)`` picks (until the information can have full rank) are pure D-optimal:
-    the candidate with the largest ``log det(I_3 + A_k F^-1 A_k^T)``.
+    Until the information can have full rank (``3 s < m + 3``) each step takes the largest D-optimal
+    gain; from then on, the best :func:`_score` among the :data:`POOL` largest gains.
 
     Parameters
     ----------
@@ -154,36 +223,40 @@ def _greedy_design(rows: np.ndarray, centroids: np.ndarray, count: int, spacing:
     centroids : ndarray, shape (n_candidates, 3)
     """
     n, _, m = rows.shape
-    outer = np.einsum("kdm,kdn->kmn", rows, rows)  # (n, m, m)
     information = ridge * np.eye(m)
     allowed = np.ones(n, dtype=bool)
     chosen: list[int] = []
-    for step in range(count):
-        if not allowed.any():
-            break
+    for _ in range(count):
         options = np.flatnonzero(allowed)
-        if step < -(-m // 3):
-            inverse = np.linalg.inv(information)
-            inner = np.einsum("kdm,mn,ken->kde", rows[options], inverse, rows[options]) + np.eye(3)
-            gain = np.linalg.slogdet(inner)[1]
+        if not options.size:
+            break
+        if 3 * len(chosen) < m + 3:
+            best = int(options[np.argmax(_d_gain(rows[options], np.linalg.inv(information)))])
         else:
-            gain = _criterion(information[None] + outer[options])
-        best = int(options[np.argmax(gain)])
+            best = _best(rows, information, chosen, options)[1]
         chosen.append(best)
-        information = information + outer[best]
+        information = information + rows[best].T @ rows[best]
         allowed &= np.linalg.norm(centroids - centroids[best], axis=1) >= spacing
     return chosen
+
+
+def _far(centroids: np.ndarray, sites: list[int], spacing: float) -> np.ndarray:
+    """Candidates at least ``spacing`` from every one of ``sites``, shape (n_candidates,) bool."""
+    far = np.ones(len(centroids), dtype=bool)
+    for c in sites:
+        far &= np.linalg.norm(centroids - centroids[c], axis=1) >= spacing
+    return far
 
 
 def _ensure_observers(rows, observes, centroids, chosen, spacing, k_observers, ridge):
     """Swap markers until every muscle has ``k_observers`` observers (where the candidates allow it).
 
     Each swap brings in a candidate observing the most starved muscle in place of a chosen marker whose
-    loss starves no other muscle, choosing the pair with the best :func:`_criterion`; spacing is kept.
+    loss starves no other muscle, choosing the pair with the best :func:`_score`; spacing is kept.
     """
     chosen = list(chosen)
     m = observes.shape[1]
-    outer = np.einsum("kdm,kdn->kmn", rows, rows)
+    outer = _outer(rows)
     need = np.minimum(k_observers, observes.sum(axis=0))  # cannot ask more than the candidates offer
     for _ in range(4 * m * k_observers):
         counts = observes[chosen].sum(axis=0)
@@ -195,19 +268,48 @@ def _ensure_observers(rows, observes, centroids, chosen, spacing, k_observers, r
         for drop in range(len(chosen)):
             if observes[chosen[drop]][counts <= need].any():
                 continue  # dropping it would starve a muscle
-            rest = [c for i, c in enumerate(chosen) if i != drop]
-            far = np.ones(len(centroids), dtype=bool)
-            for c in rest:
-                far &= np.linalg.norm(centroids - centroids[c], axis=1) >= spacing
-            options = np.flatnonzero(far & observes[:, muscle])
+            rest = chosen[:drop] + chosen[drop + 1:]
+            options = np.flatnonzero(_far(centroids, rest, spacing) & observes[:, muscle])
             if not options.size:
                 continue
-            scores = _criterion(ridge * np.eye(m) + outer[rest].sum(axis=0) + outer[options])
-            if best is None or scores.max() > best[0]:
-                best = (scores.max(), drop, int(options[np.argmax(scores)]))
+            score, candidate, _ = _best(rows, ridge * np.eye(m) + outer[rest].sum(axis=0), rest, options)
+            if best is None or score > best[0]:
+                best = (score, drop, candidate)
         if best is None:
             break
         chosen[best[1]] = best[2]
+    return chosen
+
+
+def _exchange(rows, observes, centroids, chosen, spacing, k_observers, ridge, passes=EXCHANGE_PASSES):
+    """Improve a layout by single exchanges (Fedorov): replace each marker by the best site for it.
+
+    A marker is replaced when another site, at least ``spacing`` from the other markers, scores better by
+    :func:`_score` and the swap leaves every muscle its ``k_observers`` observers. Stops after ``passes``
+    sweeps over the markers or a sweep without a change.
+    """
+    chosen = list(chosen)
+    m = observes.shape[1]
+    outer = _outer(rows)
+    need = np.minimum(k_observers, observes.sum(axis=0))
+    distance = np.linalg.norm(centroids[:, None] - centroids[chosen][None], axis=2)  # (n_candidates, s)
+    for _ in range(passes):
+        changed = False
+        for i, current in enumerate(chosen):
+            rest = chosen[:i] + chosen[i + 1:]
+            allowed = np.delete(distance, i, axis=1).min(axis=1, initial=np.inf) >= spacing
+            short = observes[rest].sum(axis=0) < need
+            if short.any():
+                allowed &= observes[:, short].all(axis=1)
+            allowed[current] = True
+            score, candidate, now = _best(rows, ridge * np.eye(m) + outer[rest].sum(axis=0), rest,
+                                          np.flatnonzero(allowed), keep=current)
+            if candidate != current and score > now + 1e-6:
+                chosen[i] = candidate
+                distance[:, i] = np.linalg.norm(centroids - centroids[candidate], axis=1)
+                changed = True
+        if not changed:
+            break
     return chosen
 
 
@@ -263,7 +365,7 @@ def _join(face: MarkerSet, head: MarkerSet) -> MarkerSet:
 
 def design_markers(basis: Basis, count: int = 64, min_spacing_mm: float | None = None, n_head: int = 5,
                    seed: int = 0, min_observers: int = 3) -> MarkerSet:
-    """Design a marker layout: ``count`` face markers (greedy D-optimal per region) plus head markers.
+    """Design a marker layout: ``count`` face markers (robust greedy D-optimal per region) plus head markers.
 
     Parameters
     ----------
@@ -271,7 +373,8 @@ def design_markers(basis: Basis, count: int = 64, min_spacing_mm: float | None =
     count : int
         Number of face markers, split between regions in proportion to their muscle counts.
     min_spacing_mm : float, optional
-        Minimum distance between face markers (default: :func:`default_spacing`).
+        Minimum distance between face markers, and from face markers to head markers
+        (default: :func:`default_spacing`).
     n_head : int
         Rigid head-rig markers (>= 4 for a robust head pose; 0 for none).
     seed : int
@@ -288,7 +391,12 @@ def design_markers(basis: Basis, count: int = 64, min_spacing_mm: float | None =
     if count < 1:
         raise ValueError("count must be >= 1")
     spacing = default_spacing(basis, count) if min_spacing_mm is None else float(min_spacing_mm)
+    head = head_markers(basis, n_head)
     triangles, centroids, regions = face_candidates(basis)
+    # face markers keep the spacing from the head markers too
+    head_sites = head.neutral_positions(basis)
+    apart = np.all(np.linalg.norm(centroids[:, None] - head_sites[None], axis=2) >= spacing, axis=1)
+    triangles, centroids, regions = triangles[apart], centroids[apart], regions[apart]
     displacement = _triangle_displacements(basis)[triangles]  # (n_cand, M, 3)
     thresholds = observer_thresholds(basis)
     alloc = _allocate({r: int(basis.region_mask(r).sum()) for r in REGIONS}, count)
@@ -304,11 +412,12 @@ def design_markers(basis: Basis, count: int = 64, min_spacing_mm: float | None =
         ridge = 1e-6 * np.einsum("kdm,kdm->", rows, rows) / len(rows)
         chosen = _greedy_design(rows, centroids[in_region], n_region, spacing, ridge)
         chosen = _ensure_observers(rows, observes, centroids[in_region], chosen, spacing, min_observers, ridge)
+        chosen = _exchange(rows, observes, centroids[in_region], chosen, spacing, min_observers, ridge)
         order = sorted(chosen, key=lambda c: (-centroids[in_region][c, 1], centroids[in_region][c, 0]))
         picked_triangles += [int(triangles[in_region][c]) for c in order]
         picked_regions += [region] * len(order)
     face = _marker_set(picked_triangles, picked_regions, _face_names(picked_regions), ["face"] * len(picked_regions))
-    return _join(face, head_markers(basis, n_head))
+    return _join(face, head)
 
 
 def farthest_point_markers(basis: Basis, count: int = 64, seed: int = 0, n_head: int = 0) -> MarkerSet:
