@@ -6,8 +6,10 @@ convex quadratic programme
 
     minimise   1/2 x^T Q x - c^T x      subject to   lower <= x <= upper.
 
-``Q`` depends only on the basis and on which markers are visible, so :class:`BoxQP` is built once
-per visibility pattern; a frame supplies only ``c`` and the previous frame's active set.
+``Q`` depends only on the basis and on which markers are visible; a frame supplies ``c`` and the
+previous frame's working set. :class:`BoxQP` is the checked Python interface for one ``Q``; the
+contraction solver calls the compiled kernel :func:`box_qp_kernel` directly from its own per-frame
+kernel (:mod:`livebridge.solve.solver`).
 
 Algorithm (primal active set, exact KKT termination)
 ----------------------------------------------------
@@ -15,7 +17,7 @@ The working set ``W`` marks each variable as held at its lower bound (-1), at it
 or free (0). Starting from a feasible point with the bound variables on their bounds:
 
 1. Solve the equality-constrained sub-problem on the free set ``F``:
-   ``Q_FF z = c_F - Q_FB x_B`` (LAPACK Cholesky, ``dpotrf``/``dpotrs``).
+   ``Q_FF z = c_F - Q_FB x_B`` (Cholesky factorisation of ``Q_FF``).
 2. If ``z`` is inside the box, take it. Then the gradient ``g = Q x - c`` gives the Lagrange
    multipliers of the bound variables: a variable at its lower bound needs ``g_i >= 0`` and one at
    its upper bound ``g_i <= 0``. If every multiplier has the right sign (to a tolerance of
@@ -33,24 +35,24 @@ into the box (bound variables on their bounds) and the monotone primal method ab
 which guarantees termination. With 60 fps input the exchanges usually finish in one or two solves.
 
 The objective falls strictly at every step that moves, so no working set can come back and the
-method terminates in a finite number of steps; warm-started from the previous frame's working set
-it usually needs one or two. A working set that does come back can only do so through rounding
-(multipliers at the level of the round-off); the solver then stops, optimal to working precision.
+method terminates in a finite number of steps. A working set that does come back can only do so
+through rounding (multipliers at the level of the round-off); the solver then stops, optimal to
+working precision.
 
 Rank-deficient ``Q`` (a muscle no visible marker sees, two elements that move the visible markers
-alike): the minimiser is then not unique and ``Q_FF`` may be singular. When the Cholesky
-factorisation of ``Q`` fails or LAPACK's reciprocal condition estimate (``dpocon``) is below
-``1e-9``, a Tikhonov term ``lambda I`` with ``lambda = 1e-9 * max(diag(Q))`` is added (and
-:attr:`BoxQP.ridge` says so); every sub-problem solve then gets one step of iterative refinement. This makes the
-problem strictly convex, picks among the minimisers the one of smallest norm (to first order), and
-changes the objective by at most ``lambda |x|^2``, far below any measurement noise; well-posed
+alike): the minimiser is then not unique and ``Q_FF`` may be singular. :class:`BoxQP` adds a
+Tikhonov term ``lambda I`` with ``lambda = 1e-9 trace(Q)`` when the Cholesky factorisation of ``Q``
+fails or LAPACK's reciprocal condition estimate (``dpocon``) is below ``1e-9`` (and
+:attr:`BoxQP.ridge` says so), or later, when a free-set factor has a pivot ``L_ii^2`` below
+``1e-9 trace(Q)``; every sub-problem solve then gets one step of iterative refinement. This makes
+the problem strictly convex, picks among the minimisers the one of smallest norm (to first order),
+and changes the objective by at most ``lambda |x|^2``, far below any measurement noise; well-posed
 problems are solved without any regularisation, exactly.
 
-Everything that depends only on the working set (the free-set Cholesky factor, the bound
-variables' contribution to the right-hand side and to the gradient) is cached per working set
-(first in, first out), so an exchange step costs one triangular solve pair and one small
-matrix-vector product; the code avoids every per-call allocation it can, because the problems are
-tiny (n <= 16) and Python overhead, not arithmetic, is the cost.
+Why compiled: the problems are tiny (n <= 16, a few hundred flops per sub-problem), so with numpy
+and LAPACK wrappers the Python call overhead was the whole cost. The kernel refactors ``Q_FF`` for
+every working set it visits instead of caching factors: a 10 x 10 Cholesky costs less than a
+dictionary lookup did.
 """
 
 from __future__ import annotations
@@ -58,12 +60,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.linalg import lapack
 
-RANK_TOLERANCE = 1e-9  # reciprocal condition number below which Q counts as rank-deficient
+RANK_TOLERANCE = 1e-9  # pivot / reciprocal condition number below which Q counts as rank-deficient
 KKT_TOLERANCE = 1e-11  # multiplier sign test, relative to the problem's scale
 AT_LOWER, FREE, AT_UPPER = -1, 0, 1
 EXCHANGES = 3  # block-exchange steps from the warm start before the monotone method
+CONVERGED, ITERATION_LIMIT, SINGULAR = 0, 1, 2  # status codes of box_qp_kernel
 
 
 @dataclass(frozen=True)
@@ -87,10 +91,162 @@ class QPResult:
     converged: bool
 
 
-class _Singular(Exception):
-    """A free-set sub-matrix turned out (numerically) singular: regularise and start again."""
+# ---------------------------------------------------------------------------------------- compiled kernel
+# One function on purpose: numba links every callee into each caller and optimises and compiles it again
+# there, so helpers multiply the first-call compile time (it was ~3x with the steps split into functions).
+@njit(cache=True, nogil=True)
+def box_qp_kernel(gram, c, lower, upper, working, x, tolerance, pivot_floor, refine, max_iterations):
+    """Solve ``min 1/2 x^T Q x - c^T x`` s.t. ``lower <= x <= upper``, warm-started from ``working``.
+
+    With ``lower = -inf``, ``upper = inf`` and an all-free working set this is one Cholesky solve,
+    ``x = Q^-1 c``, and a ``SINGULAR`` status is the rank test of ``Q``.
+
+    Parameters
+    ----------
+    gram : ndarray, shape (n, n)
+        ``Q`` (symmetric; with the ridge already added when ``refine``).
+    c, lower, upper : ndarray, shape (n,)
+    working : ndarray of int8, shape (n,)
+        In: the starting working set (entries outside -1..1, and +-1 on an infinite bound, read as free).
+        Out: the working set at the solution.
+    x : ndarray, shape (n,)
+        Output.
+    tolerance : float
+        Multiplier sign test (``KKT_TOLERANCE n trace(Q)``).
+    pivot_floor : float
+        Smallest acceptable free-set Cholesky pivot ``L_ii^2``; below it the kernel stops with ``SINGULAR``.
+    refine : bool
+        One step of iterative refinement in every sub-problem solve.
+    max_iterations : int
+        Sub-problem solves allowed.
+
+    Returns
+    -------
+    (iterations, status) : (int, int)
+        ``status`` is ``CONVERGED``, ``ITERATION_LIMIT`` or ``SINGULAR`` (``x`` undefined: regularise and
+        call again).
+    """
+    n = len(c)
+    index, factor = np.empty(n, np.int64), np.empty((n, n))
+    z, rhs, step, violation = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    seen = np.empty((max(max_iterations, 0), n), np.int8)  # working sets left by freeing a variable (phase 2)
+    n_seen = 0
+    for i in range(n):  # a feasible start: bound variables on their bounds, free ones clipped from 0
+        if not (working[i] == AT_LOWER and lower[i] > -np.inf or working[i] == AT_UPPER and upper[i] < np.inf):
+            working[i] = FREE
+        x[i] = lower[i] if working[i] == AT_LOWER else upper[i] if working[i] == AT_UPPER else \
+            min(max(0.0, lower[i]), upper[i])
+    if n == 0:
+        return 0, CONVERGED
+    for iteration in range(1, max_iterations + 1):
+        exchanging = iteration <= EXCHANGES  # phase 1: block exchanges; phase 2: monotone primal steps
+        # -- the sub-problem on the free set F: Q_FF z = c_F - Q_FB x_B
+        n_free = 0
+        for i in range(n):
+            if working[i] == FREE:
+                index[n_free] = i
+                n_free += 1
+        for j in range(n_free):  # Cholesky factor L of Q_FF, column by column
+            pivot = gram[index[j], index[j]]
+            for k in range(j):
+                pivot -= factor[j, k] * factor[j, k]
+            if not (pivot > 0.0 and pivot >= pivot_floor):
+                return iteration, SINGULAR
+            factor[j, j] = np.sqrt(pivot)
+            for i in range(j + 1, n_free):
+                value = gram[index[i], index[j]]
+                for k in range(j):
+                    value -= factor[i, k] * factor[j, k]
+                factor[i, j] = value / factor[j, j]
+        for t in range(n_free):
+            value = c[index[t]]
+            for j in range(n):
+                if working[j] != FREE:
+                    value -= gram[index[t], j] * x[j]
+            rhs[t], z[t] = value, 0.0
+        for _ in range(2 if refine else 1):  # solve for the residual of z; a second pass refines z
+            for t in range(n_free):
+                value = rhs[t]
+                for s in range(n_free):
+                    value -= gram[index[t], index[s]] * z[s]
+                step[t] = value
+            for t in range(n_free):  # L y = r, then L^T d = y, in place
+                for k in range(t):
+                    step[t] -= factor[t, k] * step[k]
+                step[t] /= factor[t, t]
+            for t in range(n_free - 1, -1, -1):
+                for k in range(t + 1, n_free):
+                    step[t] -= factor[k, t] * step[k]
+                step[t] /= factor[t, t]
+            for t in range(n_free):
+                z[t] += step[t]
+        outside = False
+        for t in range(n_free):
+            outside = outside or z[t] < lower[index[t]] or z[t] > upper[index[t]]
+        if outside and not exchanging:
+            # -- primal step towards z, as far as the box allows; blocking variables join the working set
+            alpha = np.inf
+            for t in range(n_free):
+                i = index[t]
+                step[t] = np.inf  # the step length at which variable i reaches the bound z crosses
+                if z[t] < lower[i]:
+                    step[t] = max((lower[i] - x[i]) / (z[t] - x[i]), 0.0)
+                elif z[t] > upper[i]:
+                    step[t] = max((upper[i] - x[i]) / (z[t] - x[i]), 0.0)
+                alpha = min(alpha, step[t])
+            for t in range(n_free):
+                i = index[t]
+                blocking = step[t] <= alpha
+                x[i] += alpha * (z[t] - x[i])
+                if blocking and z[t] < lower[i]:
+                    working[i], x[i] = AT_LOWER, lower[i]
+                elif blocking:
+                    working[i], x[i] = AT_UPPER, upper[i]
+            continue
+        for t in range(n_free):
+            x[index[t]] = z[t]
+        # -- Lagrange multipliers of the bound variables: working_i (Q x - c)_i > 0 is a wrong sign
+        worst = -1
+        for i in range(n):
+            violation[i] = -np.inf
+            if working[i] != FREE:
+                gradient = -c[i]
+                for j in range(n):
+                    gradient += gram[i, j] * x[j]
+                violation[i] = working[i] * gradient
+                if worst < 0 or violation[i] > violation[worst]:
+                    worst = i
+        if not outside and (worst < 0 or violation[worst] <= tolerance):
+            return iteration, CONVERGED  # the KKT conditions hold
+        if exchanging:
+            # -- block exchange: free every wrongly signed variable, bind every free one outside the box
+            for i in range(n):
+                if violation[i] > tolerance:
+                    working[i] = FREE  # x keeps the bound value: x stays feasible for phase 2
+            for t in range(n_free):
+                i = index[t]
+                if z[t] < lower[i]:
+                    working[i], x[i] = AT_LOWER, lower[i]
+                elif z[t] > upper[i]:
+                    working[i], x[i] = AT_UPPER, upper[i]
+            continue
+        # -- primal: z is inside the box but a multiplier is wrong: free the worst variable
+        for r in range(n_seen):
+            same = True
+            for i in range(n):
+                same = same and seen[r, i] == working[i]
+            if same:
+                # a working set seen before can only come back through rounding (the objective falls
+                # strictly otherwise): x is then optimal to working precision
+                return iteration, CONVERGED
+        for i in range(n):
+            seen[n_seen, i] = working[i]
+        n_seen += 1
+        working[worst] = FREE
+    return max_iterations, ITERATION_LIMIT
 
 
+# ----------------------------------------------------------------------------------------- Python interface
 class BoxQP:
     """``min 1/2 x^T Q x - c^T x`` s.t. ``lower <= x <= upper`` for one fixed ``Q`` and box.
 
@@ -99,148 +255,45 @@ class BoxQP:
     gram : ndarray, shape (n, n)
         ``Q = D^T D``, symmetric positive semi-definite.
     lower, upper : float or ndarray, shape (n,)
-        Finite lower bounds; upper bounds (``inf`` allowed), ``lower <= upper``. Scalars (the same
-        box for every variable, as for contractions) take a faster path.
-    cache_size : int
-        Working sets whose factorisations are kept.
+        Finite lower bounds; upper bounds (``inf`` allowed), ``lower <= upper``.
     """
 
-    def __init__(self, gram: np.ndarray, lower, upper, cache_size: int = 64):
+    def __init__(self, gram: np.ndarray, lower, upper):
         gram = np.asarray(gram, dtype=np.float64)
         if gram.ndim != 2 or gram.shape[0] != gram.shape[1]:
             raise ValueError(f"gram must be square, got shape {gram.shape}")
-        n = len(gram)
-        gram = 0.5 * (gram + gram.T)
-        if np.ndim(lower) == 0 and np.ndim(upper) == 0:
-            low0, high0, lower_array, upper_array = float(lower), float(upper), None, None
-            if not (np.isfinite(low0) and low0 <= high0):
-                raise ValueError("bounds must satisfy finite lower <= upper")
-        else:
-            low0 = high0 = None
-            lower_array = np.broadcast_to(np.asarray(lower, dtype=np.float64), (n,)).copy()
-            upper_array = np.broadcast_to(np.asarray(upper, dtype=np.float64), (n,)).copy()
-            if not np.isfinite(lower_array).all() or np.isnan(upper_array).any() or (upper_array < lower_array).any():
-                raise ValueError("bounds must satisfy finite lower <= upper")
-        self._setup(gram, low0, high0, float(gram.trace()), cache_size)
-        self._lower, self._upper = lower_array, upper_array
-        if n:  # decide up front whether Q is rank-deficient (internal callers find out lazily)
-            factor, info = lapack.dpotrf(gram)
+        n = self.n = len(gram)
+        self.gram = np.ascontiguousarray(0.5 * (gram + gram.T))
+        self.lower = np.array(np.broadcast_to(np.asarray(lower, dtype=np.float64), (n,)))  # own, writable copies
+        self.upper = np.array(np.broadcast_to(np.asarray(upper, dtype=np.float64), (n,)))
+        if not np.isfinite(self.lower).all() or np.isnan(self.upper).any() or (self.upper < self.lower).any():
+            raise ValueError("bounds must satisfy finite lower <= upper")
+        self.scale = max(float(self.gram.trace()), 1e-300)
+        self._tolerance = KKT_TOLERANCE * self.scale * max(n, 1)
+        self._pivot_floor = RANK_TOLERANCE * self.scale
+        self.ridge = 0.0
+        if n:  # decide up front whether Q is rank-deficient
+            factor, info = lapack.dpotrf(self.gram)
             if info == 0:
                 rcond, info = lapack.dpocon(factor, n * self.scale)
             if info != 0 or rcond < RANK_TOLERANCE:
                 self._regularise()
 
-    @classmethod
-    def internal(cls, gram: np.ndarray, low0: float, high0: float, scale: float, cache_size: int = 64) -> BoxQP:
-        """A QP for a Gram matrix the caller built (symmetric, shape (n, n)) and a uniform box, without checks.
-
-        Rank deficiency is detected lazily, when a free-set factorisation has a tiny pivot.
-        ``scale`` is an upper bound of ``trace(Q)`` (it sets the tolerances).
-        """
-        qp = cls.__new__(cls)
-        qp._setup(gram, low0, high0, scale, cache_size)
-        qp._lower = qp._upper = None
-        return qp
-
-    def _setup(self, gram, low0, high0, scale, cache_size):
-        n = len(gram)
-        self.n = n
-        self.gram = gram
-        self._low0, self._high0 = low0, high0
-        self.scale = max(scale, 1e-300)
-        self._tolerance = KKT_TOLERANCE * self.scale * max(n, 1)
-        self._pivot_floor = RANK_TOLERANCE * self.scale
-        self.ridge = 0.0
-        self._entries: dict[bytes, tuple] = {}
-        self._cache_size = int(cache_size)
-        self._all_free = np.zeros(n, dtype=np.int8)
-        self._all_free_key = self._all_free.tobytes()
-        self._all_index = np.arange(n)
-
     def _regularise(self) -> None:
-        """Add the Tikhonov term ``1e-9 trace(Q) I`` (see the module docstring) and forget the factorisations."""
+        """Add the Tikhonov term ``1e-9 trace(Q) I`` (see the module docstring)."""
         self.ridge = RANK_TOLERANCE * self.scale
         self.gram = self.gram + self.ridge * np.eye(self.n)
         self._pivot_floor = 0.0
-        self._entries = {}
-
-    @property
-    def lower(self) -> np.ndarray:
-        """Lower bounds, shape (n,)."""
-        if self._lower is None:
-            self._lower = np.full(self.n, self._low0)
-        return self._lower
-
-    @property
-    def upper(self) -> np.ndarray:
-        """Upper bounds, shape (n,)."""
-        if self._upper is None:
-            self._upper = np.full(self.n, self._high0)
-        return self._upper
 
     @property
     def rank_deficient(self) -> bool:
         """True once the Tikhonov term has been added."""
         return self.ridge > 0.0
 
-    def _entry(self, working: np.ndarray, key: bytes) -> tuple:
-        """What depends only on the working set (n,): ``(index (f,), Cholesky factor of Q_FF (f, f), Q_FF,
-        Q[:, F] (n, f), Q x_B (n,) or None, (Q x_B)_F (f,) or None, x_B (n,) with zeros at the free
-        variables)``."""
-        gram = self.gram
-        if key == self._all_free_key:
-            index, sub = self._all_index, gram
-        else:
-            index = (working == FREE).nonzero()[0]
-            sub = gram.take(index, 0).take(index, 1)
-        if len(index):
-            factor, info = lapack.dpotrf(sub)
-            if info != 0 or min(factor.diagonal().tolist()) ** 2 < self._pivot_floor:
-                if self.ridge:
-                    raise ValueError(f"Cholesky factorisation failed on free set {index}")
-                raise _Singular
-        else:
-            factor = sub
-        if self._low0 == 0.0:
-            if b"\x01" in key:  # a variable at its upper bound
-                bound_values = (working == AT_UPPER) * self._high0
-            else:
-                bound_values = None
-        else:
-            bound_values = np.where(working == AT_LOWER, self.lower, np.where(working == AT_UPPER, self.upper, 0.0))
-        if bound_values is None:
-            base = offset = None
-            bound_values = np.zeros(self.n)
-        else:
-            base = gram @ bound_values
-            offset = base.take(index)
-        entry = (index, factor, sub, sub if sub is gram else gram.take(index, 1), base, offset, bound_values)
-        if len(self._entries) >= self._cache_size:
-            self._entries.pop(next(iter(self._entries)))
-        self._entries[key] = entry
-        return entry
-
-    def _get(self, working: np.ndarray) -> tuple:
-        key = working.tobytes()
-        entry = self._entries.get(key)
-        return entry if entry is not None else self._entry(working, key)
-
-    def _sub_solve(self, factor: np.ndarray, sub: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-        z = lapack.dpotrs(factor, rhs)[0]
-        if self.ridge:
-            z = z + lapack.dpotrs(factor, rhs - sub @ z)[0]  # one step of iterative refinement
-        return z
-
     def unconstrained(self, c: np.ndarray) -> np.ndarray:
         """The minimiser without bounds, ``Q^-1 c`` (regularised as described when ``Q`` is singular), shape (n,)."""
-        if not self.n:
-            return np.zeros(0)
-        try:
-            entry = self._get(self._all_free)
-        except _Singular:
-            self._regularise()
-            entry = self._get(self._all_free)
-        return self._sub_solve(entry[1], entry[2], c)
+        unbounded = np.full(self.n, np.inf)
+        return self._run(self._check(c), -unbounded, unbounded, np.zeros(self.n, np.int8), 1).x
 
     def solve(self, c: np.ndarray, active: np.ndarray | None = None,
               max_iterations: int | None = None) -> QPResult:
@@ -253,131 +306,34 @@ class BoxQP:
         active : ndarray of int8, shape (n,), optional
             Starting working set (-1 lower, 0 free, +1 upper), e.g. the previous frame's; default: all
             free. ``+1`` on an infinite upper bound is read as free.
+        max_iterations : int, optional
+            Sub-problem solves allowed; default ``10 n + 20``.
 
         Returns
         -------
         QPResult
         """
-        c = np.asarray(c, dtype=np.float64)
+        c = self._check(c)
+        start = np.zeros(self.n, dtype=np.int8) if active is None else np.array(active, dtype=np.int8)
+        if start.shape != (self.n,):
+            raise ValueError(f"active has shape {start.shape}, expected {(self.n,)}")
+        limit = 10 * self.n + 20 if max_iterations is None else int(max_iterations)
+        return self._run(c, self.lower, self.upper, start, limit)
+
+    def _run(self, c, lower, upper, start, limit) -> QPResult:
+        """:func:`box_qp_kernel` from the working set ``start`` (n,), regularising ``Q`` if it turns out singular."""
+        while True:
+            working, x = start.copy(), np.empty(self.n)
+            iterations, status = box_qp_kernel(self.gram, c, lower, upper, working, x, self._tolerance,
+                                               self._pivot_floor, self.rank_deficient, limit)
+            if status != SINGULAR:
+                return QPResult(x, working, iterations, status == CONVERGED)
+            if self.rank_deficient:
+                raise ValueError("Cholesky factorisation failed on a regularised Gram matrix")
+            self._regularise()
+
+    def _check(self, c) -> np.ndarray:
+        c = np.ascontiguousarray(c, dtype=np.float64)
         if c.shape != (self.n,):
             raise ValueError(f"c has shape {c.shape}, expected {(self.n,)}")
-        working = np.zeros(self.n, dtype=np.int8) if active is None else np.array(active, dtype=np.int8)
-        working[(working == AT_UPPER) & (self.upper == np.inf)] = FREE
-        working[(working < AT_LOWER) | (working > AT_UPPER)] = FREE
-        x, working, iterations, converged = self.solve_raw(c, working, max_iterations)
-        return QPResult(x, working, iterations, converged)
-
-    def solve_raw(self, c: np.ndarray, working: np.ndarray, max_iterations: int | None = None):
-        """:meth:`solve` without checks or result object: ``(x (n,), working (n,), iterations, converged)``.
-
-        ``working`` (int8) must be a valid working set (no ``+1`` on an infinite bound); it is not modified.
-        """
-        try:
-            return self._solve(c, working, max_iterations)
-        except _Singular:
-            self._regularise()
-            return self._solve(c, working, max_iterations)
-
-    def _solve(self, c: np.ndarray, working: np.ndarray, max_iterations: int | None):
-        n = self.n
-        if n == 0:
-            return np.zeros(0), working.copy(), 0, True
-        limit = EXCHANGES if max_iterations is None else min(EXCHANGES, max_iterations)
-        tolerance = self._tolerance
-        low0, high0 = self._low0, self._high0
-        entries = self._entries
-        owned = False
-        iteration = 0
-        # phase 1: block exchanges from the warm-start guess
-        while iteration < limit:
-            iteration += 1
-            key = working.tobytes()
-            entry = entries.get(key)
-            if entry is None:
-                entry = self._entry(working, key)
-            index, factor, sub, cols, base, offset, bound_values = entry
-            if len(index):
-                rhs = c.take(index) if offset is None else c.take(index) - offset
-                z = lapack.dpotrs(factor, rhs)[0]
-                if self.ridge:
-                    z += lapack.dpotrs(factor, rhs - sub @ z)[0]
-                gradient = cols @ z - c
-                if low0 is not None:
-                    values = z.tolist()  # tiny arrays: Python's min/max beat numpy's reductions
-                    outside = min(values) < low0 or max(values) > high0
-                else:
-                    outside = bool((z < self._lower.take(index)).any() or (z > self._upper.take(index)).any())
-            else:
-                z = np.zeros(0)
-                gradient = -c
-                outside = False
-            if base is not None:
-                gradient += base
-            violation = working * gradient
-            wrong = max(violation.tolist()) > tolerance
-            if not wrong and not outside:
-                if len(index) == n:
-                    return z, working, iteration, True
-                x = bound_values.copy()
-                x[index] = z
-                return x, working, iteration, True
-            if not owned:
-                working = working.copy()
-                owned = True
-            if wrong:
-                working[violation > tolerance] = FREE
-            if outside:
-                working[index[z < (low0 if low0 is not None else self._lower.take(index))]] = AT_LOWER
-                working[index[z > (high0 if high0 is not None else self._upper.take(index))]] = AT_UPPER
-        # phase 2: the monotone primal active-set method from the feasible point nearest the last guess
-        if not owned:
-            working = working.copy()
-        lower, upper = self.lower, self.upper
-        x = bound_values.copy()
-        if len(index):
-            x[index] = np.minimum(np.maximum(z, lower.take(index)), upper.take(index))
-        x = np.where(working == AT_LOWER, lower, np.where(working == AT_UPPER, upper, x))
-        total = max_iterations if max_iterations is not None else 10 * n + 20
-        return self._primal(c, working, x, iteration, total, tolerance)
-
-    def _primal(self, c, working, x, iteration, limit, tolerance):
-        gram, lower, upper = self.gram, self.lower, self.upper
-        seen: set[bytes] = set()
-        while iteration < limit:
-            iteration += 1
-            index, factor, sub = self._get(working)[:3]
-            low, high = lower.take(index), upper.take(index)
-            if len(index):
-                z = self._sub_solve(factor, sub, (c - gram @ np.where(working == FREE, 0.0, x)).take(index))
-                below, above = z < low, z > high
-                if below.any() or above.any():
-                    # step towards z as far as the box allows; blocking variables join the working set
-                    x_free = x[index]
-                    step = z - x_free
-                    with np.errstate(divide="ignore", invalid="ignore"):
-                        ratio = np.where(below, (low - x_free) / step, np.where(above, (high - x_free) / step, np.inf))
-                    ratio = np.maximum(ratio, 0.0)
-                    alpha = float(ratio.min())
-                    x[index] = x_free + alpha * step
-                    blocking = ratio <= alpha
-                    hit_low = index[blocking & below]
-                    hit_high = index[blocking & above]
-                    x[hit_low] = lower[hit_low]
-                    x[hit_high] = upper[hit_high]
-                    working[hit_low] = AT_LOWER
-                    working[hit_high] = AT_UPPER
-                    continue
-                x[index] = z
-            # Lagrange multipliers of the bound variables: working * gradient > 0 is a wrong sign
-            violation = working * (gram @ x - c)
-            worst = int(violation.argmax())
-            if violation[worst] <= tolerance:
-                return x, working, iteration, True
-            key = working.tobytes()
-            if key in seen:
-                # a working set seen before can only come back through rounding (the objective falls
-                # strictly otherwise): x is then optimal to working precision
-                return x, working, iteration, True
-            seen.add(key)
-            working[worst] = FREE
-        return x, working, limit, False
+        return c

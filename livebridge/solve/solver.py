@@ -14,35 +14,49 @@ Region modes (:class:`SolverConfig`):
   regions alternate (upper, then lower) for ``sweeps`` sweeps. The first sweep uses the other region's
   contractions of the previous frame, so at 60 fps the compensation starts close to converged.
 
-Missing markers: ``Q`` (and its free-set factorisations) depend on which face markers are visible, so
-one :class:`~livebridge.solve.qp.BoxQP` per region is built per visibility pattern and kept in a
-least-recently-used cache. When *every* marker of a region is missing, that region's muscles keep their
-previous value and the result flags them (:attr:`SolveResult.held`); their unconstrained value is NaN.
+Missing markers: when *every* marker of a region is missing, that region's muscles keep their previous
+value and the result flags them (:attr:`SolveResult.held`); their unconstrained value is NaN.
 
-Cost of a frame: one matrix-vector product for ``c = D^T d_hat`` of both regions, the active-set steps
-(usually one or two per region and sweep, warm-started from the previous frame's working set), one
-product for the predicted marker displacements. A visibility pattern not in the cache costs, on top,
-a rank-3 downdate of the all-visible Gram matrices per missing marker and one small Cholesky
-factorisation per region (markers dropping out at random make most patterns new).
+Cost of a frame. One compiled kernel (numba, :func:`_frame`) does the whole frame: ``c = D^T d_hat`` per
+marker set, the Gram matrices of the visible markers, the active-set steps of every region and sweep
+(:func:`livebridge.solve.qp.box_qp_kernel`, warm-started from the previous frame's working set) and the
+marker errors. The Gram matrices with every marker visible are precomputed, so a frame with the usual
+visibility costs one matrix-vector product plus the active-set steps. Any other visibility pattern costs
+a rank-3 downdate per missing marker (``M x M`` flops each), which is cheaper than looking a cached
+pattern up would be, so no pattern cache is kept (``SolverConfig.cache_size`` is accepted and ignored);
+markers dropping out at random make most patterns new anyway. Why compiled: the QPs are tiny (<= 16
+variables), and with numpy and LAPACK wrappers the per-call overhead, not the arithmetic, was the cost.
+
+Rank-deficient blocks (a muscle that no visible marker moves): each block's Gram matrix is factored once
+per frame and sweep; when a Cholesky pivot ``L_ii^2`` falls below ``1e-9`` times the trace of the block's
+all-visible Gram matrix, the block gets the Tikhonov term of :mod:`livebridge.solve.qp` for the frame.
+Every free-set pivot is at least the corresponding pivot of the whole matrix (conditioning on fewer
+variables leaves more variance), so the one test up front covers every working set the active-set
+method can visit, and the decision does not depend on the warm start.
 
 The unconstrained contractions (:attr:`SolveResult.unconstrained`, the basis-validation signal) are each
 region's last QP of the frame solved without bounds, with the same right-hand side: ``Q^-1 c`` for
 ``joint`` and for each region of ``split``; for ``split-compensated`` each region's least-squares
 contractions given the other region's (bounded) contractions of the last sweep. A badly sculpted
 element shows up there as contractions far outside [0, 1] that the bounds would otherwise hide.
+
+The ``"scipy-bvls"`` backend is the reference for tests and benchmarks: the same frame, step for step,
+with each block's QP solved by ``scipy.optimize.lsq_linear(method="bvls")`` on the block's marker rows
+instead of the active-set kernel; everything else (visibility, compensation, unconstrained solve, marker
+errors) runs through the same compiled helpers.
 """
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from livebridge.errors import InputError
 from livebridge.face.basis import REGIONS, Basis
 from livebridge.face.markers import MarkerSet
-from livebridge.solve.qp import BoxQP
+from livebridge.solve.qp import FREE, KKT_TOLERANCE, RANK_TOLERANCE, SINGULAR, box_qp_kernel
 
 MODES = ("split-compensated", "split", "joint")
 BACKENDS = ("active-set", "scipy-bvls")
@@ -60,7 +74,8 @@ class SolverConfig:
     sweeps : int
         Alternations of the two regions in ``split-compensated`` mode.
     cache_size : int
-        Visibility patterns whose factorisations are kept.
+        Accepted for configuration files of earlier versions and ignored: the compiled kernel rebuilds a
+        visibility pattern's Gram matrices faster than a cache could look them up (see the module docstring).
     """
 
     mode: str = "split-compensated"
@@ -164,58 +179,217 @@ class TakeSolution:
     state: SolverState
 
 
-@dataclass(frozen=True, eq=False)
-class _BlockSpec:
-    """One QP of a frame, independent of which markers are missing (beyond whole regions).
+# ------------------------------------------------------------------------------------------ compiled kernels
+# Muscles are in the solver's internal order (grouped by region), so every block's muscles are a slice.
+# Marker sets: 0 the upper-face markers, 1 the lower-face markers, 2 all face markers (joint).
+ALL_MARKERS = 2
 
-    Muscles are in the solver's internal order (grouped by region), so every index set is a slice.
+
+@njit(cache=True, nogil=True)
+def _prepare(observed, face_index, marker_region, a, marker_gram, full_gram, d, visible, grams, c, counts):
+    """Visibility, Gram matrices and right-hand sides ``D^T d`` of one frame, per marker set.
+
+    Parameters
+    ----------
+    observed : ndarray, shape (n_markers, 3)
+        Marker displacements, NaN rows for markers not seen.
+    face_index : ndarray of int64, shape (n_face,)
+        Rows of ``observed`` that are face markers.
+    marker_region : ndarray of int64, shape (n_face,)
+    a : ndarray, shape (n_face, 3, M)
+        ``d_ij`` per face marker and coordinate (internal muscle order).
+    marker_gram : ndarray, shape (n_face, M, M)
+        Each marker's contribution ``D_j^T D_j`` to the Gram matrices.
+    full_gram : ndarray, shape (3, M, M)
+        Gram matrix of each marker set with every marker visible.
+    d : ndarray, shape (n_face, 3)
+        Output: face displacements, zero rows for unseen markers.
+    visible : ndarray of bool, shape (n_face,)
+        Output.
+    grams : ndarray, shape (3, M, M)
+        Output: Gram matrix of each marker set over its visible markers (downdated from ``full_gram``).
+    c : ndarray, shape (3, M)
+        Output: ``D^T d`` of each marker set.
+    counts : ndarray of int64, shape (2,)
+        Output: visible markers per region.
     """
-
-    region: int  # index into REGIONS; -1: all face markers (joint)
-    muscles: slice  # muscles solved here, (k,)
-    others: slice  # muscles whose prediction is subtracted when compensating, (M - k,)
-    compensate: bool
-    c_slice: slice  # where this block's D^T d lies in the per-frame product
-    n_rows: int  # k
-    marker_rows: np.ndarray  # (n_face, k, M): each marker's contribution to the Gram rows (0 outside the region)
-    rows: np.ndarray  # (k, M): the Gram rows with every marker visible
-    scale: float  # trace of the all-visible Gram matrix (bounds the trace of every pattern's)
-    lower: float
-    upper: float
-
-
-@dataclass(frozen=True, eq=False)
-class _SpecGroup:
-    """The block specs of one held-region combination, stacked so a pattern's downdate is one product."""
-
-    rows: np.ndarray  # (sum_b k_b M,): every block's all-visible Gram rows, flattened
-    marker_rows: np.ndarray  # (n_face, sum_b k_b M): each marker's contribution, flattened the same way
-    spans: list  # (start, stop) of each block in the flattened rows
-    held: np.ndarray  # (M,) bool, external order
-    held_internal: np.ndarray  # (M,) bool, internal order
-    held_regions: tuple
-
-
-@dataclass(eq=False)
-class _Block:
-    """One QP of a visibility pattern."""
-
-    spec: _BlockSpec
-    qp: BoxQP
-    cross: np.ndarray  # (k, M - k): Q restricted to (muscles, others) over the visible rows
+    n_muscles = a.shape[2]
+    for s in range(3):
+        for m in range(n_muscles):
+            c[s, m] = 0.0
+            for n in range(n_muscles):
+                grams[s, m, n] = full_gram[s, m, n]
+    counts[0] = counts[1] = 0
+    for j in range(len(face_index)):
+        row, region = face_index[j], marker_region[j]
+        total = observed[row, 0] + observed[row, 1] + observed[row, 2]
+        visible[j] = total == total  # NaN in any coordinate: not seen
+        if visible[j]:
+            counts[region] += 1
+            for k in range(3):
+                value = observed[row, k]
+                d[j, k] = value
+                for m in range(n_muscles):
+                    c[region, m] += a[j, k, m] * value
+        else:
+            d[j, 0] = d[j, 1] = d[j, 2] = 0.0
+            for m in range(n_muscles):  # downdate: remove the marker's rank-3 contribution
+                for n in range(n_muscles):
+                    grams[region, m, n] -= marker_gram[j, m, n]
+                    grams[ALL_MARKERS, m, n] -= marker_gram[j, m, n]
+    for m in range(n_muscles):
+        c[ALL_MARKERS, m] = c[0, m] + c[1, m]
 
 
-@dataclass(eq=False)
-class _Pattern:
-    """Everything that depends only on which face markers are visible."""
+@njit(cache=True, nogil=True)
+def _block_system(grams, full_gram, c, x, plan, block):
+    """Block ``block``'s QP: its Gram matrix ``Q_BB`` and right-hand side ``c_B - Q_BO x_O``.
 
-    visible: np.ndarray  # (n_face,) bool
-    all_visible: bool
-    blocks: list
-    held: np.ndarray  # (M,) bool, external order
-    held_internal: np.ndarray  # (M,) bool, internal order
-    held_regions: tuple
-    counts: np.ndarray  # (2,) visible markers per region
+    Parameters
+    ----------
+    grams, full_gram : ndarray, shape (3, M, M); c : ndarray, shape (3, M)
+        As in :func:`_prepare`.
+    x : ndarray, shape (M,)
+        Current contractions (internal order); ``x_O`` are the compensated muscles'.
+    plan : ndarray of int64, shape (2, 5)
+        The frame's blocks (see :meth:`ContractionSolver._block_plans`).
+    block : int
+
+    Returns
+    -------
+    (gram, rhs, scale) : (ndarray (k, k), ndarray (k,), float)
+        ``scale`` is the trace of the block's all-visible Gram matrix (it sets the tolerances).
+    """
+    marker_set, start, size = plan[block, 0], plan[block, 1], plan[block, 2] - plan[block, 1]
+    gram, rhs = np.empty((size, size)), np.empty(size)
+    scale = 0.0
+    for i in range(size):
+        scale += full_gram[marker_set, start + i, start + i]
+        for j in range(size):
+            gram[i, j] = grams[marker_set, start + i, start + j]
+        value = c[marker_set, start + i]
+        for m in range(plan[block, 3], plan[block, 4]):
+            value -= grams[marker_set, start + i, m] * x[m]
+        rhs[i] = value
+    return gram, rhs, max(scale, 1e-300)
+
+
+@njit(cache=True, nogil=True)
+def _errors(d, visible, marker_region, a, x, counts, errors):
+    """Per-region marker errors of the fit ``x`` (M,): ``errors[0]`` RMS, ``errors[1]`` mean, shape (2, 2), mm.
+
+    ``d`` (n_face, 3) and ``a`` (n_face, 3, M) as in :func:`_prepare`; NaN for a region with no visible marker.
+    """
+    for region in range(2):
+        errors[0, region] = errors[1, region] = 0.0
+    for j in range(len(visible)):
+        if visible[j]:
+            squared = 0.0
+            for k in range(3):
+                residual = d[j, k]
+                for m in range(len(x)):
+                    residual -= a[j, k, m] * x[m]
+                squared += residual * residual
+            errors[0, marker_region[j]] += squared
+            errors[1, marker_region[j]] += np.sqrt(squared)
+    for region in range(2):
+        if counts[region]:
+            errors[0, region] = np.sqrt(errors[0, region] / counts[region])
+            errors[1, region] /= counts[region]
+        else:
+            errors[0, region] = errors[1, region] = np.nan
+
+
+@njit(cache=True, nogil=True)
+def _frame(observed, face_index, marker_region, a, marker_gram, full_gram, perm, plans, plan_sizes, sweeps, upper,
+           x_previous, active_previous, x_out, active_out, unconstrained_out, errors):
+    """One frame of :meth:`ContractionSolver.step` with the active-set QP.
+
+    Parameters
+    ----------
+    observed, face_index, marker_region, a, marker_gram, full_gram
+        As in :func:`_prepare`.
+    perm : ndarray of int64, shape (M,)
+        Internal muscle ``i`` is external muscle ``perm[i]``.
+    plans : ndarray of int64, shape (4, 2, 5); plan_sizes : ndarray of int64, shape (4,)
+        The blocks to solve for each combination of regions without a visible marker
+        (:meth:`ContractionSolver._block_plans`).
+    sweeps : int
+        Times the blocks are solved in turn (1 except in split-compensated mode).
+    upper : float
+        Upper bound of every contraction (``inf``: exaggeration).
+    x_previous : ndarray, shape (M,); active_previous : ndarray of int8, shape (M,)
+        The previous frame's contractions and working set (external order).
+    x_out, active_out, unconstrained_out : ndarray, shape (M,)
+        Outputs (external order).
+    errors : ndarray, shape (2, 2)
+        Output, as in :func:`_errors`.
+
+    Returns
+    -------
+    (iterations, upper_seen, lower_seen) : (int, int, int)
+        Sub-problem solves; visible markers per region.
+    """
+    n_face, n_muscles = len(face_index), len(perm)
+    d, visible = np.empty((n_face, 3)), np.empty(n_face, np.bool_)
+    grams, c, counts = np.empty((3, n_muscles, n_muscles)), np.empty((3, n_muscles)), np.empty(2, np.int64)
+    _prepare(observed, face_index, marker_region, a, marker_gram, full_gram, d, visible, grams, c, counts)
+    held_code = (counts[0] == 0) + 2 * (counts[1] == 0)
+    plan, n_blocks = plans[held_code], plan_sizes[held_code]
+    x, active, unconstrained = np.empty(n_muscles), np.empty(n_muscles, np.int8), np.empty(n_muscles)
+    for i in range(n_muscles):
+        x[i], active[i], unconstrained[i] = x_previous[perm[i]], active_previous[perm[i]], np.nan
+    iterations = 0
+    for sweep in range(sweeps):
+        for block in range(n_blocks):
+            gram, rhs, scale = _block_system(grams, full_gram, c, x, plan, block)
+            start, size = plan[block, 1], len(rhs)
+            low, high, zero, bound = np.empty(size), np.empty(size), np.empty(size), np.empty(size)
+            for i in range(size):
+                low[i], high[i], zero[i], bound[i] = -np.inf, np.inf, 0.0, upper
+            working, solution = np.empty(size, np.int8), np.empty(size)
+            ridge = False
+            # Two stages, one call site (the kernel is big): 0, the block without bounds from the all-free
+            # working set, whose Cholesky pivots are the rank test and whose solution is the unconstrained
+            # one; 1, the bounded QP warm-started from the previous working set. A SINGULAR status adds the
+            # ridge and repeats the stage (stage 1 only at the rounding edge of the test of stage 0).
+            stage = 0
+            while stage < 2:
+                for i in range(size):
+                    working[i] = FREE if stage == 0 else active[start + i]
+                used, status = box_qp_kernel(gram, rhs, low if stage == 0 else zero, high if stage == 0 else bound,
+                                             working, solution, KKT_TOLERANCE * scale * size,
+                                             0.0 if ridge else RANK_TOLERANCE * scale, ridge,
+                                             1 if stage == 0 else 10 * size + 20)
+                if status == SINGULAR and ridge:
+                    break  # cannot happen with a finite basis (Q + ridge I is positive definite): x is kept
+                if status == SINGULAR:
+                    ridge = True
+                    for i in range(size):
+                        gram[i, i] += RANK_TOLERANCE * scale
+                    continue
+                for i in range(size):
+                    if stage == 0 and sweep == sweeps - 1:
+                        unconstrained[start + i] = solution[i]
+                    elif stage == 1:
+                        x[start + i], active[start + i] = solution[i], working[i]
+                iterations += used if stage == 1 else 0
+                stage += 1
+    _errors(d, visible, marker_region, a, x, counts, errors)
+    for i in range(n_muscles):
+        x_out[perm[i]], active_out[perm[i]], unconstrained_out[perm[i]] = x[i], active[i], unconstrained[i]
+    return iterations, counts[0], counts[1]
+
+
+def _reference_unconstrained(gram: np.ndarray, rhs: np.ndarray, scale: float) -> np.ndarray:
+    """Stage 0 of :func:`_frame` for the reference backend: ``Q^-1 c`` (k,), with the same rank test and ridge."""
+    unbounded, solution = np.full(len(rhs), np.inf), np.empty(len(rhs))
+    _, status = box_qp_kernel(gram, rhs, -unbounded, unbounded, np.zeros(len(rhs), np.int8), solution, 0.0,
+                              RANK_TOLERANCE * scale, False, 1)
+    if status == SINGULAR:
+        box_qp_kernel(gram + RANK_TOLERANCE * scale * np.eye(len(rhs)), rhs, -unbounded, unbounded,
+                      np.zeros(len(rhs), np.int8), solution, 0.0, 0.0, True, 1)
+    return solution
 
 
 class ContractionSolver:
@@ -247,19 +421,13 @@ class ContractionSolver:
         self.muscle_names = basis.names
         n_muscles = self.n_muscles = basis.n_muscles
         self.n_markers = len(markers)
-        self.face_index = np.flatnonzero(markers.face_mask)
-        self._has_head = len(self.face_index) != self.n_markers
-        n_face = len(self.face_index)
-        n_regions = len(REGIONS)
-        self.marker_region = np.array([REGIONS.index(markers.regions[i]) for i in self.face_index], dtype=int)
-        self.muscle_region = np.array([REGIONS.index(m.region) for m in basis.muscles], dtype=int)
+        self.face_index = np.flatnonzero(markers.face_mask).astype(np.int64)
+        self.marker_region = np.array([REGIONS.index(markers.regions[i]) for i in self.face_index], dtype=np.int64)
+        self.muscle_region = np.array([REGIONS.index(m.region) for m in basis.muscles], dtype=np.int64)
         # internal muscle order: grouped by region, so each region's muscles form a slice
-        self._perm = np.argsort(self.muscle_region, kind="stable")
-        self._inverse_perm = np.argsort(self._perm)
-        self._permuted = not np.array_equal(self._perm, np.arange(n_muscles))
-        region_sorted = self.muscle_region[self._perm]
-        bounds = np.searchsorted(region_sorted, np.arange(n_regions + 1))
-        self._region_slices = [slice(int(bounds[r]), int(bounds[r + 1])) for r in range(n_regions)]
+        self._perm = np.argsort(self.muscle_region, kind="stable").astype(np.int64)
+        self._region_bounds = np.searchsorted(self.muscle_region[self._perm], np.arange(len(REGIONS) + 1)).astype(
+            np.int64)
         # d_ij of the face markers, (n_face, M, 3), external muscle order
         if displacement is None:
             displacement = markers.displacement_matrix(basis)
@@ -267,110 +435,65 @@ class ContractionSolver:
             raise ValueError(f"displacement has shape {np.shape(displacement)}, "
                              f"expected {(self.n_markers, n_muscles, 3)}")
         self.displacement = np.asarray(displacement, dtype=np.float64)[self.face_index]
-        internal = self.displacement[:, self._perm]
-        # A (3 n_face, M): row 3j+k = coordinate k of marker j; internal muscle order
-        self._a = np.ascontiguousarray(np.transpose(internal, (0, 2, 1)).reshape(3 * n_face, n_muscles))
-        row_region = np.repeat(self.marker_region, 3)
-        # per-frame products: split modes stack D_r^T d over each region's markers, (2 M,); joint D^T d, (M,)
-        self._at_regions = np.ascontiguousarray(
-            np.concatenate([self._a.T * (row_region == r) for r in range(n_regions)]))
-        self._at = np.ascontiguousarray(self._a.T)
-        self._region_onehot = np.stack([self.marker_region == r for r in range(n_regions)]).astype(float)
-        self._marker_gram = np.einsum("jmk,jlk->jml", internal, internal)  # (n_face, M, M): D_j^T D_j
+        if not np.isfinite(self.displacement).all():
+            raise ValueError("marker displacements d_ij must be finite")
+        # (n_face, 3, M): coordinate k of marker j under each muscle, internal order; reshaped, the rows of D
+        self._a = np.ascontiguousarray(np.transpose(self.displacement[:, self._perm], (0, 2, 1)))
+        self._marker_gram = np.ascontiguousarray(np.einsum("jkm,jkl->jml", self._a, self._a))  # (n_face, M, M)
+        self._full_gram = np.ascontiguousarray(np.stack(  # (3, M, M): upper markers, lower markers, all
+            [self._marker_gram[self.marker_region == r].sum(axis=0) for r in range(len(REGIONS))]
+            + [self._marker_gram.sum(axis=0)]))
+        self._plans, self._plan_sizes = self._block_plans()
         self._upper_bound = np.inf if self.config.exaggerate else 1.0
-        self._patterns: OrderedDict[bytes, _Pattern] = OrderedDict()
-        self._specs: dict[tuple[bool, ...], list[_BlockSpec]] = {}
-        self._spec_groups: dict[tuple[bool, ...], _SpecGroup] = {}
-        self._sweeps = self.config.sweeps if self.config.mode == "split-compensated" else 1
+        self._sweeps = int(self.config.sweeps) if self.config.mode == "split-compensated" else 1
         self._reference = backend != "active-set"
         self._shape = (self.n_markers, 3)
-        self._ones3 = np.ones(3)
+        self._held = [self._held_of(code) for code in range(4)]
+        self.step(self.initial_state(), np.zeros(self._shape))  # compile (or load) the kernels now, not mid-take
+
+    def _block_plans(self) -> tuple[np.ndarray, np.ndarray]:
+        """The QPs ("blocks") of a frame for each combination of regions without a visible marker.
+
+        Returns
+        -------
+        plans : ndarray of int64, shape (4, 2, 5)
+            For held code ``h`` (bit ``r`` set: region ``r`` unseen, its muscles held), one row per block in
+            solving order: marker set (0 upper, 1 lower, 2 all), muscle start and stop (internal order), and
+            start and stop of the muscles whose predicted displacement is subtracted first (empty: none).
+        sizes : ndarray of int64, shape (4,)
+            Blocks per held code.
+        """
+        bounds = self._region_bounds.tolist()
+        muscles = [(bounds[r], bounds[r + 1]) for r in range(len(REGIONS))]
+        plans, sizes = np.zeros((4, 2, 5), np.int64), np.zeros(4, np.int64)
+        for code in range(4):
+            held = [bool(code >> r & 1) for r in range(len(REGIONS))]
+            if self.config.mode == "joint":
+                # every seen muscle from all visible markers (regions are contiguous); a held region's prediction
+                # is subtracted
+                kept = [muscles[r] for r in range(2) if not held[r]]
+                others = [muscles[r] for r in range(2) if held[r]]
+                blocks = [(ALL_MARKERS, kept[0][0], kept[-1][1], *(others[0] if len(others) == 1 else (0, 0)))] \
+                    if kept and kept[-1][1] > kept[0][0] else []
+            else:
+                compensated = self.config.mode == "split-compensated"
+                blocks = [(r, *muscles[r], *(muscles[1 - r] if compensated or held[1 - r] else (0, 0)))
+                          for r in range(2) if not held[r] and muscles[r][1] > muscles[r][0]]
+            plans[code, :len(blocks)] = blocks if blocks else 0
+            sizes[code] = len(blocks)
+        return plans, sizes
+
+    def _held_of(self, code: int) -> tuple[np.ndarray, tuple[str, ...]]:
+        """(held muscles (M,) bool, read-only; held region names) for bit r of ``code`` = region r unseen."""
+        regions = tuple(name for r, name in enumerate(REGIONS) if code >> r & 1)
+        held = np.isin(self.muscle_region, [REGIONS.index(name) for name in regions])
+        held.flags.writeable = False  # shared by every result with this combination
+        return held, regions
 
     # ------------------------------------------------------------------ state
     def initial_state(self) -> SolverState:
         """The state before the first frame: the neutral face, every muscle free."""
         return SolverState(np.zeros(self.n_muscles), np.zeros(self.n_muscles, dtype=np.int8), 0)
-
-    # --------------------------------------------------------------- patterns
-    def pattern(self, visible: np.ndarray) -> _Pattern:
-        """The cached factorisations for a visibility mask of the face markers, shape (n_face,)."""
-        key = visible.tobytes()
-        hit = self._patterns.get(key)
-        if hit is not None:
-            self._patterns.move_to_end(key)
-            return hit
-        hit = self._build_pattern(visible)
-        self._patterns[key] = hit
-        if len(self._patterns) > self.config.cache_size:
-            self._patterns.popitem(last=False)
-        return hit
-
-    def _build_pattern(self, visible: np.ndarray) -> _Pattern:
-        counts = self._region_onehot @ visible
-        held_key = (counts[0] == 0, counts[1] == 0)
-        specs = self._specs.get(held_key)
-        if specs is None:
-            specs = self._specs[held_key] = self._block_specs(held_key)
-        group = self._spec_groups[held_key]
-        if visible.all():
-            flat = group.rows
-        else:
-            # downdate the all-visible Gram rows by the missing markers' rank-3 contributions (one product)
-            flat = group.rows - (1.0 - visible) @ group.marker_rows
-        blocks = []
-        for spec, (start, stop) in zip(specs, group.spans):
-            rows = flat[start:stop].reshape(spec.n_rows, self.n_muscles)
-            qp = BoxQP.internal(rows[:, spec.muscles], 0.0, self._upper_bound, spec.scale, self.config.cache_size)
-            blocks.append(_Block(spec, qp, rows[:, spec.others]))
-        return _Pattern(visible, bool(visible.all()), blocks, group.held, group.held_internal, group.held_regions,
-                        counts)
-
-    def _block_specs(self, held_key: tuple[bool, ...]) -> list[_BlockSpec]:
-        """The QPs to solve when the regions flagged in ``held_key`` have no visible marker."""
-        n_muscles = self.n_muscles
-        everything = slice(0, n_muscles)
-        empty = slice(0, 0)
-        kept = [r for r, is_held in enumerate(held_key) if not is_held and self._region_slices[r].stop
-                > self._region_slices[r].start]
-        held_regions = [r for r, is_held in enumerate(held_key) if is_held]
-        groups = []  # (marker region, muscles, others, compensate, c slice)
-        if self.config.mode == "joint":
-            if len(kept) == len(REGIONS):
-                groups.append((-1, everything, empty, False, everything))
-            elif kept:
-                # one region's muscles from all visible markers; the held region's prediction subtracted
-                muscles, others = self._region_slices[kept[0]], self._region_slices[held_regions[0]]
-                groups.append((-1, muscles, others, True, muscles))
-        else:
-            compensate = self.config.mode == "split-compensated"
-            for r in kept:
-                muscles = self._region_slices[r]
-                others = self._region_slices[1 - r]
-                c_slice = slice(r * n_muscles + muscles.start, r * n_muscles + muscles.stop)
-                groups.append((r, muscles, others, compensate or bool(held_key[1 - r]), c_slice))
-        specs = []
-        spans = []
-        start = 0
-        for region, muscles, others, compensate, c_slice in groups:
-            in_rows = np.ones(len(self.face_index), dtype=bool) if region < 0 else self.marker_region == region
-            marker_rows = np.ascontiguousarray(self._marker_gram[:, muscles, :] * in_rows[:, None, None])
-            rows = marker_rows.sum(axis=0)
-            n_rows = muscles.stop - muscles.start
-            specs.append(_BlockSpec(region, muscles, others, compensate, c_slice, n_rows, marker_rows, rows,
-                                    float(np.trace(rows[:, muscles])), 0.0, self._upper_bound))
-            spans.append((start, start + n_rows * n_muscles))
-            start += n_rows * n_muscles
-        held_internal = np.zeros(n_muscles, dtype=bool)
-        for r, is_held in enumerate(held_key):
-            held_internal[self._region_slices[r]] = is_held
-        n_face = len(self.face_index)
-        self._spec_groups[held_key] = _SpecGroup(
-            np.concatenate([spec.rows.ravel() for spec in specs]) if specs else np.zeros(0),
-            np.concatenate([spec.marker_rows.reshape(n_face, -1) for spec in specs], axis=1)
-            if specs else np.zeros((n_face, 0)),
-            spans, held_internal[self._inverse_perm] if self._permuted else held_internal, held_internal,
-            tuple(region for region, h in zip(REGIONS, held_key) if h))
-        return specs
 
     # ------------------------------------------------------------------ solve
     def step(self, state: SolverState, displacements: np.ndarray) -> tuple[SolverState, SolveResult]:
@@ -387,67 +510,57 @@ class ContractionSolver:
         -------
         (SolverState, SolveResult)
         """
-        observed = np.asarray(displacements, dtype=np.float64)
+        observed = np.ascontiguousarray(displacements, dtype=np.float64)
         if observed.shape != self._shape:
             raise ValueError(f"displacements have shape {observed.shape}, expected {self._shape}")
-        face = observed[self.face_index] if self._has_head else observed
-        row_sums = face @ self._ones3
-        visible = row_sums == row_sums  # NaN in any coordinate: not seen
-        pattern = self._patterns.get(visible.tobytes())
-        if pattern is None:
-            pattern = self.pattern(visible)
-        d0 = face.ravel() if pattern.all_visible else np.where(visible[:, None], face, 0.0).ravel()
-        joint = self.config.mode == "joint"
-        c_all = (self._at if joint else self._at_regions) @ d0
-        if self._permuted:
-            x = state.contractions[self._perm]
-            active = state.active[self._perm]
-        else:
-            x = state.contractions.copy()
-            active = state.active.copy()
-        reference = self._reference
-        iterations = 0
-        last = self._sweeps - 1
-        unconstrained = np.full(self.n_muscles, np.nan)
-        for sweep in range(self._sweeps):
-            for block in pattern.blocks:
-                spec = block.spec
-                c = c_all[spec.c_slice]
-                if spec.compensate:
-                    c = c - block.cross @ x[spec.others]
-                if sweep == last:
-                    unconstrained[spec.muscles] = block.qp.unconstrained(c)
-                if reference:
-                    x[spec.muscles] = self._reference_block(pattern, spec, d0, x)
-                    iterations += 1
-                else:
-                    x_block, working, used, _ = block.qp.solve_raw(c, active[spec.muscles])
-                    x[spec.muscles] = x_block
-                    active[spec.muscles] = working
-                    iterations += used
-        residual = d0 - self._a @ x
-        squared = ((residual * residual).reshape(-1, 3) @ self._ones3) * visible
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rms = np.sqrt(self._region_onehot @ squared / pattern.counts)
-            mean = self._region_onehot @ np.sqrt(squared) / pattern.counts
-        if self._permuted:
-            x, active, unconstrained = x[self._inverse_perm], active[self._inverse_perm], \
-                unconstrained[self._inverse_perm]
-        result = SolveResult(x, unconstrained, rms, mean, pattern.held, pattern.held_regions,
-                             int(pattern.counts.sum()), iterations)
+        n_muscles = self.n_muscles
+        x, active, unconstrained = np.empty(n_muscles), np.empty(n_muscles, np.int8), np.empty(n_muscles)
+        errors = np.empty((2, 2))
+        x_previous = np.ascontiguousarray(state.contractions, dtype=np.float64)
+        active_previous = np.ascontiguousarray(state.active, dtype=np.int8)
+        frame = self._reference_frame if self._reference else _frame
+        iterations, upper_seen, lower_seen = frame(
+            observed, self.face_index, self.marker_region, self._a, self._marker_gram, self._full_gram, self._perm,
+            self._plans, self._plan_sizes, self._sweeps, self._upper_bound, x_previous, active_previous,
+            x, active, unconstrained, errors)
+        held, held_regions = self._held[(upper_seen == 0) + 2 * (lower_seen == 0)]
+        result = SolveResult(x, unconstrained, errors[0], errors[1], held, held_regions, upper_seen + lower_seen,
+                             iterations)
         return SolverState(x, active, state.frame + 1), result
 
-    def _reference_block(self, pattern: _Pattern, spec: _BlockSpec, d0: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """One region's QP by ``scipy.optimize.lsq_linear(method="bvls")`` on the block's visible rows."""
+    def _reference_frame(self, observed, face_index, marker_region, a, marker_gram, full_gram, perm, plans,
+                         plan_sizes, sweeps, upper, x_previous, active_previous, x_out, active_out, unconstrained_out,
+                         errors):
+        """:func:`_frame` with each block's QP solved by ``scipy.optimize.lsq_linear(method="bvls")``.
+
+        Same arguments and return value. The unconstrained solution is the active-set kernel's (as in
+        :func:`_frame`); the working set is carried over unchanged, one "iteration" per QP.
+        """
         from scipy.optimize import lsq_linear
 
-        in_rows = pattern.visible if spec.region < 0 else pattern.visible & (self.marker_region == spec.region)
-        rows = np.flatnonzero(np.repeat(in_rows, 3))
-        a_rows = self._a[rows]
-        target = d0[rows]
-        if spec.compensate:
-            target = target - a_rows[:, spec.others] @ x[spec.others]
-        return lsq_linear(a_rows[:, spec.muscles], target, bounds=(spec.lower, spec.upper), method="bvls").x
+        n_face, n_muscles = len(face_index), len(perm)
+        d, visible = np.empty((n_face, 3)), np.empty(n_face, bool)
+        grams, c, counts = np.empty((3, n_muscles, n_muscles)), np.empty((3, n_muscles)), np.empty(2, np.int64)
+        _prepare(observed, face_index, marker_region, a, marker_gram, full_gram, d, visible, grams, c, counts)
+        held_code = (counts[0] == 0) + 2 * (counts[1] == 0)
+        plan, n_blocks = plans[held_code], plan_sizes[held_code]
+        x, unconstrained = x_previous[perm], np.full(n_muscles, np.nan)
+        rows_of, targets = a.reshape(3 * n_face, n_muscles), d.ravel()
+        for sweep in range(sweeps):
+            for block in range(n_blocks):
+                marker_set, start, stop, other_start, other_stop = plan[block].tolist()
+                if sweep == sweeps - 1:
+                    gram, rhs, scale = _block_system(grams, full_gram, c, x, plan, block)
+                    unconstrained[start:stop] = _reference_unconstrained(gram, rhs, scale)
+                in_rows = visible if marker_set == ALL_MARKERS else visible & (marker_region == marker_set)
+                rows = np.flatnonzero(np.repeat(in_rows, 3))
+                a_rows = rows_of[rows]
+                target = targets[rows] - a_rows[:, other_start:other_stop] @ x[other_start:other_stop]
+                x[start:stop] = lsq_linear(a_rows[:, start:stop], target, bounds=(0.0, upper), method="bvls").x
+        _errors(d, visible, marker_region, a, x, counts, errors)
+        x_out[perm], unconstrained_out[perm] = x, unconstrained
+        active_out[:] = active_previous
+        return sweeps * n_blocks, int(counts[0]), int(counts[1])
 
     def solve_take(self, displacements: np.ndarray, state: SolverState | None = None,
                    progress: bool = False) -> TakeSolution:
