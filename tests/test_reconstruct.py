@@ -8,9 +8,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_correspond import shuffled_detections
+from test_triangulate import ring_cameras
 
 from livebridge.bench.reconstruct import evaluate, face_and_markers, rig_cameras, simulate
+from livebridge.reconstruct.correspond import Correspondence3D, greedy_disjoint
 from livebridge.reconstruct.pipeline import Reconstructor
+from livebridge.reconstruct.triangulate import Triangulator
 
 
 @pytest.fixture(scope="module")
@@ -102,3 +106,51 @@ def test_soak_10000_frames_no_swaps(setup):
     assert result["swaps"] == 0
     assert result["rmse_mm"] <= 0.2
     assert result["labelled_fraction_reconstructible"] >= 0.99
+
+
+def test_greedy_disjoint_equals_the_sequential_walk(rng):
+    def walk(group, order):
+        taken, accepted = [set() for _ in group], []
+        for k in order:
+            views = [(c, int(d)) for c, d in enumerate(group[:, k]) if d >= 0]
+            if not any(d in taken[c] for c, d in views):
+                for c, d in views:
+                    taken[c].add(d)
+                accepted.append(k)
+        return accepted
+
+    for _ in range(300):
+        n_cams, n_groups, n_detections = rng.integers(1, 5), rng.integers(0, 50), rng.integers(1, 15)
+        group = np.where(rng.random((n_cams, n_groups)) < 0.3, -1, rng.integers(0, n_detections, (n_cams, n_groups)))
+        order = rng.permutation(n_groups)
+        assert greedy_disjoint(group, order).tolist() == walk(group, order)
+
+
+def test_predictions_find_the_same_points(rng):
+    """Tracked markers found around their predictions: the same 3D points as the general rounds, no ghosts."""
+    cameras = ring_cameras()
+    correspond = Correspondence3D(Triangulator(cameras), tolerance_px=1.5)
+    grid = np.stack(np.meshgrid(np.arange(-60, 61, 15.0), np.arange(-75, 76, 15.0)), -1).reshape(-1, 2)
+    points = np.column_stack([grid + rng.normal(scale=2.0, size=grid.shape), 30 * np.cos(grid[:, 0] / 80)])
+    for _ in range(5):
+        detections, owners, seen = shuffled_detections(cameras, points, rng)
+        plain = correspond(detections)
+        predicted = points + rng.normal(scale=0.7, size=points.shape)  # a tracker's prediction error
+        guided = correspond(detections, predicted, prior_mm=3.0)
+        for result in (plain, guided):
+            for k in range(len(result.points_3d)):
+                who = {int(owners[c][d]) for c, d in enumerate(result.detections[:, k]) if d >= 0}
+                assert len(who) == 1  # never a mix of markers (or of a marker and a stray)
+        def by_marker(result, owners=owners):
+            out = {}
+            for k in range(len(result.points_3d)):
+                (who,) = {int(owners[c][d]) for c, d in enumerate(result.detections[:, k]) if d >= 0}
+                if who >= 0:
+                    out[who] = (result.points_3d[k], tuple(result.detections[:, k]))
+            return out
+        a, b = by_marker(plain), by_marker(guided)
+        assert len(b) >= len(a) - 1
+        for marker, (point, views) in b.items():
+            assert np.linalg.norm(point - points[marker]) < 1.0
+            if marker in a and a[marker][1] == views:  # same views: the same point
+                assert np.abs(a[marker][0] - point).max() < 1e-9
