@@ -8,7 +8,7 @@ from factories import random_basis
 from solver_factories import random_markers
 
 from livebridge.errors import InputError
-from livebridge.face.basis import Basis
+from livebridge.face.basis import Basis, Muscle
 from livebridge.face.markers import MarkerSet
 from livebridge.solve.solver import MODES, ContractionSolver, SolverConfig, solve_take
 
@@ -162,3 +162,54 @@ def test_bad_configuration_and_input():
         solver.step(solver.initial_state(), np.zeros((9, 3)))
     with pytest.raises(InputError, match="displacements"):
         solver.solve_take(np.zeros((5, 9, 3)))
+
+
+def test_unconstrained_is_each_blocks_least_squares(small):
+    """The validation signal: per region (split) or for all muscles (joint), lstsq over the visible rows."""
+    basis, markers = small
+    rng = np.random.default_rng(7)
+    frame = observed(markers, basis, np.full((1, basis.n_muscles), 0.6), rng, noise=0.5, missing=0.2)[0]
+    seen = markers.face_mask & ~np.isnan(frame).any(axis=1)
+    d_matrix = markers.displacement_matrix(basis)  # (n, M, 3)
+    regions = [(seen & markers.region_mask(r), basis.region_mask(r)) for r in ("upper", "lower")]
+    for mode, groups in (("joint", [(seen, np.ones(basis.n_muscles, bool))]), ("split", regions)):
+        solver = ContractionSolver(basis, markers, SolverConfig(mode=mode))
+        _, result = solver.step(solver.initial_state(), frame)
+        for rows, muscles in groups:
+            a_rows = np.transpose(d_matrix[rows][:, muscles], (0, 2, 1)).reshape(-1, muscles.sum())
+            expected = np.linalg.lstsq(a_rows, frame[rows].ravel(), rcond=None)[0]
+            assert np.allclose(result.unconstrained[muscles], expected, atol=1e-9), mode
+
+
+def test_rank_deficient_basis_reaches_the_bvls_fit():
+    """Two identical elements: x is not unique, the fit is; every mode must reach scipy's marker error."""
+    rng = np.random.default_rng(8)
+    basis = random_basis(rng, n_vertices=400, n_muscles=6)
+    elements = basis.elements.copy()
+    elements[4] = elements[2]  # both upper-face muscles in random_basis (even indices)
+    basis = Basis(basis.neutral, basis.triangles, elements, basis.muscles)
+    markers = random_markers(basis, 24, rng)
+    x = smooth_contractions(40, basis.n_muscles, rng) * 0.5
+    data = observed(markers, basis, x, rng, noise=0.2, missing=0.05)
+    for mode in MODES:
+        ours = ContractionSolver(basis, markers, SolverConfig(mode=mode)).solve_take(data)
+        reference = ContractionSolver(basis, markers, SolverConfig(mode=mode), backend="scipy-bvls").solve_take(data)
+        assert np.all(np.isfinite(ours.contractions)) and ours.contractions.min() >= 0 and ours.contractions.max() <= 1
+        assert np.allclose(ours.rms_error_mm, reference.rms_error_mm, atol=1e-5, equal_nan=True), mode
+        duplicate_sum = ours.contractions[:, 2] + ours.contractions[:, 4]
+        assert np.allclose(duplicate_sum, reference.contractions[:, 2] + reference.contractions[:, 4], atol=1e-4)
+
+
+def test_every_muscle_in_one_region(rng):
+    """A basis without lower-face muscles: joint uses every marker, split ignores the lower-face markers."""
+    basis = random_basis(rng, n_vertices=300, n_muscles=4)
+    basis = Basis(basis.neutral, basis.triangles, basis.elements,
+                  tuple(Muscle(m.name, "upper", None, "") for m in basis.muscles))
+    triangles = rng.choice(len(basis.triangles), size=16, replace=False)
+    markers = MarkerSet(tuple(f"m{i}" for i in range(16)), triangles, rng.dirichlet(np.ones(3), size=16),
+                        tuple("upper" if i % 2 else "lower" for i in range(16)), ("face",) * 16)
+    data = observed(markers, basis, smooth_contractions(20, 4, rng), rng, noise=0.1, missing=0.1)
+    for mode in MODES:
+        ours = ContractionSolver(basis, markers, SolverConfig(mode=mode)).solve_take(data)
+        reference = ContractionSolver(basis, markers, SolverConfig(mode=mode), backend="scipy-bvls").solve_take(data)
+        assert np.abs(ours.contractions - reference.contractions).max() <= 1e-6, mode
