@@ -26,6 +26,8 @@ a rank-3 downdate per missing marker (``M x M`` flops each), which is cheaper th
 pattern up would be, so no pattern cache is kept (``SolverConfig.cache_size`` is accepted and ignored);
 markers dropping out at random make most patterns new anyway. Why compiled: the QPs are tiny (<= 16
 variables), and with numpy and LAPACK wrappers the per-call overhead, not the arithmetic, was the cost.
+The kernels are compiled the first time a solver is constructed (seconds, once per installation: numba
+caches them on disk; a later process loads them in well under a second), never in the middle of a take.
 
 Rank-deficient blocks (a muscle that no visible marker moves): each block's Gram matrix is factored once
 per frame and sweep; when a Cholesky pivot ``L_ii^2`` falls below ``1e-9`` times the trace of the block's
