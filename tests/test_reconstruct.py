@@ -58,7 +58,7 @@ def test_step_api_matches_batch_and_frames_are_frozen(setup):
     assert frame.head2world.shape == (4, 4) and frame.displacements.shape == (len(markers), 3)
 
 
-@pytest.mark.parametrize("axis", [(0, 1, 0), (1, 0, 0), (0, 0, 1)])
+@pytest.mark.parametrize("axis", [(0, 1, 0), (1, 0, 0), (0, 0, 1), (1, -1, 0), (-1, 1, 1)])
 def test_first_labelling_with_head_turned_20_degrees(setup, axis):
     basis, markers, cameras = setup
     take = simulate(basis, markers, cameras, 60, seed=7, head_turn_deg=20.0, turn_axis=axis)
@@ -70,6 +70,43 @@ def test_first_labelling_with_head_turned_20_degrees(setup, axis):
     # the alignment undid the turn: neutral-frame displacements are ~0 and head2world carries the turn
     assert np.nanmax(np.abs(frames[0].displacements)) < 1e-9
     assert np.abs(frames[0].head2world - take.head2world[0]).max() < 0.5
+
+
+def _false_labels(points, labels, truth):
+    """Labelled points nearer another marker's truth than their own, or more than 2 mm from it."""
+    labelled = labels >= 0
+    distance = np.linalg.norm(points[labelled, None] - truth[None], axis=-1)
+    own = distance[np.arange(labelled.sum()), labels[labelled]]
+    return int(((distance.argmin(axis=1) != labels[labelled]) | (own > 2.0)).sum())
+
+
+@pytest.mark.parametrize("seed, axis, spurious", [(7, (0, 1, 0), 3.0), (7, (1, -1, 0), 3.0), (1, (1, 0, 0), 15.0),
+                                                  (5, (-1, 1, 1), 15.0), (2, (0, 0, 1), 15.0)])
+def test_first_labelling_guided_labels_two_view_markers_and_no_false_ones(setup, seed, axis, spurious):
+    """The model-guided second correspondence recovers markers seen by two cameras only, and no label is wrong."""
+    from livebridge.reconstruct.label import first_labelling, guided_first_labelling
+
+    basis, markers, cameras = setup
+    take = simulate(basis, markers, cameras, 1, seed=seed, head_turn_deg=20.0, turn_axis=axis, spurious=spurious)
+    reconstructor = Reconstructor(cameras, markers, basis)
+    points_2d, truth = take.frames_2d[0], take.points_3d[0]
+    reconstructible = int((np.isfinite(take.labelled_2d[0, ..., 0]).sum(axis=0) >= 2).sum())
+    blind_points = reconstructor.points_3d(points_2d).points_3d
+    blind = first_labelling(blind_points, reconstructor.model_points)
+    calls = []
+
+    def find_points(predicted):
+        calls.append(predicted)
+        return reconstructor.points_3d(points_2d, predicted).points_3d
+
+    points, labelling = guided_first_labelling(find_points, reconstructor.model_points)
+    assert len(calls) == 2 and calls[0] is None and calls[1].shape == (len(markers), 3)
+    assert _false_labels(points, labelling.labels, truth) == 0
+    assert labelling.n_matched >= reconstructible - 1  # at most one lost to a detection shared with a neighbour
+    assert labelling.n_matched >= blind.n_matched - _false_labels(blind_points, blind.labels, truth)
+    again_points, again = guided_first_labelling(find_points, reconstructor.model_points)  # deterministic
+    np.testing.assert_array_equal(again.labels, labelling.labels)
+    np.testing.assert_array_equal(again_points, points)
 
 
 def test_rendered_images_end_to_end(setup):

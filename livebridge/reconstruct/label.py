@@ -6,11 +6,22 @@ turned, moved and scaled relative to the model). Rotation hypotheses on a grid (
 distances after centring and scaling; the best few are refined by alternating Hungarian
 assignment (:func:`scipy.optimize.linear_sum_assignment`, gated) and an Umeyama similarity fit
 until the assignment stops changing. The best refined hypothesis wins.
+
+Without a prior, a marker seen by only two cameras is ambiguous: when two such markers lie near one
+epipolar plane their detections can pair crosswise into two ghost points, and the marker is never
+triangulated. :func:`guided_first_labelling` therefore runs the correspondence twice: once blind,
+then - after the similarity alignment from the confident assignments - again with the aligned
+model markers as predictions, so their own detections pair up. :func:`complete_labelling` then
+assigns the remaining points to the remaining markers by gated Hungarian assignment in the aligned
+frame, with a gate scaled to the residual of the fit and a uniqueness check (no other marker near
+the point, no other point near the marker): a wrong first label is worse than a missing one, as
+the tracker keeps labels.
 """
 
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -161,3 +172,137 @@ def _refine(capture, model_points, transform, gate_mm, max_iterations):
     rows, cols = gated_assignment(cost, gate_mm)
     rms = float(np.sqrt(np.mean(cost[rows, cols] ** 2))) if len(rows) else np.inf
     return transform, (rows, cols), len(rows), rms
+
+
+CHI2_3_MEDIAN = 2.365974  # median of the chi-squared distribution with 3 degrees of freedom
+
+
+def robust_rms(residual: np.ndarray) -> float:
+    """RMS of 3D residual lengths estimated from their median (isotropic Gaussian errors), robust to outliers.
+
+    ``residual (n,)`` distances; ``sqrt(3 median(r²) / χ²₃ median)``, NaN when empty.
+    """
+    residual = np.asarray(residual, dtype=np.float64)
+    if not len(residual):
+        return float("nan")
+    return float(np.sqrt(3.0 * np.median(residual**2) / CHI2_3_MEDIAN))
+
+
+def complete_labelling(points_3d: np.ndarray, model_points: np.ndarray, confident: Labelling,
+                       gate_mm: float = 6.0, residual_factor: float = 8.0, min_gate_mm: float = 0.5,
+                       ratio: float = 3.0, max_iterations: int = 5) -> Labelling:
+    """Labels for a (new) point set of the same frame, starting from a confident labelling's alignment.
+
+    In the aligned frame every marker takes a point only within the *residual gate*
+    ``g = clip(residual_factor * r, min_gate_mm, gate_mm)``, where ``r`` is the robust RMS
+    (:func:`robust_rms`) of the current assignment's residuals (at first: the confident labelling's
+    markers, each matched within ``gate_mm``), so an outlier (a ghost point near a marker seen by
+    one camera) neither widens the gate nor keeps its label. A pair ``(point, marker)`` at distance
+    ``d`` must also be unique: every other marker farther than ``max(g, ratio * d)`` from the point
+    and every other point farther than that from the marker. One gated Hungarian assignment
+    (:func:`gated_assignment`) picks the pairs; the similarity is refitted on them and the
+    assignment repeated until it stops changing.
+
+    Parameters
+    ----------
+    points_3d : ndarray, shape (n_points, 3)
+        Captured points of the frame (world, mm), strays included; NaN rows ignored.
+    model_points : ndarray, shape (n_markers, 3)
+    confident : Labelling
+        A labelling of the same frame (possibly of another point set of it): its ``capture2model``
+        and the set of markers it matched are used.
+    gate_mm : float
+        Largest gate (model mm).
+    residual_factor, min_gate_mm, ratio : float
+    max_iterations : int
+
+    Returns
+    -------
+    Labelling
+        Of ``points_3d``; ``rms_mm`` over its pairs.
+    """
+    points_3d = np.asarray(points_3d, dtype=np.float64)
+    model_points = np.asarray(model_points, dtype=np.float64)
+    labels = np.full(len(points_3d), -1, dtype=np.int64)
+    finite = np.flatnonzero(np.isfinite(points_3d).all(axis=1))
+    transform = confident.capture2model
+    if len(finite) < 3 or not np.isfinite(transform).all():
+        return Labelling(labels, transform, np.inf, 0)
+    capture = points_3d[finite]
+    known = np.zeros(len(model_points), dtype=bool)
+    known[confident.labels[confident.labels >= 0]] = True
+    cost = np.linalg.norm(apply(transform, capture)[:, None] - model_points[None], axis=-1)  # (p, m)
+    rows, cols = gated_assignment(np.where(known[None], cost, np.inf), gate_mm)
+    previous = None
+    for _ in range(max_iterations):
+        if len(rows) < 3:
+            break
+        gate = float(np.clip(residual_factor * robust_rms(cost[rows, cols]), min_gate_mm, gate_mm))
+        # uniqueness: within max(gate, ratio * d) of a pair, neither another marker nor another point
+        d = np.where(cost <= gate, cost, np.inf)
+        radius = np.maximum(gate, ratio * d)
+        sorted_rows = np.sort(cost, axis=1)
+        sorted_cols = np.sort(cost, axis=0)
+        second_marker = np.where(cost <= sorted_rows[:, :1], sorted_rows[:, 1:2] if cost.shape[1] > 1 else np.inf,
+                                 sorted_rows[:, :1])  # nearest other marker to each point, per pair
+        second_point = np.where(cost <= sorted_cols[:1], sorted_cols[1:2] if cost.shape[0] > 1 else np.inf,
+                                sorted_cols[:1])  # nearest other point to each marker, per pair
+        allowed = np.isfinite(d) & (second_marker > radius) & (second_point > radius)
+        rows_new, cols_new = gated_assignment(np.where(allowed, cost, np.inf), np.finfo(np.float64).max)
+        key = (tuple(rows_new), tuple(cols_new))
+        rows, cols = rows_new, cols_new
+        if key == previous or len(rows) < 3:
+            break
+        previous = key
+        refit = umeyama(capture[rows], model_points[cols], with_scale=True)
+        if not np.isfinite(refit).all():
+            break
+        transform = refit
+        cost = np.linalg.norm(apply(transform, capture)[:, None] - model_points[None], axis=-1)
+    if len(rows) < 3:
+        return Labelling(labels, transform, np.inf, 0)
+    labels[finite[rows]] = cols
+    residual = np.linalg.norm(apply(transform, capture[rows]) - model_points[cols], axis=-1)
+    return Labelling(labels, transform, float(np.sqrt(np.mean(residual**2))), len(rows))
+
+
+def guided_first_labelling(find_points: Callable[[np.ndarray | None], np.ndarray], model_points: np.ndarray,
+                           gate_mm: float = 6.0, max_angle_deg: float = 30.0, step_deg: float = 7.5,
+                           residual_factor: float = 8.0, min_gate_mm: float = 0.5,
+                           ratio: float = 3.0) -> tuple[np.ndarray, Labelling]:
+    """First labelling of a neutral frame set, with a model-guided second correspondence.
+
+    ``find_points(None)`` gives the blind correspondence's points, labelled by
+    :func:`first_labelling`; ``find_points(predicted)``, with the model markers carried into the
+    capture frame by that alignment (``predicted (n_markers, 3)``, world mm), gives the guided
+    points, which :func:`complete_labelling` labels. The blind labelling is returned instead only
+    when the guided one matches fewer than 3 markers or fewer than half as many.
+
+    Parameters
+    ----------
+    find_points : callable
+        ``find_points(predicted (n_markers, 3) or None) -> points_3d (n_points, 3)`` (world mm):
+        correspondence + triangulation of the frame set, with tracker-style predictions.
+    model_points : ndarray, shape (n_markers, 3)
+    gate_mm, max_angle_deg, step_deg : float
+        As in :func:`first_labelling`.
+    residual_factor, min_gate_mm, ratio : float
+        As in :func:`complete_labelling`.
+
+    Returns
+    -------
+    (points_3d (n_points, 3), Labelling)
+        The points the labels index and their labelling.
+    """
+    model_points = np.asarray(model_points, dtype=np.float64)
+    points = np.asarray(find_points(None), dtype=np.float64).reshape(-1, 3)
+    first = first_labelling(points, model_points, gate_mm=gate_mm, max_angle_deg=max_angle_deg, step_deg=step_deg)
+    if first.n_matched < 3 or not np.isfinite(first.capture2model).all():
+        return points, first
+    predicted = apply(np.linalg.inv(first.capture2model), model_points)
+    guided = np.asarray(find_points(predicted), dtype=np.float64).reshape(-1, 3)
+    labelling = complete_labelling(guided, model_points, first, gate_mm=gate_mm, residual_factor=residual_factor,
+                                   min_gate_mm=min_gate_mm, ratio=ratio)
+    if labelling.n_matched < max(3, (first.n_matched + 1) // 2):
+        return points, first
+    return guided, labelling
