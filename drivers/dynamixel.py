@@ -53,6 +53,27 @@ def latency_timer_hint(port: str) -> str | None:
             f"Set it to 1 ms: echo 1 | sudo tee {timer}")
 
 
+def sdk_port(port: str, timeout_margin_ms: float = 34.0):
+    """A ``dynamixel_sdk.PortHandler`` for ``port`` (not opened) whose reply timeout margin is configurable.
+
+    The SDK waits the bytes' wire time + 2 x its 16 ms latency constant + 2 ms (34 ms) for a reply. A
+    simulated bus is served by a thread of this machine: when the machine is loaded, that thread can be
+    descheduled for longer than 34 ms, and a reply that comes after the client stopped waiting is then read
+    as the reply to the *next* request. The margin (ms, beyond the wire time) is the instance's
+    ``timeout_margin_ms`` attribute and may be changed at any time.
+    """
+    from dynamixel_sdk import PortHandler
+
+    class Port(PortHandler):
+        def setPacketTimeout(self, packet_length):
+            self.packet_start_time = self.getCurrentTime()
+            self.packet_timeout = self.tx_time_per_byte * packet_length + self.timeout_margin_ms
+
+    handler = Port(port)
+    handler.timeout_margin_ms = float(timeout_margin_ms)
+    return handler
+
+
 class DynamixelBus(SerialServoBus):
     """A Protocol 2.0 bus of X-series servos (see the module docstring).
 
@@ -83,23 +104,15 @@ class DynamixelBus(SerialServoBus):
                  status_every: int = 10, fast_read: bool | None = None, bus_watchdog_s: float | None = None,
                  return_delay_us: int | None = None, missing_after: int = 5, clock=time.monotonic,
                  log=None, retries: int = 3, timeout_margin_ms: float = 34.0):
-        from dynamixel_sdk import PacketHandler, PortHandler
+        from dynamixel_sdk import PacketHandler
 
-        class Port(PortHandler):
-            # The SDK waits tx time + 2 x its 16 ms latency constant + 2 ms for a reply; a configurable margin
-            # lets a simulated bus on a loaded machine (or a slow adapter) get more time.
-            def setPacketTimeout(self, packet_length):
-                self.packet_start_time = self.getCurrentTime()
-                self.packet_timeout = self.tx_time_per_byte * packet_length + margin_ms
-
-        margin_ms = float(timeout_margin_ms)
         super().__init__(url or f"dynamixel://{port}?baud={baud}", simulator, status_every, clock, log)
         self.fast_read = fast_read
         self.bus_watchdog_s = bus_watchdog_s
         self.return_delay_us = return_delay_us
         self.missing_after = missing_after
         self.retries = retries
-        self.port = Port(port)
+        self.port = sdk_port(port, timeout_margin_ms)
         try:
             opened = self.port.openPort()
         except Exception as error:  # pyserial raises SerialException (an OSError subclass) or ValueError
@@ -180,7 +193,8 @@ class DynamixelBus(SerialServoBus):
             if result != 0:
                 continue  # corrupt reply: skip it, keep collecting the others
             servo_id = rx[4]
-            if servo_id in ids and len(rx) >= 11 + length:
+            # exactly this read's length: a late reply to an earlier read of another length is not data
+            if servo_id in ids and len(rx) == 11 + length:
                 got[servo_id] = (bytes(rx[9:9 + length]), rx[8])
             if len(got) == len(ids):
                 break

@@ -45,6 +45,7 @@ class PtyBus:
         self.bytes_in = 0
         self.bytes_out = 0
         self.error: BaseException | None = None
+        self.served = threading.Condition()  # notified after each chunk's replies are written and each tick
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._serve, name=f"pty-bus {self.path}", daemon=True)
         self._thread.start()
@@ -70,8 +71,29 @@ class PtyBus:
                 if self.tick is not None and now - last_tick >= self.tick_period:
                     last_tick = now
                     self.tick()
+                with self.served:
+                    self.served.notify_all()
         except BaseException as error:  # surfaced through .error and close()
             self.error = error
+        finally:
+            with self.served:
+                self.served.notify_all()
+
+    def wait_until(self, predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
+        """Wait until ``predicate()`` is true, re-checked each time the serving thread handled bytes or ticked.
+
+        Returns the last value of ``predicate()`` (False: ``timeout`` seconds passed, or serving stopped).
+        For tests: wait for what the device did (counters, state) instead of sleeping a fixed time, which
+        a loaded machine can outlast.
+        """
+        deadline = time.monotonic() + timeout
+        with self.served:
+            while not predicate():
+                left = deadline - time.monotonic()
+                if left <= 0 or not self._thread.is_alive():
+                    return bool(predicate())
+                self.served.wait(min(left, 0.05))
+        return True
 
     def _write(self, data: bytes) -> None:
         view = memoryview(data)
@@ -149,6 +171,12 @@ class PtyDevice:
 
     def __exit__(self, *exc):
         self.close()
+
+    def wait_until(self, predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
+        """:meth:`PtyBus.wait_until` on the running simulator (the device state after the bytes sent so far)."""
+        if self.pty is None:
+            raise RuntimeError("simulator not started")
+        return self.pty.wait_until(predicate, timeout)
 
     def inject_fault(self, data: bytes) -> bytes | None:
         """``data`` dropped (None) with probability ``drop_rate``, else one bit flipped with ``corrupt_rate``.

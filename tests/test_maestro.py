@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import pytest
 import serial
 
@@ -25,10 +23,20 @@ def test_golden_bytes():
         mp.set_target(0, 1 << 14)
 
 
+class _Clock:
+    """A simulator clock the test advances by hand: motion does not depend on the machine's load."""
+
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
 @pytest.fixture
 def maestro():
-    sim = MaestroSim(channels=6, device=12)
-    port = serial.Serial(sim.start(), timeout=0.2)
+    sim = MaestroSim(channels=6, device=12, clock=_Clock())
+    port = serial.Serial(sim.start(), timeout=2.0)  # replies come at once, unless the machine is loaded
     yield sim, port
     port.close()
     sim.close()
@@ -49,30 +57,32 @@ def test_simulator_both_protocols(maestro):
 def test_speed_limit_moves_gradually(maestro):
     sim, port = maestro
     port.write(mp.set_target(3, 4000))
-    time.sleep(0.05)
+    assert sim.wait_until(lambda: sim.position[3] == 4000)  # no pulses before: the first target is immediate
     port.write(mp.set_speed(3, 20) + mp.set_target(3, 8000))  # 20 * 0.25 µs / 10 ms = 500 µs/s
-    time.sleep(0.2)
+    assert sim.wait_until(lambda: sim.target[3] == 8000)
+    sim.clock.now += 0.2
     port.write(mp.get_position(3))
     middle = mp.decode_u16(port.read(2)) / 4
-    assert 1050 < middle < 1200
+    assert middle == 1000 + 500 * 0.2
     port.write(mp.get_moving_state())
     assert port.read(1) == b"\x01"
 
 
 def test_driver_on_simulator():
-    bus = open_bus("simmaestro://?channels=8&device=12")
+    bus = open_bus("simmaestro://?channels=8&device=12", timeout=0.15)  # scan waits this long for each of 16
     try:
         sim = bus.simulator
         assert [i.address for i in bus.scan()] == list(range(8))
+        bus.serial.timeout = 2.0  # from now on every query is answered: wait generously (a loaded machine)
         bus.configure([ServoSetup(c, 1000, 2000, 1500, name=f"c{c}") for c in (0, 1, 2, 5)], 0.02)
         assert all(v != v for v in bus.activate().values())  # no pulses yet: position unknown (NaN)
+        logged = len(sim.target_log)
         bus.write({0: 1200.0, 1: 900.0, 2: float("inf"), 5: 2500.0})
-        time.sleep(0.05)
+        assert sim.wait_until(lambda: len(sim.target_log) >= logged + 3)  # no reply to targets: wait for them
         assert sim.target[0] == 4800 and sim.target[1] == 4000 and sim.target[2] == 0 and sim.target[5] == 8000
         status = bus.poll()
         assert status[0].position == 1200
         bus.estop()
-        time.sleep(0.05)
-        assert sim.target[:6] == [0] * 6
+        assert sim.wait_until(lambda: sim.target[:6] == [0] * 6)
     finally:
         bus.close()

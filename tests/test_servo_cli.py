@@ -20,7 +20,9 @@ def test_sim_dynamixel_prints_pty_first_and_serves_the_vendor_sdk():
     try:
         path = process.stdout.readline().strip()
         assert path.startswith("/dev/")
-        port = sdk.PortHandler(path)
+        from livebridge.drivers.dynamixel import sdk_port
+
+        port = sdk_port(path, 2000.0)  # the simulator process may be slow to answer on a loaded machine
         assert port.openPort() and port.setBaudRate(1_000_000)
         ph = sdk.PacketHandler(2.0)
         assert ph.ping(port, 16) == (1200, 0, 0)

@@ -137,12 +137,11 @@ def test_servo_output_estop_and_bus_kinds():
             for k in range(10):
                 out.send(np.full(16, 0.5), t=k * 0.02)
             out.estop()
-            time.sleep(0.05)
             sim = out.buses["head"].simulator
             if url.startswith("simmaestro"):
-                assert sim.target[:16] == [0] * 16  # pulses stopped
+                assert sim.wait_until(lambda s=sim: s.target[:16] == [0] * 16)  # pulses stopped
             else:
-                assert sim.goal[:16] == [0.0] * 16
+                assert sim.wait_until(lambda s=sim: s.goal[:16] == [0.0] * 16)
             assert out.send(np.full(16, 1.0)) is not None and out.state.estopped
         finally:
             out.close()
