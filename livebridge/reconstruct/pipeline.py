@@ -25,7 +25,7 @@ from livebridge.face.markers import MarkerSet
 from livebridge.reconstruct.align import Alignment, align_to_model
 from livebridge.reconstruct.correspond import Correspondence, Correspondence3D
 from livebridge.reconstruct.detect import DetectConfig, detect_markers
-from livebridge.reconstruct.label import first_labelling
+from livebridge.reconstruct.label import guided_first_labelling
 from livebridge.reconstruct.stabilize import apply, transform_scale
 from livebridge.reconstruct.track import TrackConfig, Tracker, TrackState
 from livebridge.reconstruct.triangulate import Triangulator
@@ -188,7 +188,7 @@ class Reconstructor:
         (ReconstructorState, LabelledFrame)
         """
         if state.track is None:
-            return self._first(state, self.points_3d(points_2d).points_3d, t)
+            return self._first(state, points_2d, t)
         _, predicted = state.tracker.predict(state.track, t)
         points = self.points_3d(points_2d, predicted).points_3d
         track, out = state.tracker.step(state.track, points, t)
@@ -197,10 +197,12 @@ class Reconstructor:
                               out.head2world, out.n_stray, float(seen.mean()))
         return ReconstructorState(track, state.tracker, state.alignment, state.neutral, state.frames + 1), frame
 
-    def _first(self, state: ReconstructorState, points: np.ndarray, t: float):
+    def _first(self, state: ReconstructorState, points_2d: Sequence[np.ndarray], t: float):
         config = self.config
-        labelling = first_labelling(points, self.model_points, gate_mm=config.label_gate_mm,
-                                    max_angle_deg=config.max_head_turn_deg)
+        # blind correspondence, then again guided by the model markers the first alignment places
+        points, labelling = guided_first_labelling(lambda predicted: self.points_3d(points_2d, predicted).points_3d,
+                                                   self.model_points, gate_mm=config.label_gate_mm,
+                                                   max_angle_deg=config.max_head_turn_deg)
         n = self.n_markers
         enough = labelling.n_matched >= max(4, n // 2) and (labelling.labels[labelling.labels >= 0] >= 0).any()
         head_seen = np.isin(np.flatnonzero(self.markers.head_mask), labelling.labels).sum()
