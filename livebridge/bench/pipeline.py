@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import queue
 import threading
 import time
 
@@ -24,38 +25,228 @@ def _client(url: str, stop: threading.Event, counts: list) -> None:
                 return
 
 
-def run(quick: bool, log) -> dict:
-    """Frame sets per second, latency (frame set complete -> servo bytes written), contraction RMSE, CPU.
+# ------------------------------------------------------------------------------- the rig in its own process
 
-    The rig renders 4 cameras at 1280x800 in this process as fast as it can (not paced); frame sets go
-    through detection, correspondence, labelling, the solve, to 16 Dynamixel servos simulated on a
-    pseudo-terminal (real driver) and to one connected WebSocket render client. The simulator's own
-    rendering cost is measured separately on the same frames (``simulator_ms_per_frameset``): on a real
-    rig that work happens in the cameras, here it shares the CPU with the pipeline.
+def _render_frames(shm_name: str, options: dict, slots: int, free, ready, stop) -> None:
+    """Child process: render frame sets of the simulated rig into shared-memory slots, in order, until ``stop``."""
+    import time as _time
+    from multiprocessing import shared_memory
+
+    import numpy as np
+
+    from livebridge.simulators.performer import Performer
+    from livebridge.simulators.rig import RigConfig, SimRig, default_face
+
+    basis, markers = default_face()
+    performer = Performer(basis, markers, fps=options["fps"], seed=options["seed"], script=options["script"],
+                          realtime=False)
+    rig = SimRig(basis, markers, n_cameras=options["cameras"],
+                 config=RigConfig(size=tuple(options["size"]), fps=options["fps"], noise_sigma=options["noise"]),
+                 seed=options["seed"], performer=performer)
+    rig.start()
+    width, height = options["size"]
+    shm = shared_memory.SharedMemory(name=shm_name)
+    try:
+        images = np.ndarray((slots, rig.n_cameras, height, width), dtype=np.uint8, buffer=shm.buf)
+        ready.put(("cameras", np.stack([c.projection for c in rig.cameras.cameras])))
+        seq, cpu = 0, 0.0
+        while not stop.is_set():
+            if not free.acquire(timeout=0.1):
+                continue
+            start = _time.process_time()
+            frames, _ = rig.render(seq)
+            slot = seq % slots
+            meta = []
+            for c, frame in enumerate(frames):
+                if frame is None:
+                    meta.append(None)
+                    continue
+                images[slot, c] = frame.image
+                meta.append((frame.t_capture, frame.seq, frame.source_id, frame.exposure_us, frame.gain,
+                             frame.sync_domain))
+            cpu += _time.process_time() - start
+            ready.put(("frameset", seq, slot, meta, cpu))
+            seq += 1
+    finally:
+        del images
+        shm.close()
+
+
+class ProcessRig:
+    """The simulated rig of :func:`livebridge.runtime.demo.build_demo`, rendering in a child process.
+
+    Real cameras form their images outside the host's Python interpreter; the simulator stands in for
+    them, so here it runs in its own process (same seed, so the same rig and performer as the demo's)
+    and hands frames over through shared memory, a few frame sets ahead at most: the rig waits for the
+    pipeline (not paced, no frame lost). It still shares the machine's CPU with the pipeline; its CPU
+    time is reported (``simulator_cpu_s``). :meth:`sources` are ordinary camera sources.
     """
-    from livebridge.runtime.demo import build_demo
-    from livebridge.runtime.pipeline import run_until_stopped
 
-    n = 150 if quick else 600
+    def __init__(self, cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 800), noise: float = 2.0,
+                 script: str = "mixed", slots: int = 3):
+        import multiprocessing
+        from multiprocessing import shared_memory
+
+        import numpy as np
+
+        self.options = {"cameras": cameras, "seed": seed, "fps": fps, "size": tuple(size), "noise": noise,
+                        "script": script}
+        self.n_cameras, self.slots = cameras, slots
+        width, height = size
+        context = multiprocessing.get_context("spawn")
+        self._shm = shared_memory.SharedMemory(create=True, size=slots * cameras * height * width)
+        self._images = np.ndarray((slots, cameras, height, width), dtype=np.uint8, buffer=self._shm.buf)
+        self._free, self._ready, self._stop = context.Semaphore(slots), context.Queue(), context.Event()
+        self._process = context.Process(target=_render_frames, name="livebridge sim rig", daemon=True,
+                                        args=(self._shm.name, self.options, slots, self._free, self._ready,
+                                              self._stop))
+        self._queues = [queue.Queue() for _ in range(cameras)]
+        self._pending: dict[int, int] = {}  # slot -> cameras still to copy it
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self.projections = None
+        self.simulator_cpu_s = 0.0
+        self.framesets = 0
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._process.start()
+        kind, self.projections = self._ready.get(timeout=120)
+        self._thread = threading.Thread(target=self._dispatch, name="sim rig frames", daemon=True)
+        self._thread.start()
+
+    def _dispatch(self) -> None:
+        while not self._stop.is_set():
+            try:
+                message = self._ready.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            _, seq, slot, meta, cpu = message
+            self.simulator_cpu_s, self.framesets = cpu, seq + 1
+            with self._lock:
+                self._pending[slot] = sum(m is not None for m in meta)
+            if not self._pending[slot]:
+                self._free.release()
+            for c, m in enumerate(meta):
+                if m is not None:
+                    self._queues[c].put((slot, m))
+
+    def take(self, camera: int, timeout: float | None):
+        """The next frame of ``camera`` (a copy out of shared memory), or None on timeout."""
+        from livebridge.capture.frame import Frame
+
+        try:
+            slot, (t_capture, seq, source_id, exposure_us, gain, domain) = self._queues[camera].get(timeout=timeout)
+        except queue.Empty:
+            return None
+        image = self._images[slot, camera].copy()
+        image.setflags(write=False)
+        with self._lock:
+            self._pending[slot] -= 1
+            done = self._pending[slot] == 0
+        if done:
+            self._free.release()
+        return Frame(image, t_capture, seq, source_id, exposure_us, gain, domain)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2)
+        self._process.join(timeout=5)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(timeout=5)
+        del self._images
+        self._shm.close()
+        self._shm.unlink()
+
+    def sources(self, names) -> list:
+        return [_ProcessRigSource(self, k, name) for k, name in enumerate(names)]
+
+
+class _ProcessRigSource:
+    """One camera of a :class:`ProcessRig` (the camera-source interface)."""
+
+    def __init__(self, rig: ProcessRig, camera: int, source_id: str):
+        self.rig, self.camera, self.source_id = rig, camera, source_id
+        self.ended, self.error = False, None
+
+    def start(self) -> None:
+        self.rig.start()
+
+    def stop(self) -> None:
+        self.ended = True
+
+    def read(self, timeout: float | None = None):
+        if self.ended:
+            return None
+        return self.rig.take(self.camera, timeout)
+
+
+def run_once(frames: int, rig_process: bool, log) -> dict:
+    """One run of the demo pipeline (unpaced 4-camera sim rig, servos, one render client); figures and score."""
+    import numpy as np
+
+    from livebridge.runtime.demo import build_demo
+    from livebridge.runtime.pipeline import Pipeline, run_until_stopped
+
     parts = build_demo(realtime=False, port=0, log=lambda message: None)
+    pipeline, process = parts.pipeline, None
+    if rig_process:
+        rig = parts.rig
+        process = ProcessRig(cameras=rig.n_cameras, seed=1, fps=rig.config.fps, size=rig.config.size,
+                             noise=rig.config.noise_sigma)
+        pipeline = Pipeline(process.sources(rig.names), rig.cameras, rig.basis, rig.markers, rig.period,
+                            servo=pipeline.servo, render=pipeline.render, realtime=False,
+                            log=lambda message: None, on_frame=parts.score)
     stop, counts = threading.Event(), [0]
 
     def started(pipeline):
+        if process is not None:  # the child rig must be the demo's rig
+            expected = np.stack([c.projection for c in parts.rig.cameras.cameras])
+            if not np.allclose(process.projections, expected, rtol=1e-9, atol=1e-9):
+                raise RuntimeError("the rig process built other cameras than the demo's rig")
         url = f"ws://127.0.0.1:{pipeline.render.port}/ws"
         threading.Thread(target=_client, args=(url, stop, counts), daemon=True).start()
 
-    log(f"running {n} frame sets through the pipeline ...")
+    cpu_start, wall_start = time.process_time(), time.monotonic()
     try:
-        summary = run_until_stopped(parts.pipeline, frames=n, log=lambda message: None, on_start=started)
+        summary = run_until_stopped(pipeline, frames=frames, log=lambda message: None, on_start=started)
     finally:
         stop.set()
-    rig = parts.rig
-    sample = 20 if quick else 60
-    start = time.perf_counter()
-    for _ in rig.framesets(sample, start=10_000):
-        pass
-    simulator_ms = 1e3 * (time.perf_counter() - start) / sample
-    score = parts.score
+        if process is not None:
+            process.stop()
+    summary["process_cpu_s"] = time.process_time() - cpu_start
+    summary["run_wall_s"] = time.monotonic() - wall_start
+    if process is not None:
+        summary["simulator_ms_per_frameset"] = 1e3 * process.simulator_cpu_s / max(process.framesets, 1)
+    summary["render_messages_received"] = counts[0]
+    summary["rmse"], summary["label_swaps"] = parts.score.rmse, parts.score.swaps
+    return summary
+
+
+def run(quick: bool, log) -> dict:
+    """Frame sets per second, latency (frame set complete -> servo bytes written), contraction RMSE, CPU.
+
+    The simulated rig films 4 cameras at 1280x800 as fast as it can (not paced); frame sets go through
+    detection, correspondence, labelling, the solve, to 16 Dynamixel servos simulated on a
+    pseudo-terminal (real driver) and to one connected WebSocket render client.
+
+    The headline figures run the rig in its own process (:class:`ProcessRig`): on a real rig the images
+    are formed by the cameras, not by the host's Python interpreter. The rig still shares this
+    machine's CPU with the pipeline; its CPU per frame set is ``simulator_ms_per_frameset``. The
+    ``in_process`` figures run the same pipeline with the rig rendering on the camera reader threads of
+    this process (the simulator then also competes for the interpreter lock).
+
+    Latency is from the moment the last frame of a set reached the host (its camera reader returned
+    it, before detection) to the servo bytes written for that set.
+    """
+    n = 150 if quick else 600
+    log(f"running {n} frame sets through the pipeline, rig in its own process ...")
+    summary = run_once(n, True, log)
+    log(f"running {n} frame sets through the pipeline, rig in this process ...")
+    inline = run_once(n, False, log)
     quarter = FRAME_PERIOD_30FPS_MS / 4
     result = {
         "framesets_per_s": round(summary["fps"], 2),
@@ -63,23 +254,31 @@ def run(quick: bool, log) -> dict:
         "latency_p99_ms": round(summary["latency_p99_ms"], 3),
         "render_latency_p50_ms": round(summary["render_latency_p50_ms"], 3),
         "render_latency_p99_ms": round(summary["render_latency_p99_ms"], 3),
-        "rmse": round(score.rmse, 5),
-        "label_swaps": score.swaps,
+        "rmse": round(summary["rmse"], 5),
+        "label_swaps": summary["label_swaps"],
         "labelled_fraction": round(summary["labelled_fraction"], 4),
         "cpu_per_frameset_ms": round(summary["cpu_per_frameset_ms"], 2),
         "pipeline_cpu_per_frameset_ms": round(summary["pipeline_cpu_per_frameset_ms"], 2),
         "detect_cpu_per_frameset_ms": round(summary["detect_cpu_per_frameset_ms"], 2),
         "reconstruct_solve_cpu_per_frameset_ms": round(summary["reconstruct_solve_cpu_per_frameset_ms"], 2),
         "outputs_cpu_per_frameset_ms": round(summary["outputs_cpu_per_frameset_ms"], 2),
-        "simulator_ms_per_frameset": round(simulator_ms, 2),
+        "simulator_ms_per_frameset": round(summary["simulator_ms_per_frameset"], 2),
         "framesets": summary["solved"],
         "dropped_framesets": summary["drops"],
-        "render_messages_received": counts[0],
+        "render_messages_received": summary["render_messages_received"],
+        "in_process": {
+            "framesets_per_s": round(inline["fps"], 2),
+            "latency_p50_ms": round(inline["latency_p50_ms"], 3),
+            "latency_p99_ms": round(inline["latency_p99_ms"], 3),
+            "cpu_per_frameset_ms": round(inline["cpu_per_frameset_ms"], 2),
+            "rmse": round(inline["rmse"], 5),
+            "label_swaps": inline["label_swaps"],
+        },
         "cpu_count": os.cpu_count(),
         "load_average_1min": round(os.getloadavg()[0], 2),
         "required": {"framesets_per_s": ">= 60", "latency_p99_ms": f"<= {quarter:.2f} (a quarter of 1/30 s)",
                      "rmse": "<= 0.03"},
     }
     result["pass"] = bool(result["framesets_per_s"] >= 60 and result["latency_p99_ms"] <= quarter
-                          and result["rmse"] <= 0.03 and score.swaps == 0)
+                          and result["rmse"] <= 0.03 and summary["label_swaps"] == 0)
     return result
