@@ -9,12 +9,13 @@ Stages and threads::
         ▼
     "reconstruct" thread                         correspondence + triangulation + labelling/tracking
         │                                        (livebridge.reconstruct), then the contraction solve
-        │                                        (livebridge.solve.solver)
+        │                                        (livebridge.solve.solver), then the servos right
+        │                                        after the solve (ServoOutput:
+        │                                        safety stage + one write per bus), on this thread
     bounded queue, keeps the newest (1)
         ▼
-    "outputs" thread                             servos first (ServoOutput: safety stage + one
-                                                 write per bus), then the render client (publish
-                                                 never blocks), VMC datagrams, the recorder
+    "outputs" thread                             the render client (publish never blocks), VMC
+                                                 datagrams, the recorder, statistics
 
 Every frame set carries a :class:`FrameTiming` (monotonic seconds per stage). "Complete" is the
 moment the last frame of the set reached the host; latencies are measured from there to the servo
@@ -272,21 +273,7 @@ def _synced_capture(sources, period_s: float, realtime: bool, **options):
     """The synchroniser on reader threads; unpaced sources get no wall-clock ticker (their time is frame time)."""
     from livebridge.capture.sync import SyncedCapture
 
-    if realtime:
-        return SyncedCapture(sources, period_s, queue_size=1, **options)
-
-    class _Unpaced(SyncedCapture):
-        """Frame time, not host time, drives an unpaced synchroniser: no ticker, and polls keep frame time."""
-
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
-            poll = self.sync.poll
-            self.sync.poll = lambda now: poll(-math.inf)  # time advances with the frames only
-
-        def _ticker(self) -> None:
-            return
-
-    return _Unpaced(sources, period_s, queue_size=1, **options)
+    return SyncedCapture(sources, period_s, queue_size=1, realtime=realtime, **options)
 
 
 def _percentile(values, q) -> float:
@@ -500,11 +487,17 @@ class Pipeline:
                 continue  # not labelled yet (the first frames must show the neutral face)
             self._solver_state, result = self._solver.step(self._solver_state, labelled.displacements)
             solved = time.monotonic()
-            timing = FrameTiming(frameset.t, complete, detected, dequeued, reconstructed, solved)
-            self._queue.put(SolvedFrame(
+            t_servo, servo_targets = math.nan, None
+            if self.servo is not None:  # the servos first, on this thread: no queue hop before the bytes go out
+                self.servo.send(result.contractions, complete)
+                t_servo = time.monotonic()
+                low, span = self._servo_scale
+                servo_targets = (np.asarray(self.servo.last_targets, dtype=np.float64) - low) / span
+            timing = FrameTiming(frameset.t, complete, detected, dequeued, reconstructed, solved, t_servo)
+            self._queue.put((SolvedFrame(
                 seq, frameset.index, timing, result.contractions, labelled.positions, labelled.positions_world,
                 labelled.displacements, (float(result.rms_error_mm[0]), float(result.rms_error_mm[1])),
-                labelled.labelled_fraction, labelled.n_stray, present))
+                labelled.labelled_fraction, labelled.n_stray, present), servo_targets))
             cpu += time.thread_time() - t0
             self.stats.cpu_reconstruct_s = cpu
         self._ended.set()
@@ -514,21 +507,16 @@ class Pipeline:
         cpu = 0.0
         stats = self.stats
         while True:
-            frame = self._queue.get(timeout=0.1)
-            if frame is None:
+            item = self._queue.get(timeout=0.1)
+            if item is None:
                 if self._ended.is_set():
                     break
                 self._maybe_status()
                 continue
             t0 = time.thread_time()
+            frame, servo_targets = item
             timing = frame.timing
-            servo_targets = None
-            t_servo = math.nan
-            if self.servo is not None:
-                self.servo.send(frame.contractions, timing.complete)
-                t_servo = time.monotonic()
-                low, span = self._servo_scale
-                servo_targets = (np.asarray(self.servo.last_targets, dtype=np.float64) - low) / span
+            t_servo = timing.servo
             if self.render is not None:
                 from livebridge.output.render_server import RenderFrame
 
