@@ -192,14 +192,17 @@ def run_once(frames: int, rig_process: bool, log) -> dict:
     from livebridge.runtime.pipeline import Pipeline, run_until_stopped
 
     parts = build_demo(realtime=False, port=0, log=lambda message: None)
-    pipeline, process = parts.pipeline, None
+    rig, process = parts.rig, None
     if rig_process:
-        rig = parts.rig
         process = ProcessRig(cameras=rig.n_cameras, seed=1, fps=rig.config.fps, size=rig.config.size,
                              noise=rig.config.noise_sigma)
-        pipeline = Pipeline(process.sources(rig.names), rig.cameras, rig.basis, rig.markers, rig.period,
-                            servo=pipeline.servo, render=pipeline.render, realtime=False,
-                            log=lambda message: None, on_frame=parts.score)
+        sources = process.sources(rig.names)
+    else:
+        sources = rig.sources(realtime=False)
+    solved = []  # scored against the ground truth after the run: the scoring is not pipeline work
+    pipeline = Pipeline(sources, rig.cameras, rig.basis, rig.markers, rig.period, servo=parts.pipeline.servo,
+                        render=parts.pipeline.render, realtime=False, log=lambda message: None,
+                        on_frame=solved.append)
     stop, counts = threading.Event(), [0]
 
     def started(pipeline):
@@ -222,6 +225,8 @@ def run_once(frames: int, rig_process: bool, log) -> dict:
     if process is not None:
         summary["simulator_ms_per_frameset"] = 1e3 * process.simulator_cpu_s / max(process.framesets, 1)
     summary["render_messages_received"] = counts[0]
+    for frame in solved:
+        parts.score(frame)
     summary["rmse"], summary["label_swaps"] = parts.score.rmse, parts.score.swaps
     return summary
 

@@ -211,17 +211,29 @@ class DetectingSource:
 
 
 class Lockstep:
-    """Keeps unpaced sources in step, as hardware-triggered cameras running as fast as they can.
+    """Keeps unpaced sources in step, as hardware-triggered cameras running as fast as the pipeline takes frames.
 
     Sources with ``realtime=False`` (simulators, replays) would otherwise race each other, and the
     synchroniser would have to give up on the laggards. :meth:`wrap` returns sources whose ``read``
     lets no camera get more than one frame ahead of the slowest camera still running.
+
+    With ``in_flight`` set, the cameras also wait for the pipeline: a camera reads its frame number
+    ``r`` (counting from 0) only once fewer than ``in_flight`` frame sets before it are still being
+    processed, i.e. ``r < done + in_flight`` where :meth:`done` counts the frame sets the pipeline has
+    finished. An unpaced source then never builds a queue in front of a slower stage: nothing is
+    dropped, and a frame set's latency is its processing time, not time spent waiting behind earlier
+    sets. If the pipeline reports nothing for ``stall_s`` (a frame set lost on the way), the cameras go
+    on regardless.
     """
 
-    def __init__(self):
+    def __init__(self, in_flight: int | None = None, stall_s: float = 0.5):
         self._cond = threading.Condition()
         self._reads: list[int] = []
         self._live: list[bool] = []
+        self.in_flight = in_flight
+        self.stall_s = stall_s
+        self._done = 0
+        self._done_at = time.monotonic()
 
     def wrap(self, sources) -> list:
         out = []
@@ -231,11 +243,36 @@ class Lockstep:
             out.append(_LockstepSource(source, self, len(self._reads) - 1))
         return out
 
+    def done(self) -> None:
+        """The pipeline finished (or gave up on) one more frame set."""
+        with self._cond:
+            self._done += 1
+            self._done_at = time.monotonic()
+            self._cond.notify_all()
+
+    def _may_read(self, k: int) -> bool:
+        slowest = min((r for r, live in zip(self._reads, self._live) if live), default=self._reads[k])
+        if self._reads[k] > slowest:
+            return False
+        if self.in_flight is None or self._reads[k] < self._done + self.in_flight:
+            return True
+        if time.monotonic() - self._done_at > self.stall_s:  # nothing came back: do not deadlock
+            self._done = self._reads[k] - self.in_flight + 1
+            self._done_at = time.monotonic()
+            return True
+        return False
+
     def before_read(self, k: int, timeout: float | None) -> bool:
         with self._cond:
-            return self._cond.wait_for(
-                lambda: self._reads[k] <= min((r for r, live in zip(self._reads, self._live) if live),
-                                              default=self._reads[k]), timeout)
+            if self.in_flight is None:
+                return self._cond.wait_for(lambda: self._may_read(k), timeout)
+            deadline = None if timeout is None else time.monotonic() + timeout
+            while not self._may_read(k):  # wake up now and then for the stall check
+                left = 0.05 if deadline is None else min(0.05, deadline - time.monotonic())
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+            return True
 
     def after_read(self, k: int, got_frame: bool, ended: bool) -> None:
         with self._cond:
@@ -331,12 +368,21 @@ class Pipeline:
         Receives status lines and events.
     on_frame : callable, optional
         Called on the outputs thread with every :class:`SolvedFrame` (tests, the demo's scoring).
+    status_interval : float
+        Seconds between status lines.
+    unpaced_in_flight : int or None
+        Unpaced sources only: frame sets in the pipeline at once (see :class:`Lockstep`); 1 (default):
+        the cameras read the next frame set once the previous one's servo bytes are written, so no
+        frame set waits behind another (lowest latency, nothing dropped); 2: the next set is detected
+        while the previous one is reconstructed; None: the cameras run freely and the newest-wins
+        queues drop what the slower stages cannot take.
     """
 
     def __init__(self, sources, cameras, basis: Basis, markers: MarkerSet, period_s: float,
                  reconstruct_config=None, solver_config=None, servo=None, render=None, vmc=None, recorder=None,
                  sync_tolerance: float = 0.5, realtime: bool = True, log: Callable[[str], None] | None = None,
-                 on_frame: Callable[[SolvedFrame], None] | None = None, status_interval: float = 1.0):
+                 on_frame: Callable[[SolvedFrame], None] | None = None, status_interval: float = 1.0,
+                 unpaced_in_flight: int | None = 1):
         from livebridge.reconstruct.detect import DetectConfig, detect_blobs
         from livebridge.reconstruct.pipeline import ReconstructConfig, Reconstructor
         from livebridge.solve.solver import SolverConfig
@@ -351,8 +397,10 @@ class Pipeline:
             else DetectConfig()
         if len(sources) != len(cameras):
             raise ValueError(f"{len(sources)} camera sources for {len(cameras)} calibrated cameras")
+        self._lockstep = None
         if not realtime:
-            sources = Lockstep().wrap(sources)
+            self._lockstep = Lockstep(in_flight=unpaced_in_flight)
+            sources = self._lockstep.wrap(sources)
         self.sources = [
             DetectingSource(source, lambda image, camera=camera: camera.undistort_points(
                 detect_blobs(image, detect_config)))
@@ -375,6 +423,7 @@ class Pipeline:
         self._servo_scale = None
         self.error: BaseException | None = None
         self._stopped = False
+        self._dead_at_stop: tuple[str, ...] | None = None
         self._next_status = math.inf
         self._cpu_start = 0.0
         self._wall_start = 0.0
@@ -423,6 +472,7 @@ class Pipeline:
             return
         self._stopped = True
         self._stop.set()
+        self._dead_at_stop = self.capture.sync.dead  # stopping the cameras is not a camera failing
         self.capture.stop()
         for thread in self._threads:
             thread.join(timeout=10)
@@ -471,6 +521,7 @@ class Pipeline:
                 present += 1
             seq = next(f.seq for f in frameset.frames if f is not None)
             if not state.labelled and present < len(self.sources) - len(self.capture.sync.dead):
+                self._frameset_done()
                 continue  # the first labelling (on the neutral face) waits for a frame set from every camera
             state, labelled = self.reconstructor.step(state, points_2d, frameset.t)
             if not state.labelled:
@@ -484,6 +535,7 @@ class Pipeline:
             self.stats.framesets += 1
             if self._solver is None:
                 cpu += time.thread_time() - t0
+                self._frameset_done()
                 continue  # not labelled yet (the first frames must show the neutral face)
             self._solver_state, result = self._solver.step(self._solver_state, labelled.displacements)
             solved = time.monotonic()
@@ -493,6 +545,7 @@ class Pipeline:
                 t_servo = time.monotonic()
                 low, span = self._servo_scale
                 servo_targets = (np.asarray(self.servo.last_targets, dtype=np.float64) - low) / span
+            self._frameset_done()
             timing = FrameTiming(frameset.t, complete, detected, dequeued, reconstructed, solved, t_servo)
             self._queue.put((SolvedFrame(
                 seq, frameset.index, timing, result.contractions, labelled.positions, labelled.positions_world,
@@ -502,6 +555,10 @@ class Pipeline:
             self.stats.cpu_reconstruct_s = cpu
         self._ended.set()
         self._queue.put(None)
+
+    def _frameset_done(self) -> None:
+        if self._lockstep is not None:
+            self._lockstep.done()
 
     def _outputs_loop(self) -> None:
         cpu = 0.0
@@ -596,6 +653,7 @@ class Pipeline:
         primary = servo_latency if self.servo is not None else solve_latency
         errors = np.array(tail(stats.errors)).reshape(-1, 2)
         sync = self.capture.sync.stats
+        dead = sync.dead if self._dead_at_stop is None else self._dead_at_stop
         drops = int(self.capture.dropped_framesets + self._queue.dropped)
         camera_drops = sum(sync.drops.values())
         wall = time.monotonic() - self._wall_start
@@ -617,8 +675,8 @@ class Pipeline:
             "labelled_fraction": float(np.mean(tail(stats.labelled))) if stats.labelled else math.nan,
             "error_upper_mm": float(np.nanmean(errors[:, 0])) if len(errors) else math.nan,
             "error_lower_mm": float(np.nanmean(errors[:, 1])) if len(errors) else math.nan,
-            "cameras_alive": len(self.sources) - len(sync.dead),
-            "dead_cameras": list(sync.dead),
+            "cameras_alive": len(self.sources) - len(dead),
+            "dead_cameras": list(dead),
             "cpu_per_frameset_ms": 1e3 * cpu / max(stats.solved, 1),
             "pipeline_cpu_per_frameset_ms": 1e3 * (stats.cpu_reconstruct_s + stats.cpu_outputs_s + detect_cpu)
             / max(stats.solved, 1),
