@@ -796,6 +796,7 @@ class SimCameraSource(SourceBase):
         self._seq = 0
         self._running = False
         self._stop_at: int | None = None
+        self.n_frames: int | None = None  # the take ends (cleanly) after this many rig frames
         self.skipped = 0
         self.dropped = 0
         self.delivered = 0
@@ -835,6 +836,9 @@ class SimCameraSource(SourceBase):
                     if ready > now:
                         time.sleep(ready - now)
                     self.rig._took(seq)
+            if self.n_frames is not None and seq >= self.n_frames:
+                self._end(None)  # the end of the simulated take, not a fault
+                return None
             if self._stop_at is not None and seq > self._stop_at:
                 self._end(f"{self.source_id}: camera stopped delivering after frame {self._stop_at} (simulated)")
                 return None
@@ -858,14 +862,14 @@ class SimCameraSource(SourceBase):
                             formats=("GREY",))
 
 
-_URL_KEYS = {"cameras", "seed", "fps", "noise", "drop", "jitter_ms", "spurious", "blur", "sync", "realtime",
+_URL_KEYS = {"frames", "cameras", "seed", "fps", "noise", "drop", "jitter_ms", "spurious", "blur", "sync", "realtime",
              "size", "calibration", "script", "occlusion", "diameter_mm", "basis", "markers"}
 
 
 def rig_from_url(url: SourceURL | str) -> SimRig:
     """A :class:`SimRig` from ``sim://rig?cameras=4&seed=1&fps=60&noise=2&drop=0.01&jitter_ms=0.5&spurious=0.1
     &blur=1&sync=hardware|free&size=1280x800&script=mixed&occlusion=1&diameter_mm=3&calibration=PATH
-    &basis=PATH.npz&markers=PATH.toml``."""
+    &basis=PATH.npz&markers=PATH.toml`` (``frames`` and ``realtime`` are the sources', see :func:`open_url`)."""
     if isinstance(url, str):
         url = SourceURL.parse(url)
     if url.netloc != "rig":
@@ -909,6 +913,14 @@ def rig_from_url(url: SourceURL | str) -> SimRig:
 
 
 def open_url(url: SourceURL) -> list[SimCameraSource]:
-    """The registry hook: one source per camera of the rig the URL describes."""
+    """The registry hook: one source per camera of the rig the URL describes (``frames=N``: the cameras end,
+    like a finished take, after rig frame ``N - 1``; default: never)."""
     rig = rig_from_url(url)
-    return rig.sources(realtime=url.take("realtime", bool, True))
+    sources = rig.sources(realtime=url.take("realtime", bool, True))
+    frames = url.take("frames", int)
+    if frames is not None:
+        if frames < 1:
+            raise InputError(f"frames must be >= 1, got {frames}", url.url, "frames")
+        for source in sources:
+            source.n_frames = frames
+    return sources

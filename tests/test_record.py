@@ -8,7 +8,6 @@ import subprocess
 import sys
 import textwrap
 import time
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -95,16 +94,60 @@ def test_refuses_a_non_empty_directory_and_bad_files(tmp_path):
         load_take_dir(tmp_path / "t")
 
 
-def test_raw_frames_are_written_as_png(tmp_path):
-    import cv2
+def test_raw_frames_use_the_replay_format_and_replay_as_cameras(tmp_path):
+    from livebridge.capture.frame import Frame
+    from livebridge.capture.sources import open_sources
 
-    with TakeRecorder(tmp_path / "t", MUSCLES, MARKERS, record_frames=True) as rec:
-        image = (np.arange(48 * 64) % 251).astype(np.uint8).reshape(48, 64)
-        rec.record_frames([SimpleNamespace(image=image, seq=3, t_capture=1.5, source_id="cam/0")])
-        rec.record(3, 1.5, *_values(3))
-    index = (tmp_path / "t" / "frames" / "frames.csv").read_text().splitlines()
-    assert index == ["camera,seq,t_capture,file", "cam_0,3,1.500000,cam_0/00000003.png"]
-    assert np.array_equal(cv2.imread(str(tmp_path / "t" / "frames" / "cam_0" / "00000003.png"), 0), image)
+    images = [(np.arange(48 * 64) % 251 + k).astype(np.uint8).reshape(48, 64) for k in range(3)]
+    with TakeRecorder(tmp_path / "t", MUSCLES, MARKERS, record_frames=True, lossless_frames=True) as rec:
+        for k, image in enumerate(images):
+            rec.record_frames([Frame(image, 1.5 + k / 30, 3 + 2 * k, "dev/CAM_B", 900.0, 2.0, "oak"),
+                               Frame(image[::-1].copy(), 1.5 + k / 30, 3 + 2 * k, "cam1", sync_domain="oak")])
+            rec.record(3 + 2 * k, 1.5 + k / 30, *_values(k))
+    manifest = load_toml(tmp_path / "t" / "take.toml")
+    assert manifest["raw_frames"] == "frames" and manifest["frames_written"] == {"dev_CAM_B": 3, "cam1": 3}
+    assert sorted(p.name for p in (tmp_path / "t" / "frames").iterdir()) == [
+        "cam1", "cam1.csv", "dev_CAM_B", "dev_CAM_B.csv"]
+    sources = open_sources(f"replay://{tmp_path / 't'}?realtime=0")  # the take directory itself
+    assert [s.source_id for s in sources] == ["cam1", "dev/CAM_B"]  # original names, for the calibration
+    with sources[1] as source:
+        got = [source.read() for _ in range(4)]
+        assert source.capabilities.fps == pytest.approx(60.0)  # seq steps of 2 at 1/30 s: a 60 fps camera
+    assert got[3] is None
+    for k, frame in enumerate(got[:3]):
+        assert np.array_equal(frame.image, images[k]) and frame.seq == 3 + 2 * k
+        assert (frame.t_capture, frame.exposure_us, frame.gain, frame.sync_domain) == (1.5 + k / 30, 900.0, 2.0, "oak")
+
+
+def test_a_take_cut_short_replays_up_to_its_last_complete_frame(tmp_path):
+    """An image without its timestamp row (killed in between) and a half-written image are ignored."""
+    from livebridge.capture.frame import Frame
+    from livebridge.capture.replay import TakeWriter
+    from livebridge.capture.sources import open_sources
+
+    writer = TakeWriter(tmp_path)
+    for k in range(4):
+        writer.write(Frame(np.full((8, 8), k, np.uint8), k / 60, k, "cam0"))
+    writer.close()  # no close needed for the rows to be on disk: simulate the crash on top
+    (tmp_path / "cam0" / "000004.png").write_bytes((tmp_path / "cam0" / "000003.png").read_bytes())
+    (tmp_path / "cam0" / ".000005.png.part").write_bytes(b"\x89PNG torn")
+    with open_sources(f"replay://{tmp_path}?realtime=0")[0] as source:
+        seqs = [source.read() for _ in range(5)]
+    assert [f.seq for f in seqs[:4]] == [0, 1, 2, 3] and seqs[4] is None
+
+
+def test_recorder_writes_the_cameras_calibration_when_there_is_no_file(tmp_path):
+    from livebridge.calibration.calibfile import load_calibration
+    from livebridge.calibration.cameras import Camera, CameraGroup
+
+    cameras = CameraGroup([Camera(f"cam{k}", (64, 48), np.diag([50.0, 50.0, 1.0]), np.zeros(5),
+                                  np.array([0.0, 0.1 * k, 0.0]), np.array([k, 0.0, 500.0])) for k in range(2)])
+    with TakeRecorder(tmp_path / "t", MUSCLES, MARKERS, cameras=cameras) as rec:
+        rec.record(0, 0.0, *_values(0))
+    loaded = load_calibration(tmp_path / "t" / "calibration.toml")
+    assert loaded.names == cameras.names
+    assert np.allclose(loaded.cameras[1].rotation, cameras.cameras[1].rotation)
+    assert load_take_dir(tmp_path / "t").manifest["calibration"] == "calibration.toml"
 
 
 _CHILD = textwrap.dedent("""

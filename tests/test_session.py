@@ -101,3 +101,45 @@ def test_malformed_toml_names_the_file(tmp_path):
     path = _write(tmp_path, "[cameras\n")
     with pytest.raises(InputError, match="session.toml"):
         load_session(path)
+
+
+def test_run_a_simulated_rig_with_a_calibration_file(tmp_path):
+    """`livebridge run` on sim:// cameras + a calibration written by save_calibration: the rig films with
+    the calibrated cameras (5 of them, not the URL's default 4) and the pipeline labels and solves."""
+    import re
+
+    from click.testing import CliRunner
+
+    from livebridge.calibration.calibfile import save_calibration
+    from livebridge.cli import main
+    from livebridge.simulators.rig import RigConfig, default_face, generate_cameras
+
+    basis, _ = default_face()
+    save_calibration(tmp_path / "rig.toml", generate_cameras(basis, 5, RigConfig(size=(640, 400)), seed=7))
+    session = _write(tmp_path, """
+calibration = "rig.toml"
+[cameras]
+urls = ["sim://rig?seed=2&realtime=0&frames=400"]
+[outputs.render]
+enabled = false
+[runtime]
+frames = 40
+""")
+    result = CliRunner().invoke(main, ["run", str(session)])
+    assert result.exit_code == 0, result.output
+    labelled = float(re.search(r"labelled markers ([\d.]+)%", result.output).group(1))
+    alive, total = re.search(r"cameras (\d+)/(\d+)", result.output).groups()  # the live status line
+    upper, lower = (float(v) for v in re.search(r"error upper ([\d.]+) mm, lower ([\d.]+) mm", result.output).groups())
+    assert int(re.search(r"frame sets solved: (\d+)", result.output).group(1)) >= 40  # before the take ends
+    assert alive == total == "5" and labelled > 90 and upper < 0.5 and lower < 0.5, result.output
+
+
+def test_a_bad_calibration_file_is_reported_before_anything_starts(tmp_path):
+    from click.testing import CliRunner
+
+    from livebridge.cli import main
+
+    (tmp_path / "rig.toml").write_text('[cam_0]\nname = "cam0"\nsize = [640, 400]\n')
+    session = _write(tmp_path, 'calibration = "rig.toml"\n[cameras]\nurls = ["sim://rig?realtime=0&frames=10"]\n')
+    result = CliRunner().invoke(main, ["run", str(session)])
+    assert result.exit_code != 0 and "rig.toml" in result.output and "cam_0.matrix" in result.output, result.output

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -197,15 +199,18 @@ def test_realtime_capture_tolerates_a_uniformly_slow_host():
 
 
 def test_unpaced_capture_follows_frame_time_only():
-    """realtime=False: no ticker, and sources slower than their frame period are not reported dead."""
-    cameras = [_DelayedCamera(f"c{k}", 0.03, paced=False, period=1 / 120) for k in range(3)]
+    """realtime=False: no ticker; sources slower than their frame period, and slower than each other, are
+    read in step, not reported dead; a consumer slower than the sources still gets every frame set."""
+    cameras = [_DelayedCamera(f"c{k}", 0.01 * (k + 1), paced=False, period=1 / 120) for k in range(3)]
     got = []
-    with SyncedCapture(cameras, 1 / 120, queue_size=256, realtime=False, dead_after_s=0.05) as capture:
+    with SyncedCapture(cameras, 1 / 120, queue_size=1, realtime=False, dead_after_s=0.05) as capture:
         assert not capture.realtime and len(capture._threads) == 3  # reader threads only
         while len(got) < 15:
             fs = capture.read(timeout=2.0)
             assert fs is not None
             got.append(fs)
+            time.sleep(0.06)  # slower than the sources
         stats = capture.sync.stats
+        assert capture.dropped_framesets == 0
     assert not stats.dead and all(fs.complete for fs in got), stats
     assert [fs.frames[0].seq for fs in got] == list(range(15))

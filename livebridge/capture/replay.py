@@ -6,7 +6,15 @@ A recorded take is a folder with, per camera ``NAME``:
   or a video ``NAME.avi`` / ``NAME.mkv`` / ``NAME.mp4`` (frames converted to grayscale);
 - a timestamp file ``NAME.csv`` with a header row and one row per frame, in order: columns
   ``seq`` (int), ``t_capture`` (seconds, any monotonic clock), and optionally ``exposure_us``, ``gain``,
-  ``sync_domain``. Without it, frames are numbered from 0 at ``fps`` (URL parameter, default 30).
+  ``sync_domain``, ``source_id`` (the camera's original name, e.g. ``DEVICE/CAM_B``, which the
+  replayed frames carry so that a calibration matches them; default ``NAME``). Without the file,
+  frames are numbered from 0 at ``fps`` (URL parameter, default 30).
+  Images beyond the last row (a recording cut short between an image and its row) are ignored.
+
+:class:`TakeWriter` writes this format incrementally and crash-safely (each image is written under a
+temporary name and renamed; each timestamp row is flushed once its image is in place). A take directory
+of :class:`livebridge.output.record.TakeRecorder` (``take.toml`` with raw frames) keeps the camera take
+in its ``frames/`` folder; ``replay://`` opens that folder when given the take directory.
 
 ``replay://PATH?realtime=1&cameras=cam0,cam1&fps=30&loop=0`` opens one source per camera (all cameras
 found, in name order, unless ``cameras`` picks some). ``realtime=1`` (default) plays with the original
@@ -31,7 +39,7 @@ from livebridge.errors import InputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 VIDEO_SUFFIXES = (".avi", ".mkv", ".mp4")
-COLUMNS = ("seq", "t_capture", "exposure_us", "gain", "sync_domain")
+COLUMNS = ("seq", "t_capture", "exposure_us", "gain", "sync_domain", "source_id")
 
 
 @dataclass(frozen=True)
@@ -41,6 +49,7 @@ class _Row:
     exposure_us: float
     gain: float
     sync_domain: str
+    source_id: str = ""
 
 
 def read_timestamps(path: Path) -> list[_Row]:
@@ -55,10 +64,26 @@ def read_timestamps(path: Path) -> list[_Row]:
             try:
                 rows.append(_Row(int(row["seq"]), float(row["t_capture"]),
                                  float(row.get("exposure_us") or "nan"), float(row.get("gain") or "nan"),
-                                 row.get("sync_domain") or ""))
+                                 row.get("sync_domain") or "", row.get("source_id") or ""))
             except (TypeError, ValueError) as error:
                 raise InputError(f"bad value ({error})", path, f"line {line}") from None
     return rows
+
+
+RECORDED_FRAMES = "frames"  # the camera take inside a recorder's take directory
+
+
+def camera_take_folder(folder) -> Path:
+    """The folder holding the camera take: ``folder`` itself, or its ``frames/`` when ``folder`` is a
+    recorder's take directory (``take.toml``)."""
+    folder = Path(folder)
+    if (folder / "take.toml").is_file():
+        frames = folder / RECORDED_FRAMES
+        if not frames.is_dir():
+            raise InputError("this take was recorded without raw frames (recording.raw_frames = false); "
+                             "it cannot be replayed through the cameras", folder)
+        return frames
+    return folder
 
 
 def take_cameras(folder: Path) -> list[str]:
@@ -66,6 +91,7 @@ def take_cameras(folder: Path) -> list[str]:
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError("no such take folder", folder)
+    folder = camera_take_folder(folder)
     names = {p.name for p in folder.iterdir() if p.is_dir()}
     names |= {p.stem for p in folder.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES}
     if not names:
@@ -88,6 +114,19 @@ class _Clock:
             return recorded + self.offset
 
 
+def _frame_period(rows: list[_Row], fps: float) -> float:
+    """The camera's frame period: median time step per ``seq`` step (frames skipped while recording, e.g. by a
+    busy host, leave gaps in ``seq`` and do not lengthen it)."""
+    seq = np.array([r.seq for r in rows], dtype=np.float64)
+    t = np.array([r.t_capture for r in rows])
+    steps = np.diff(seq)
+    ok = steps > 0
+    if not ok.any():
+        return 1.0 / fps
+    period = float(np.median(np.diff(t)[ok] / steps[ok]))
+    return period if period > 0 else 1.0 / fps
+
+
 class ReplaySource(SourceBase):
     """One camera of a recorded take (see the module docstring).
 
@@ -106,7 +145,7 @@ class ReplaySource(SourceBase):
 
     def __init__(self, folder, camera: str, realtime: bool = True, fps: float = 30.0, loop: bool = False,
                  clock: _Clock | None = None):
-        self.folder, self.source_id = Path(folder), camera
+        self.folder, self.source_id = camera_take_folder(folder), camera
         self.realtime, self.fps, self.loop = realtime, float(fps), loop
         self._clock = clock or _Clock()
         image_dir = self.folder / camera
@@ -124,15 +163,18 @@ class ReplaySource(SourceBase):
         stamps = self.folder / f"{camera}.csv"
         if stamps.exists():
             self._rows = read_timestamps(stamps)
-            if n_frames is not None and len(self._rows) != n_frames:
+            if n_frames is not None and len(self._rows) > n_frames:
                 raise InputError(f"{len(self._rows)} timestamps for {n_frames} images", stamps)
+            if self._files is not None:
+                self._files = self._files[:len(self._rows)]  # images past the last row: cut short
         else:
             count = n_frames if n_frames is not None else self._video_length()
             self._rows = [_Row(k, k / self.fps, math.nan, math.nan, "") for k in range(count)]
+        if self._rows and self._rows[0].source_id:
+            self.source_id = self._rows[0].source_id
         if self._rows:
             self._clock.t_first = min(self._clock.t_first, self._rows[0].t_capture)
-        self._period = float(np.median(np.diff([r.t_capture for r in self._rows]))) if len(self._rows) > 1 \
-            else 1.0 / self.fps
+        self._period = _frame_period(self._rows, self.fps)
         self._index = 0
         self._laps = 0
         self._video = None
@@ -247,6 +289,10 @@ def open_url(url: SourceURL) -> list[ReplaySource]:
 class TakeWriter:
     """Records frames (or frame sets) as a take that :class:`ReplaySource` plays back.
 
+    Crash-safe and incremental: each image is written under a temporary name (``.NAME.part``, ignored by
+    the reader) and renamed, then its timestamp row is written and flushed, so a take cut short by a crash
+    replays up to its last complete frame.
+
     Parameters
     ----------
     folder : str or Path
@@ -262,28 +308,46 @@ class TakeWriter:
         self._streams: dict[str, tuple] = {}
         self._counts: dict[str, int] = {}
 
+    @staticmethod
+    def camera_name(source_id: str) -> str:
+        """The file-system name of a camera (``/`` and other unsafe characters become ``_``)."""
+        return "".join(c if c.isalnum() or c in "-_." else "_" for c in str(source_id)).lstrip(".") or "camera"
+
     def write(self, frame: Frame) -> None:
+        import os
+
         import cv2
 
-        name = frame.source_id.replace("/", "_")
+        name = self.camera_name(frame.source_id)
         if name not in self._streams:
             (self.folder / name).mkdir(exist_ok=True)
-            stream = (self.folder / f"{name}.csv").open("w", newline="")
-            writer = csv.writer(stream)
+            stream = (self.folder / f"{name}.csv").open("w", newline="", buffering=1)
+            writer = csv.writer(stream, lineterminator="\n")
             writer.writerow(COLUMNS)
             self._streams[name] = (stream, writer)
             self._counts[name] = 0
         stream, writer = self._streams[name]
         index = self._counts[name]
-        cv2.imwrite(str(self.folder / name / f"{index:06d}{self.image_format}"), frame.image)
+        ok, data = cv2.imencode(self.image_format, np.asarray(frame.image))
+        if not ok:
+            raise InputError(f"OpenCV cannot encode {self.image_format} images", self.folder)
+        target = self.folder / name / f"{index:06d}{self.image_format}"
+        partial = target.with_name(f".{target.name}.part")
+        partial.write_bytes(data.tobytes())
+        os.replace(partial, target)
         writer.writerow([frame.seq, repr(frame.t_capture), repr(frame.exposure_us), repr(frame.gain),
-                         frame.sync_domain])
+                         frame.sync_domain, frame.source_id])  # line-buffered: on disk once written
         self._counts[name] = index + 1
 
     def write_set(self, frameset: FrameSet) -> None:
         for frame in frameset.frames:
             if frame is not None:
                 self.write(frame)
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Frames written per camera (file-system names)."""
+        return dict(self._counts)
 
     def close(self) -> None:
         for stream, _ in self._streams.values():

@@ -250,9 +250,10 @@ class Synchronizer:
 class SyncedCapture:
     """Live sources on reader threads, synchronised into frame sets.
 
-    ``read(timeout)`` returns the newest ready frame set (older ready ones are dropped: the queue is bounded
-    and keeps the newest), or None. A source that ends (unplugged) is marked dead and reported in
-    ``events``; the others keep going.
+    ``read(timeout)`` returns the next ready frame set, or None. Live (``realtime``), the queue is bounded
+    and keeps the newest (older ready frame sets are dropped and counted in ``dropped_framesets``);
+    unpaced, the reader threads wait for room instead, so every frame set is handed out. A source that
+    ends (unplugged) is marked dead and reported in ``events``; the others keep going.
 
     Parameters
     ----------
@@ -265,7 +266,10 @@ class SyncedCapture:
         clock is taken minus the recent delivery delay of the frames (arrival minus ``t_capture``, the
         largest of the last second, at most ``MAX_DELIVERY_DELAY_S``), so a uniformly slow host -- frames that
         arrive late but together -- does not make every camera look dead. False (unpaced sources:
-        simulators or replays run as fast as possible): time follows the frames only, no ticker.
+        simulators or replays run as fast as possible): time follows the frames only, no ticker; the
+        sources are read in step (a camera reads its next frame only when no live camera is behind it in
+        frame time, as if one clock triggered them all), and no frame set is dropped (the sources wait
+        for the consumer).
     **sync_options
         Passed to :class:`Synchronizer`.
     """
@@ -280,6 +284,9 @@ class SyncedCapture:
         self._running = threading.Event()
         self._delays: deque[tuple[float, float]] = deque(maxlen=1024)  # (arrival, arrival - t_capture)
         self._first_arrival: float | None = None
+        self._step = threading.Condition()  # unpaced: readers in frame-time order (see _may_read)
+        self._read_t = [-math.inf] * len(self.sources)
+        self._live = [True] * len(self.sources)
         self.dropped_framesets = 0
 
     @property
@@ -309,6 +316,8 @@ class SyncedCapture:
 
     def stop(self) -> None:
         self._running.clear()
+        with self._step:
+            self._step.notify_all()
         for source in self.sources:
             source.stop()
         for thread in self._threads:
@@ -330,6 +339,14 @@ class SyncedCapture:
 
     def _offer(self, framesets: list[FrameSet]) -> None:
         for frameset in framesets:
+            if not self.realtime:  # unpaced sources can wait: hand out every frame set
+                while self._running.is_set():
+                    try:
+                        self._queue.put(frameset, timeout=0.05)
+                        break
+                    except queue.Full:
+                        continue
+                continue
             while True:
                 try:
                     self._queue.put_nowait(frameset)
@@ -356,17 +373,36 @@ class SyncedCapture:
         now = time.monotonic()
         return self.sync.poll(now - self._delivery_delay(now))
 
+    def _may_read(self, k: int) -> bool:
+        """Unpaced: camera ``k`` may read its next frame when no live camera is behind it in frame time."""
+        behind = min((t for t, live in zip(self._read_t, self._live) if live), default=math.inf)
+        return self._read_t[k] <= behind + self.sync.tolerance_s
+
     def _reader(self, source) -> None:
+        k = self.sources.index(source)
         while self._running.is_set():
+            if not self.realtime:  # keep unpaced sources in step: merge the streams in frame-time order
+                with self._step:
+                    if not self._step.wait_for(lambda: not self._running.is_set() or self._may_read(k), 0.1):
+                        continue
             frame = source.read(timeout=0.1)
             if frame is None:
+                if not self._running.is_set():
+                    return  # stopped by us, not gone: not reported dead
                 if source.ended:
+                    with self._step:
+                        self._live[k] = False
+                        self._step.notify_all()
                     with self._lock:
                         self.sync.mark_dead(source.source_id, source.error or "source ended")
                         ready = self._host_poll()
                     self._offer(ready)
                     return
                 continue
+            if not self.realtime:
+                with self._step:
+                    self._read_t[k] = frame.t_capture
+                    self._step.notify_all()
             arrival = time.monotonic()
             with self._lock:
                 if self._first_arrival is None:

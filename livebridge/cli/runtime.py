@@ -66,7 +66,10 @@ def run(session: str, frames: int | None) -> None:
 @click.option("--no-render", is_flag=True, help="Leave out the render client.")
 @click.option("--vmc", default=None, metavar="HOST:PORT", help="Also send VMC/OSC blendshapes there.")
 @click.option("--record", type=click.Path(file_okay=False), default=None, help="Record the take to this new folder.")
-def demo(frames, cameras, seed, fps, size, host, port, unpaced, no_servo, no_render, vmc, record) -> None:
+@click.option("--record-frames", is_flag=True,
+              help="With --record: also record the raw camera frames (replay them with replay://FOLDER).")
+def demo(frames, cameras, seed, fps, size, host, port, unpaced, no_servo, no_render, vmc, record,
+         record_frames) -> None:
     """The whole pipeline on simulators: performer, 4-camera rig, servo bus, render client.
 
     Prints the URL of the render page; Ctrl-C (or --frames N) ends it with a summary.
@@ -75,6 +78,8 @@ def demo(frames, cameras, seed, fps, size, host, port, unpaced, no_servo, no_ren
     from livebridge.runtime.demo import build_demo
     from livebridge.runtime.pipeline import run_until_stopped
 
+    if record_frames and not record:
+        raise click.BadParameter("needs --record FOLDER", param_hint="--record-frames")
     try:
         width, height = (int(v) for v in size.lower().split("x"))
     except ValueError:
@@ -88,7 +93,7 @@ def demo(frames, cameras, seed, fps, size, host, port, unpaced, no_servo, no_ren
     try:
         parts = build_demo(cameras=cameras, seed=seed, fps=fps, size=(width, height), realtime=not unpaced,
                            servo=not no_servo, render=not no_render, host=host, port=port, vmc=vmc_target,
-                           record=record, log=_log)
+                           record=record, record_frames=record_frames, log=_log)
     except InputError as error:
         raise click.ClickException(str(error)) from None
 

@@ -20,10 +20,18 @@ Take directory format (``livebridge-take-dir``, version 1)
     Same layout: each labelled marker's displacement from neutral in the face
     model frame, mm (what the solver consumed).
 ``session.toml``, ``calibration.*``
-    Copies of the files the take was recorded with.
+    Copies of the files the take was recorded with (``calibration.toml`` is
+    written from the cameras themselves when there is no file, e.g. for a
+    simulated rig).
 ``frames/`` (optional)
-    Raw camera images, ``frames/<camera>/<seq>.png``, listed in
-    ``frames/frames.csv`` (``camera,seq,t_capture,file``).
+    Raw camera images in the replay format of :mod:`livebridge.capture.replay`
+    (written by its :class:`~livebridge.capture.replay.TakeWriter`): per camera
+    ``frames/<camera>/000000.png ...`` and the timestamp file
+    ``frames/<camera>.csv`` (``seq,t_capture,exposure_us,gain,sync_domain,
+    source_id``). ``replay://TAKE_DIR`` plays them back as cameras, so a
+    session with ``urls = ["replay://TAKE_DIR?realtime=0"]`` and
+    ``calibration = "TAKE_DIR/calibration.toml"`` runs the take through the
+    pipeline again.
 
 All CSV files are plain RFC-4180 text with a header row, ``.`` as decimal
 separator. They are written by a background thread in whole lines, one
@@ -103,14 +111,22 @@ class TakeRecorder:
     record_displacements : bool
         Also write ``displacements.csv``.
     record_frames : bool
-        Also write raw camera images (PNG) from :meth:`record_frames`.
+        Also write raw camera images (PNG, replay format) from :meth:`record_frames` or from the sources
+        :meth:`wrap_sources` returns.
     flush_interval : float
         Seconds between flushes to the OS (at most 1).
+    cameras : CameraGroup, optional
+        Written as ``calibration.toml`` when no ``calibration_file`` is given.
+    lossless_frames : bool
+        True: :meth:`record_frames` waits for the disk instead of dropping frames (for unpaced runs, whose
+        cameras can wait; a live camera cannot, so the default drops and counts).
+    frame_queue : int
+        Raw frames waiting for the disk at most.
     """
 
     def __init__(self, path: str | Path, muscle_names, marker_names, session_file=None, calibration_file=None,
                  fps: float | None = None, record_displacements: bool = True, record_frames: bool = False,
-                 flush_interval: float = 0.5):
+                 flush_interval: float = 0.5, cameras=None, lossless_frames: bool = False, frame_queue: int = 64):
         self.path = Path(path)
         if self.path.exists() and (not self.path.is_dir() or any(self.path.iterdir())):
             raise InputError("the take directory exists and is not empty; choose a new one", self.path)
@@ -133,6 +149,12 @@ class TakeRecorder:
                 target = self.path / (f"{key}{source.suffix}" if key == "calibration" else "session.toml")
                 shutil.copyfile(source, target)
                 manifest[key] = target.name
+        if calibration_file is None and cameras is not None:
+            from livebridge.calibration.calibfile import save_calibration
+
+            save_calibration(self.path / "calibration.toml", cameras,
+                             {"source": "the cameras this take was recorded with"})
+            manifest["calibration"] = "calibration.toml"
         self._manifest = manifest
         save_toml(self.path / "take.toml", manifest)
         xyz = [f"{name}_{axis}" for name in self.marker_names for axis in "xyz"]
@@ -141,12 +163,16 @@ class TakeRecorder:
         self._markers = _CsvStream(self.path / "markers.csv", ["frame", "seq", "t", *xyz])
         self._displacements = _CsvStream(self.path / "displacements.csv", ["frame", "seq", "t", *xyz]) \
             if record_displacements else None
-        self._frames_index = None
+        self._frame_writer = None
         self._frame_queue: queue.Queue | None = None
+        self.lossless_frames = bool(lossless_frames)
         if record_frames:
-            (self.path / "frames").mkdir()
-            self._frames_index = _CsvStream(self.path / "frames" / "frames.csv", ["camera", "seq", "t_capture", "file"])
-            self._frame_queue = queue.Queue(maxsize=64)
+            from livebridge.capture.replay import RECORDED_FRAMES, TakeWriter
+
+            self._frame_writer = TakeWriter(self.path / RECORDED_FRAMES)
+            self._frame_queue = queue.Queue(maxsize=max(1, int(frame_queue)))
+            manifest["raw_frames"] = RECORDED_FRAMES
+            save_toml(self.path / "take.toml", manifest)
         self.frames = 0
         self.frames_dropped = 0
         self._t0: float | None = None
@@ -187,17 +213,35 @@ class TakeRecorder:
         self.frames += 1
 
     def record_frames(self, frames) -> None:
-        """Queue raw camera frames (objects with ``image``, ``seq``, ``t_capture``, ``source_id``) for PNG files.
+        """Queue raw camera frames (:class:`~livebridge.capture.frame.Frame`) for the ``frames/`` take.
 
-        Never blocks: frames arriving faster than the disk takes them are dropped and counted.
+        Never blocks unless ``lossless_frames``: frames arriving faster than the disk takes them are
+        dropped and counted in ``frames_dropped``.
         """
         if self._frame_queue is None:
             return
         for frame in frames:
+            if frame is None:
+                continue
+            if self.lossless_frames:
+                while not self._closed:
+                    try:
+                        self._frame_queue.put(frame, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                continue
             try:
                 self._frame_queue.put_nowait(frame)
             except queue.Full:
                 self.frames_dropped += 1
+
+    def wrap_sources(self, sources) -> list:
+        """Camera sources whose every frame read is also recorded (see :meth:`record_frames`); the sources
+        are returned unchanged when this recorder writes no raw frames."""
+        if self._frame_queue is None:
+            return list(sources)
+        return [RecordingSource(source, self) for source in sources]
 
     def _flush_loop(self) -> None:
         next_flush = time.monotonic() + self.flush_interval
@@ -215,17 +259,10 @@ class TakeRecorder:
                 next_flush = time.monotonic() + self.flush_interval
 
     def _write_image(self, frame) -> None:
-        import cv2
-
-        camera = "".join(c if c.isalnum() or c in "-_." else "_" for c in str(frame.source_id))
-        folder = self.path / "frames" / camera
-        folder.mkdir(exist_ok=True)
-        name = f"{int(frame.seq):08d}.png"
-        cv2.imwrite(str(folder / name), np.asarray(frame.image))
-        self._frames_index.append(f"{camera},{int(frame.seq)},{frame.t_capture:.6f},{camera}/{name}\n")
+        self._frame_writer.write(frame)
 
     def _flush_all(self, sync: bool = False) -> None:
-        for stream in (self._contractions, self._markers, self._displacements, self._frames_index):
+        for stream in (self._contractions, self._markers, self._displacements):
             if stream is not None:
                 stream.flush(sync)
 
@@ -242,11 +279,16 @@ class TakeRecorder:
                     self._write_image(self._frame_queue.get_nowait())
                 except queue.Empty:
                     break
-        for stream in (self._contractions, self._markers, self._displacements, self._frames_index):
+        for stream in (self._contractions, self._markers, self._displacements):
             if stream is not None:
                 stream.close()
+        if self._frame_writer is not None:
+            self._frame_writer.close()
+            self._manifest.update(frames_written={k: int(v) for k, v in self._frame_writer.counts.items()},
+                                  frames_dropped=int(self.frames_dropped))
         if self._t0 is not None:
             self._manifest.update(t0=self._t0, frames=self.frames)
+        if self._t0 is not None or self._frame_writer is not None:
             save_toml(self.path / "take.toml", self._manifest)
 
     def __enter__(self) -> TakeRecorder:
@@ -254,6 +296,39 @@ class TakeRecorder:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class RecordingSource:
+    """A camera source that hands every frame it reads to a :class:`TakeRecorder` (raw frames).
+
+    Wraps any :class:`~livebridge.capture.sources.CameraSource`; everything else is the inner source's.
+    """
+
+    def __init__(self, source, recorder: TakeRecorder):
+        self.source, self.recorder = source, recorder
+        self.source_id = source.source_id
+
+    def __getattr__(self, name):
+        return getattr(self.source, name)
+
+    def start(self) -> None:
+        self.source.start()
+
+    def stop(self) -> None:
+        self.source.stop()
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def read(self, timeout: float | None = None):
+        frame = self.source.read(timeout)
+        if frame is not None:
+            self.recorder.record_frames((frame,))
+        return frame
 
 
 @dataclass(frozen=True, eq=False)

@@ -54,40 +54,96 @@ def load_face(session: Session, rig=None):
     return basis, markers
 
 
+def warm_up_solver(basis, markers, solver_config=None) -> None:
+    """Build and step a throw-away contraction solver once, before any camera starts.
+
+    The first solver of a process can take seconds to build (compiled kernels); the pipeline builds its
+    own only after the first labelling, and a stall there would leave the tracker seconds behind the
+    live face. Done here, the pipeline's solver is built in about a millisecond.
+    """
+    import numpy as np
+
+    from livebridge.solve.solver import ContractionSolver, SolverConfig
+
+    solver = ContractionSolver(basis, markers, solver_config or SolverConfig())
+    state = solver.initial_state()
+    displacements = np.zeros((len(markers.names), 3))
+    state, _ = solver.step(state, displacements)
+    displacements[0] = np.nan  # a marker not seen, and read-only input (compiled code tells them apart)
+    displacements.setflags(write=False)
+    solver.step(state, displacements)
+
+
 def _load_calibration(path: Path):
+    from livebridge.calibration.calibfile import load_calibration
+
+    return load_calibration(path)
+
+
+def _session_url(url: str, session: Session) -> str:
+    """A camera URL as the session means it: a relative ``replay://`` path is relative to the session file,
+    and a simulated rig films with the session's calibrated cameras unless its URL names a calibration."""
+    from urllib.parse import quote, urlsplit
+
+    parts = urlsplit(url)
+    scheme = parts.scheme.lower()
+    if scheme == "replay" and session.path is not None:
+        path = parts.netloc + parts.path if parts.netloc else parts.path
+        if path and not Path(path).is_absolute():
+            resolved = (session.path.parent / path).resolve()
+            return f"replay://{resolved}" + (f"?{parts.query}" if parts.query else "")
+    if scheme == "sim" and session.calibration is not None and "calibration=" not in parts.query:
+        joiner = "&" if parts.query else "?"
+        return url + f"{joiner}calibration={quote(str(session.calibration), safe='/')}"
+    return url
+
+
+def _recorded_calibration(sources) -> Path | None:
+    """The calibration a recorded take was made with, when every source replays the same take directory."""
+    from livebridge.capture.replay import ReplaySource
+
+    folders = {getattr(s, "folder", None) for s in sources}
+    if not sources or not all(isinstance(s, ReplaySource) for s in sources) or len(folders) != 1:
+        return None
+    folder = next(iter(folders))
+    for take in (folder, folder.parent):
+        if (take / "take.toml").is_file() and (take / "calibration.toml").is_file():
+            return take / "calibration.toml"
+    return None
+
+
+def open_cameras(session: Session, log=None):
+    """Open every camera URL; returns ``(sources, cameras (CameraGroup), sim rig or None, realtime)``.
+
+    Cameras are matched to the session's calibration by name. Without a calibration file, a simulated rig
+    uses its own cameras, and replays of one recorded take directory use the calibration recorded with it.
+    """
     from livebridge.calibration.cameras import CameraGroup
-
-    try:
-        from livebridge.calibration.calibfile import load_calibration
-    except ImportError:
-        raise InputError("this livebridge cannot read calibration files yet (livebridge.calibration.calibfile)",
-                         path) from None
-    loaded = load_calibration(path)
-    return loaded if isinstance(loaded, CameraGroup) else getattr(loaded, "cameras", loaded)
-
-
-def open_cameras(session: Session):
-    """Open every camera URL; returns ``(sources, cameras (CameraGroup), sim rig or None, realtime)``."""
     from livebridge.capture.sources import open_sources
 
+    calibrated = _load_calibration(session.calibration) if session.calibration is not None else None
     sources = []
     for k, url in enumerate(session.camera_urls):
         try:
-            sources += open_sources(url)
+            sources += open_sources(_session_url(url, session))
         except InputError as error:
-            raise InputError(f"{url}: {error.message}", session.path, f"cameras.urls[{k}]") from None
+            inner = error.message if error.path in (None, url) and error.field is None else str(error)
+            raise InputError(f"{url}: {inner}", session.path, f"cameras.urls[{k}]") from None
     rigs = {id(s.rig): s.rig for s in sources if hasattr(s, "rig")}
-    rig = next(iter(rigs.values())) if len(rigs) == 1 and len(rigs) and all(hasattr(s, "rig") for s in sources) \
-        else None
-    if session.calibration is not None:
-        cameras = _load_calibration(session.calibration)
+    rig = next(iter(rigs.values())) if len(rigs) == 1 and all(hasattr(s, "rig") for s in sources) else None
+    calibration, field = session.calibration, "calibration"
+    if calibration is None and rig is None:
+        calibration = _recorded_calibration(sources)
+        field = "cameras.urls"
+        if calibration is not None and log is not None:
+            log(f"using the calibration recorded with the take: {calibration}")
+    if calibration is not None:
+        cameras = calibrated if calibrated is not None else _load_calibration(calibration)
         by_name = {c.name: c for c in cameras.cameras}
         missing = [s.source_id for s in sources if s.source_id not in by_name]
         if missing:
-            raise InputError(f"no calibration for camera {missing[0]!r}; calibrated: {', '.join(by_name)}",
-                             session.path, "calibration")
-        from livebridge.calibration.cameras import CameraGroup
-
+            raise InputError(f"no calibration for camera {missing[0]!r} in {calibration}; calibrated: "
+                             f"{', '.join(by_name)}", session.path, field)
         cameras = CameraGroup([by_name[s.source_id] for s in sources])
     elif rig is not None:
         cameras = rig.cameras
@@ -103,7 +159,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
     from livebridge.runtime.pipeline import Pipeline
     from livebridge.solve.solver import SolverConfig
 
-    sources, cameras, rig, realtime = open_cameras(session)
+    sources, cameras, rig, realtime = open_cameras(session, log)
     basis, markers = load_face(session, rig)
     options = dict(session.reconstruct)
     if "max_residual_px" in options:  # the reconstructor uses one tolerance for gating and residuals
@@ -112,6 +168,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
     reconstruct_config = ReconstructConfig(**options)
     solver_config = SolverConfig(**session.solver)
     period = 1.0 / (rig.config.fps if rig is not None else _fps(sources))
+    warm_up_solver(basis, markers, solver_config)
     opened = []
     try:
         servo = None
@@ -145,9 +202,11 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
             directory = session.recording.directory / f"take-{stamp}"
             recorder = TakeRecorder(directory, basis.names, markers.names, session.path, session.calibration,
-                                    fps=1.0 / period, record_frames=session.recording.raw_frames)
+                                    fps=1.0 / period, record_frames=session.recording.raw_frames, cameras=cameras,
+                                    lossless_frames=not realtime)
             opened.append(recorder.close)
-            log(f"recording to {directory}")
+            sources = recorder.wrap_sources(sources)
+            log(f"recording to {directory}" + (" (with raw frames)" if session.recording.raw_frames else ""))
         return Pipeline(sources, cameras, basis, markers, period, reconstruct_config, solver_config, servo=servo,
                         render=render, vmc=vmc, recorder=recorder, sync_tolerance=session.sync_tolerance,
                         realtime=realtime, log=log, on_frame=on_frame, status_interval=session.status_interval)

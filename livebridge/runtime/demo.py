@@ -92,7 +92,7 @@ class DemoParts:
 def build_demo(cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 800), realtime: bool = True,
                servo: bool = True, render: bool = True, host: str = "127.0.0.1", port: int = 8765,
                vmc: tuple[str, int] | None = None, record=None, noise: float = 2.0, script: str = "mixed",
-               log=print, on_frame=None) -> DemoParts:
+               log=print, on_frame=None, record_frames: bool = False) -> DemoParts:
     """Assemble the simulated demo pipeline (not started).
 
     Parameters
@@ -113,7 +113,9 @@ def build_demo(cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 8
     vmc : (host, port), optional
         Also send VMC/OSC.
     record : Path, optional
-        Record the take to this (new) directory.
+        Record the take to this (new) directory (with the rig's calibration, ``calibration.toml``).
+    record_frames : bool
+        Also record the raw camera frames (replayable: ``replay://RECORD``).
     noise : float
         Sensor noise of the simulated cameras (grey levels).
     on_frame : callable, optional
@@ -128,6 +130,9 @@ def build_demo(cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 8
     rig = SimRig(basis, markers, n_cameras=cameras, config=RigConfig(size=tuple(size), fps=fps, noise_sigma=noise),
                  seed=seed, performer=performer)
     score = GroundTruthScore(performer, skip=1)
+    from livebridge.runtime.build import warm_up_solver
+
+    warm_up_solver(basis, markers)
 
     servo_output = None
     if servo:
@@ -152,14 +157,18 @@ def build_demo(cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 8
         if record is not None:
             from livebridge.output.record import TakeRecorder
 
-            recorder = TakeRecorder(record, basis.names, markers.names, fps=fps)
+            recorder = TakeRecorder(record, basis.names, markers.names, fps=fps, cameras=rig.cameras,
+                                    record_frames=record_frames, lossless_frames=not realtime)
 
         def both(frame):
             score(frame)
             if on_frame is not None:
                 on_frame(frame)
 
-        pipeline = Pipeline(rig.sources(realtime=realtime), rig.cameras, basis, markers, 1.0 / fps,
+        sources = rig.sources(realtime=realtime)
+        if recorder is not None:
+            sources = recorder.wrap_sources(sources)
+        pipeline = Pipeline(sources, rig.cameras, basis, markers, 1.0 / fps,
                             servo=servo_output, render=render_server, vmc=vmc_output, recorder=recorder,
                             realtime=realtime, log=log, on_frame=both)
     except BaseException:
