@@ -37,6 +37,7 @@ def _render_frames(shm_name: str, options: dict, slots: int, free, ready, stop) 
     from livebridge.simulators.performer import Performer
     from livebridge.simulators.rig import RigConfig, SimRig, default_face
 
+    os.nice(options["nice"])  # the cameras' stand-in yields the CPU to the pipeline (see ProcessRig)
     basis, markers = default_face()
     performer = Performer(basis, markers, fps=options["fps"], seed=options["seed"], script=options["script"],
                           realtime=False)
@@ -79,18 +80,20 @@ class ProcessRig:
     them, so here it runs in its own process (same seed, so the same rig and performer as the demo's)
     and hands frames over through shared memory, a few frame sets ahead at most: the rig waits for the
     pipeline (not paced, no frame lost). It still shares the machine's CPU with the pipeline; its CPU
-    time is reported (``simulator_cpu_s``). :meth:`sources` are ordinary camera sources.
+    time is reported (``simulator_cpu_s``). It runs at a lower scheduling priority (``nice``), so that
+    like camera hardware it does not delay the pipeline's threads; it renders with the CPU they leave.
+    :meth:`sources` are ordinary camera sources.
     """
 
     def __init__(self, cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 800), noise: float = 2.0,
-                 script: str = "mixed", slots: int = 3):
+                 script: str = "mixed", slots: int = 3, nice: int = 10):
         import multiprocessing
         from multiprocessing import shared_memory
 
         import numpy as np
 
         self.options = {"cameras": cameras, "seed": seed, "fps": fps, "size": tuple(size), "noise": noise,
-                        "script": script}
+                        "script": script, "nice": nice}
         self.n_cameras, self.slots = cameras, slots
         width, height = size
         context = multiprocessing.get_context("spawn")
