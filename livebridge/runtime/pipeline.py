@@ -10,8 +10,9 @@ Stages and threads::
     "reconstruct" thread                         correspondence + triangulation + labelling/tracking
         │                                        (livebridge.reconstruct), then the contraction solve
         │                                        (livebridge.solve.solver), then the servos right
-        │                                        after the solve (ServoOutput:
-        │                                        safety stage + one write per bus), on this thread
+        │                                        after the solve (ServoOutput: safety stage + one
+        │                                        write per bus), on this thread; the servo status
+        │                                        read-back (every few frames) after the set is handed on
     bounded queue, keeps the newest (1)
         ▼
     "outputs" thread                             the render client (publish never blocks), VMC
@@ -540,8 +541,10 @@ class Pipeline:
             self._solver_state, result = self._solver.step(self._solver_state, labelled.displacements)
             solved = time.monotonic()
             t_servo, servo_targets = math.nan, None
+            poll_servos = False
             if self.servo is not None:  # the servos first, on this thread: no queue hop before the bytes go out
-                self.servo.send(result.contractions, complete)
+                poll_servos = self.servo.frames % self.servo.poll_every == 0
+                self.servo.send(result.contractions, complete, poll=False)
                 t_servo = time.monotonic()
                 low, span = self._servo_scale
                 servo_targets = (np.asarray(self.servo.last_targets, dtype=np.float64) - low) / span
@@ -551,6 +554,8 @@ class Pipeline:
                 seq, frameset.index, timing, result.contractions, labelled.positions, labelled.positions_world,
                 labelled.displacements, (float(result.rms_error_mm[0]), float(result.rms_error_mm[1])),
                 labelled.labelled_fraction, labelled.n_stray, present), servo_targets))
+            if poll_servos:  # the status read-back waits for the servos' replies: after this set is out
+                self.servo.poll()
             cpu += time.thread_time() - t0
             self.stats.cpu_reconstruct_s = cpu
         self._ended.set()

@@ -98,8 +98,12 @@ class ServoOutput:
         self.state = self.mapper.start(present, self.clock() if t is None else t)
         self.last_targets = self.state.target.copy()
 
-    def send(self, contractions, t: float | None = None) -> np.ndarray:
-        """One frame: contractions (n_muscles,) or None -> integer raw targets (n_servos,) sent to the buses."""
+    def send(self, contractions, t: float | None = None, poll: bool | None = None) -> np.ndarray:
+        """One frame: contractions (n_muscles,) or None -> integer raw targets (n_servos,) sent to the buses.
+
+        ``poll``: read the servos' status after the write; None (default) every ``poll_every`` frames.
+        A caller that passes False polls with :meth:`poll` when the bytes are out (same thread).
+        """
         if self.state is None:
             raise RuntimeError("ServoOutput.send before activate()")
         t = self.clock() if t is None else t
@@ -108,7 +112,8 @@ class ServoOutput:
         self.last_targets = targets
         if self.state.estopped:
             return raw
-        poll = self.frames % self.poll_every == 0
+        if poll is None:
+            poll = self.frames % self.poll_every == 0
         self.frames += 1
         for name, bus in self.buses.items():
             if name in self.failed_buses:
@@ -121,6 +126,17 @@ class ServoOutput:
                 self.failed_buses.add(name)
                 self._event(name, f"bus failed ({error}); left out from now on")
         return raw
+
+    def poll(self) -> None:
+        """Read every bus's servo status now (what ``send`` does every ``poll_every`` frames)."""
+        for name, bus in self.buses.items():
+            if name in self.failed_buses:
+                continue
+            try:
+                bus.poll()
+            except OSError as error:
+                self.failed_buses.add(name)
+                self._event(name, f"bus failed ({error}); left out from now on")
 
     def status(self) -> dict[str, ServoStatus | None]:
         """Servo name -> last known status."""
