@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
@@ -89,9 +89,9 @@ class RigConfig:
         Shift the cached face background with the head (whole-pixel image translation of the face centre).
     buffers : int
         Frames a paced (``realtime``) simulated camera driver holds. A reader that falls behind never gets a
-        backlog: it skips to the newest frame whose exposure has ended, or to an older one still among the
-        newest ``buffers`` if another camera of the rig already delivered that one (so a late host still
-        gets frames of one instant from every camera, as from a synchronised grabber).
+        backlog: it takes the oldest frame still among the newest ``buffers`` that another camera of the rig
+        already took (so a busy host still gets frames of one instant from every camera, as from a
+        synchronised grabber), or else the newest frame whose exposure has ended.
     """
 
     size: tuple[int, int] = (1280, 800)
@@ -443,7 +443,7 @@ class SimRig:
         self._next_seq = 0
         self._states: OrderedDict[int, _State] = OrderedDict()
         self._performed: OrderedDict = OrderedDict()  # recent performer frames by seq (cheap to keep)
-        self._grabbed: int | None = None  # the newest frame any paced camera has taken
+        self._taken: deque[int] = deque(maxlen=64)  # recent frames paced cameras have taken, ascending
         self._lock = threading.RLock()
         self._window = 256
         n_cams = len(self.cameras)
@@ -575,20 +575,21 @@ class SimRig:
         return int(math.floor((now - self.t0 - float(self._offsets[camera])) / self.period - 0.5))
 
     def grab(self, next_seq: int, due: int) -> int:
-        """The frame a late reader takes (see ``RigConfig.buffers``): ``due``, or the newest frame another camera
-        took if that one is still buffered (not older than ``due - buffers + 1``) and not before ``next_seq``."""
+        """The frame a late reader takes (see ``RigConfig.buffers``): the oldest frame another camera took that
+        is still buffered (not older than ``due - buffers + 1``) and not before ``next_seq``, else ``due``."""
         with self._lock:
-            taken = self._grabbed
-            if taken is not None and next_seq <= taken <= due and taken > due - self.config.buffers:
-                return taken
+            low = max(next_seq, due - self.config.buffers + 1)
+            candidates = [seq for seq in self._taken if low <= seq <= due]
+            if candidates:
+                return candidates[0]
             self._took(due)
             return due
 
     def _took(self, seq: int) -> None:
-        """Remember the newest frame any camera of the rig has taken (late readers align to it)."""
+        """Remember the frames cameras of the rig have taken (late readers align to them)."""
         with self._lock:
-            if self._grabbed is None or seq > self._grabbed:
-                self._grabbed = seq
+            if not self._taken or seq > self._taken[-1]:
+                self._taken.append(seq)
 
     def sources(self, realtime: bool = True) -> list[SimCameraSource]:
         """One camera source per camera, sharing this rig."""
@@ -786,7 +787,8 @@ class SimCameraSource(SourceBase):
     Unpaced (``realtime=False``): every frame, in order, as fast as the reader asks. Paced (``realtime``)
     like a real camera driver: a frame is delivered no earlier than the end of its exposure on the host
     clock, and a reader that falls behind never works through a backlog -- it skips to the newest frame
-    that is due (see ``RigConfig.buffers``); the skipped frames are counted in ``skipped``. Frames the
+    that is due, or to a still buffered one another camera took (see ``RigConfig.buffers``); the skipped
+    frames are counted in ``skipped``. Frames the
     simulated sensor drops (``RigConfig.drop_rate``) are counted in ``dropped``.
     """
 
@@ -824,7 +826,7 @@ class SimCameraSource(SourceBase):
             if self.realtime:
                 now = time.monotonic()
                 due = self.rig.due_seq(now, self.camera)
-                if due > seq:  # the reader is late: no backlog, take the newest frame (see RigConfig.buffers)
+                if due > seq:  # the reader is late: no backlog, skip ahead (see RigConfig.buffers)
                     taken = self.rig.grab(seq, due)
                     self.skipped += taken - seq
                     seq = taken

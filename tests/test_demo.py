@@ -50,3 +50,25 @@ def test_demo_end_to_end_matches_ground_truth():
     assert received[0] == (1).to_bytes(4, "little") and len(received) > 10  # the mesh, then frames
     servo = pipeline.servo
     assert servo.frames >= 300 and not servo.faults()
+
+
+def test_lead_in_holds_a_still_neutral_face_then_performs():
+    from livebridge.runtime.demo import LeadIn
+    from livebridge.simulators.performer import Performer
+    from livebridge.simulators.rig import default_face
+
+    basis, markers = default_face()
+    performer = Performer(basis, markers, fps=60, seed=3, realtime=False)
+    lead = LeadIn(performer, 0.5)
+    frames = list(lead.frames(100))
+    original = list(performer.frames(70))
+    neutral = markers.marker_positions(basis, np.zeros(len(basis.names)))
+    rest = performer.head(np.zeros(1))[0]
+    for frame in frames[:30]:
+        assert not frame.contractions.any() and np.allclose(frame.head2world, rest)
+        assert np.allclose(frame.marker_positions, neutral @ rest[:3, :3].T + rest[:3, 3])
+    for frame in frames[30:]:
+        before = original[frame.seq - 30]
+        assert np.allclose(frame.contractions, before.contractions) and np.allclose(frame.head2world, before.head2world)
+        assert np.allclose(frame.marker_positions, before.marker_positions, atol=1e-9)
+    assert np.allclose(lead.script(np.array([1.0]))[0], performer.script(np.array([0.5]))[0])

@@ -143,3 +143,18 @@ def test_a_bad_calibration_file_is_reported_before_anything_starts(tmp_path):
     session = _write(tmp_path, 'calibration = "rig.toml"\n[cameras]\nurls = ["sim://rig?realtime=0&frames=10"]\n')
     result = CliRunner().invoke(main, ["run", str(session)])
     assert result.exit_code != 0 and "rig.toml" in result.output and "cam_0.matrix" in result.output, result.output
+
+
+def test_the_documented_example_session_is_valid(tmp_path):
+    import textwrap
+
+    import livebridge.runtime.session as module
+
+    doc = module.__doc__
+    example = textwrap.dedent(doc[doc.index("::\n") + 3:doc.index("\nUnknown keys")])
+    for name in ("calibration.toml", "basis.npz", "markers.toml", "head.toml"):
+        (tmp_path / name).write_text("")
+    session = load_session(_write(tmp_path, example))
+    assert session.calibration == tmp_path / "calibration.toml" and session.servo_rig == tmp_path / "head.toml"
+    assert len(session.camera_urls) == 2 and session.solver["mode"] == "split-compensated"
+    assert session.recording.directory == tmp_path / "takes" and not session.recording.raw_frames

@@ -79,6 +79,51 @@ class GroundTruthScore:
         return math.sqrt(self.squared / self.count) if self.count else math.nan
 
 
+class LeadIn:
+    """A performer who first holds a still, neutral face for ``lead_in_s`` seconds, then performs.
+
+    As an actor is asked to at the start of a capture: the first labelling (which can take most of a
+    second on a busy machine) must see the neutral face, and the frames right after it should too. Same
+    interface as :class:`livebridge.simulators.performer.Performer` where the rig and the scoring use it
+    (``basis``, ``markers``, ``fps``, ``script(t)``, ``head(t)``, ``frames()``).
+    """
+
+    def __init__(self, performer, lead_in_s: float):
+        self.performer = performer
+        self.basis, self.markers, self.fps = performer.basis, performer.markers, performer.fps
+        self.lead_in_s = float(lead_in_s)
+
+    def script(self, t) -> np.ndarray:
+        """Contractions (n_times, n_muscles) at times ``t``: zero during the lead-in."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        x = self.performer.script(np.maximum(t - self.lead_in_s, 0.0))
+        x[t < self.lead_in_s] = 0.0
+        return x
+
+    def head(self, t) -> np.ndarray:
+        """``head2world`` (n_times, 4, 4) at times ``t``: the rest pose during the lead-in."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        return self.performer.head(np.maximum(t - self.lead_in_s, 0.0))
+
+    def frames(self, n_frames: int | None = None, chunk: int = 32):
+        """:class:`~livebridge.simulators.performer.PerformerFrame` from 0, forever or ``n_frames``."""
+        from livebridge.simulators.performer import PerformerFrame
+
+        seq = 0
+        while n_frames is None or seq < n_frames:
+            count = chunk if n_frames is None else min(chunk, n_frames - seq)
+            t = np.arange(seq, seq + count) / self.fps
+            x, head2world = self.script(t), self.head(t)
+            local = self.markers.marker_positions(self.basis, x)  # (count, n_markers, 3), model frame
+            world = np.einsum("nij,nkj->nki", head2world[:, :3, :3], local) + head2world[:, None, :3, 3]
+            for k in range(count):
+                frame = PerformerFrame(seq + k, float(t[k]), x[k], head2world[k], world[k])
+                for array in (frame.contractions, frame.head2world, frame.marker_positions):
+                    array.setflags(write=False)
+                yield frame
+            seq += count
+
+
 @dataclass
 class DemoParts:
     """What :func:`build_demo` made: the pipeline and what scores and describes it."""
@@ -92,7 +137,7 @@ class DemoParts:
 def build_demo(cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 800), realtime: bool = True,
                servo: bool = True, render: bool = True, host: str = "127.0.0.1", port: int = 8765,
                vmc: tuple[str, int] | None = None, record=None, noise: float = 2.0, script: str = "mixed",
-               log=print, on_frame=None, record_frames: bool = False) -> DemoParts:
+               log=print, on_frame=None, record_frames: bool = False, lead_in_s: float | None = None) -> DemoParts:
     """Assemble the simulated demo pipeline (not started).
 
     Parameters
@@ -120,6 +165,9 @@ def build_demo(cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 8
         Sensor noise of the simulated cameras (grey levels).
     on_frame : callable, optional
         Also called with every solved frame.
+    lead_in_s : float, optional
+        The performer holds a still, neutral face this long before performing (see :class:`LeadIn`);
+        default 2 s when ``realtime`` (the first labelling may take a second on a busy machine), else 0.
     """
     from livebridge.runtime.pipeline import Pipeline
     from livebridge.simulators.performer import Performer
@@ -127,6 +175,9 @@ def build_demo(cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 8
 
     basis, markers = default_face()
     performer = Performer(basis, markers, fps=fps, seed=seed, script=script, realtime=False)
+    lead_in_s = (2.0 if realtime else 0.0) if lead_in_s is None else float(lead_in_s)
+    if lead_in_s > 0:
+        performer = LeadIn(performer, lead_in_s)
     rig = SimRig(basis, markers, n_cameras=cameras, config=RigConfig(size=tuple(size), fps=fps, noise_sigma=noise),
                  seed=seed, performer=performer)
     score = GroundTruthScore(performer, skip=1)

@@ -1,16 +1,20 @@
 """The session file: everything one live run needs, in one TOML file, checked before anything starts.
 
-Example (every table but ``[cameras]`` is optional; paths are relative to the session file)::
+Example (every table but ``[cameras]`` is optional; paths are relative to the session file; top-level
+keys such as ``calibration`` must come before the first ``[table]``, or TOML puts them in that table)::
+
+    calibration = "calibration.toml"  # written by `livebridge calibrate` (save_calibration); sim:// rigs
+                                      # film with these cameras; not needed by a sim rig of its own or by
+                                      # replay:// of a recorded take (its calibration.toml is used)
 
     [cameras]
-    urls = ["v4l2:///dev/video0?fps=60", "v4l2:///dev/video2?fps=60"]  # or ["sim://rig?cameras=4&seed=1"]
+    urls = ["v4l2:///dev/video0?fps=60", "v4l2:///dev/video2?fps=60"]
+    # or ["sim://rig?cameras=4&seed=1"], or ["replay://takes/take-20250101-120000?realtime=0"]
     sync_tolerance = 0.5          # frame periods, for cameras in different sync domains
 
     [face]
     basis = "basis.npz"           # or "builtin" (the built-in face), "ict" (reference data)
     markers = "markers.toml"      # or "builtin"
-
-    calibration = "rig.toml"      # top level: the camera calibration (not needed by sim:// rigs)
 
     [reconstruct]
     tolerance_px = 2.0            # epipolar gate
@@ -39,7 +43,7 @@ Example (every table but ``[cameras]`` is optional; paths are relative to the se
     [recording]
     enabled = false
     directory = "takes"           # each run writes a new take directory inside
-    raw_frames = false
+    raw_frames = false            # also the camera images: replay://takes/take-... runs the take again
 
     [runtime]
     status_interval = 1.0         # seconds between live status lines
