@@ -65,7 +65,6 @@ class Triangulator:
         self.inverse_matrices = np.linalg.inv(np.stack([camera.matrix for camera in cameras.cameras]))
         self.extrinsics = np.stack([camera.world2cam[:3] for camera in cameras.cameras])  # (c, 3, 4)
         self.projections = np.stack([camera.projection for camera in cameras.cameras])  # (c, 3, 4)
-        self.focal_px = np.array([0.5 * (camera.matrix[0, 0] + camera.matrix[1, 1]) for camera in cameras.cameras])
         # AᵀA = Σ_cams (x²+y²) P3P3ᵀ - x (P3P1ᵀ+P1P3ᵀ) - y (P3P2ᵀ+P2P3ᵀ) + P1P1ᵀ + P2P2ᵀ
         rt = self.extrinsics
         outer = np.einsum("cai,cbj->cabij", rt, rt)
