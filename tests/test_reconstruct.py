@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from livebridge.bench.reconstruct import evaluate, face_and_markers, rig_cameras, simulate
+from livebridge.reconstruct.correspond import greedy_disjoint
 from livebridge.reconstruct.pipeline import Reconstructor
 
 
@@ -102,3 +103,21 @@ def test_soak_10000_frames_no_swaps(setup):
     assert result["swaps"] == 0
     assert result["rmse_mm"] <= 0.2
     assert result["labelled_fraction_reconstructible"] >= 0.99
+
+
+def test_greedy_disjoint_equals_the_sequential_walk(rng):
+    def walk(group, order):
+        taken, accepted = [set() for _ in group], []
+        for k in order:
+            views = [(c, int(d)) for c, d in enumerate(group[:, k]) if d >= 0]
+            if not any(d in taken[c] for c, d in views):
+                for c, d in views:
+                    taken[c].add(d)
+                accepted.append(k)
+        return accepted
+
+    for _ in range(300):
+        n_cams, n_groups, n_detections = rng.integers(1, 5), rng.integers(0, 50), rng.integers(1, 15)
+        group = np.where(rng.random((n_cams, n_groups)) < 0.3, -1, rng.integers(0, n_detections, (n_cams, n_groups)))
+        order = rng.permutation(n_groups)
+        assert greedy_disjoint(group, order).tolist() == walk(group, order)

@@ -5,7 +5,8 @@ distance within ``tolerance_px``). Each candidate pair is triangulated, projecte
 camera, and picks up the nearest detection there within the same tolerance, so a candidate grows
 into a group over *all* cameras. Groups are triangulated together (batched DLT), outlier views are
 dropped by reprojection residual, and groups are accepted greedily - most views first, then the
-smallest residual - with each detection used at most once. Detections left over go through a
+smallest residual - with each detection used at most once (:func:`greedy_disjoint`, a few
+vectorised passes instead of a walk over the groups). Detections left over go through a
 second round on their own. Points seen by fewer than 2 cameras are never invented.
 
 Two views alone are ambiguous when several markers lie near one epipolar plane. When the tracker
@@ -187,14 +188,50 @@ class Correspondence3D:
             order = np.lexsort((np.where(near, distance, worst), -n_views, ~near))
         else:
             order = np.lexsort((worst, -n_views))
-        taken = [set() for _ in points_2d]
-        accepted = []
-        for k in order:
-            views = [(cam, int(d)) for cam, d in enumerate(group[:, k]) if d >= 0]
-            if any(d in taken[cam] for cam, d in views):
-                continue
-            for cam, d in views:
-                taken[cam].add(d)
-            accepted.append(k)
-        accepted = np.array(accepted, dtype=np.int64)
+        accepted = greedy_disjoint(group, order)
         return group[:, accepted], points_3d[accepted], worst[accepted]
+
+
+def greedy_disjoint(group: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Groups accepted greedily in ``order``, each detection used by at most one accepted group.
+
+    The same result as walking ``order`` and accepting every group that shares no detection with
+    one accepted before it, computed in rounds over all groups at once: a group is accepted when
+    it comes first (in ``order``) for every detection it uses among the groups still open; groups
+    that share a detection with an accepted one close. The first open group is always accepted,
+    so the rounds end, and there are few of them in practice.
+
+    Parameters
+    ----------
+    group : ndarray of int, shape (n_cams, n_groups)
+        Detection index per camera, -1 where the group has no view.
+    order : ndarray of int, shape (n_groups,)
+        Priority order (a permutation of the groups).
+
+    Returns
+    -------
+    ndarray of int
+        Accepted groups, in priority order.
+    """
+    n_cams, n_groups = group.shape
+    if n_groups == 0:
+        return np.zeros(0, dtype=np.int64)
+    rank = np.empty(n_groups, dtype=np.int64)
+    rank[order] = np.arange(n_groups)
+    has = group >= 0
+    offsets = np.concatenate([[0], np.cumsum(np.maximum(group.max(axis=1), -1) + 1)])
+    ids = np.where(has, group + offsets[:-1, None], offsets[-1])  # one id per (camera, detection); spare id
+    open_ = np.ones(n_groups, dtype=bool)
+    accepted = np.zeros(n_groups, dtype=bool)
+    while open_.any():
+        first = np.full(offsets[-1] + 1, n_groups, dtype=np.int64)
+        live = has & open_
+        np.minimum.at(first, ids[live], np.broadcast_to(rank, ids.shape)[live])
+        wins = open_ & ((first[ids] == rank) | ~has).all(axis=0)
+        accepted |= wins
+        used = np.zeros(offsets[-1] + 1, dtype=bool)
+        used[ids[:, wins]] = True
+        used[-1] = False
+        open_ &= ~wins & ~used[ids].any(axis=0)
+    chosen = np.flatnonzero(accepted)
+    return chosen[np.argsort(rank[chosen])]
