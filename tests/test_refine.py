@@ -73,3 +73,14 @@ def test_basis_refine_cli(ict, setup, tmp_path):
     assert result.exit_code == 0, result.output
     assert "iteration  1" in result.output and "element scale factors" in result.output
     assert Basis.load(tmp_path / "refined.npz").n_muscles == ict.n_muscles
+
+
+def test_fixed_point_error_never_rises(ict, setup):
+    # solve and re-fit minimise the same total error: with no early stop the curve must not rise
+    # (it did when the re-fit regressed on the unconstrained contractions)
+    from livebridge.solve.refine import refine_markers
+
+    markers, _, observed, draft, _ = setup
+    _, errors, _, iterations, _, _ = refine_markers(draft, markers, observed, max_iterations=4, tolerance=-1.0)
+    assert iterations == 4 and len(errors) == 5
+    assert all(later <= earlier * (1 + 1e-6) for earlier, later in zip(errors, errors[1:])), errors

@@ -2,22 +2,31 @@
 
 1. **Fixed point at the markers.** Alternate (a) solve the contractions of every frame with the current
    marker displacements ``d_ij``, (b) re-fit every marker's ``d_ij`` by least squares over all frames
-   given those contractions (:func:`livebridge.solve.validate.refit_displacements`; the regressors
-   are the unconstrained contractions, because clipping resting muscles at 0 would bias them by a
-   constant that the re-fit turns into the take's mean displacement), until the total
-   error ``sum_t sum_j |d_hat_j(t) - d_j(t)|^2`` stops falling (relative decrease below ``tolerance``;
-   if it rises, the previous iterate is kept). The solve allows exaggeration (``x >= 0``) so that an
-   element sculpted too weak shows up as contractions above 1 rather than being clipped.
+   given those same contractions (:func:`livebridge.solve.validate.refit_displacements`), until the total
+   error ``sum_t sum_j |d_hat_j(t) - d_j(t)|^2`` stops falling. Both steps minimise that one error (the
+   solve over ``x`` for fixed ``d``, the re-fit over ``d`` for fixed ``x``), so it cannot rise except by
+   the region split's inexact solve. (An earlier version regressed on the *unconstrained* contractions:
+   the re-fit then minimised a different error than the one measured, and the total error rose after one
+   re-fit.) The solve allows exaggeration (``x >= 0``) so that an element sculpted too weak shows up as
+   contractions above 1 rather than being clipped.
+
+   Besides the per-element scale (below), ``x D = (x A^-1)(A D)`` for any mixing ``A`` that keeps the
+   contractions feasible: once the error has reached the noise floor, further re-fits drift along that
+   freedom, buying a tiny training-error gain (fitting the noise) for worse contractions. So the loop
+   stops as soon as a re-fit gains less than ``tolerance`` (relative, default 1%) and keeps the iterate
+   before it. Measured on ``livebridge bench refine`` (0.2 mm noise): the first re-fit takes the training
+   RMS 0.569 -> 0.335 mm, the next five only to 0.333 mm while the held-out contraction RMSE rises from
+   0.018 to 0.045 (held-out marker error about the same).
 
 2. **Pinning the scale.** ``x_i d_ij = (x_i / s) (s d_ij)``: the fit cannot tell a strong element used
-   gently from a weak one used fully, so each element has one free scale. Two anchors:
+   gently from a weak one used fully, so each element has one free scale. It does not change the fit, so
+   it is pinned once, after the loop. Two anchors:
 
    - ``"extremes"`` (default): the training take is assumed to reach full contraction of every muscle
      at least once (the performer's training script sweeps each muscle 0 -> 1 -> 0; a real performer
-     is asked to). After each re-fit, element ``i`` is rescaled so that the largest contraction of
-     muscle ``i`` over the take is 1 (after a 5-frame moving average against noise, and only over the
-     frames where muscle ``i`` leads, against cross-talk from the other muscles' sweeps). This recovers
-     the true scale, so contraction error falls along with marker error.
+     is asked to). Element ``i`` is rescaled so that the largest contraction of muscle ``i`` over the
+     take is 1 (after a 5-frame moving average against noise, and only over the frames where muscle
+     ``i`` leads, against cross-talk from the other muscles' sweeps). This recovers the true scale.
    - ``"norm"``: each refined element keeps the draft's marker-displacement norm
      ``sqrt(sum_j |d_ij|^2)``. Makes no assumption on the take, but keeps the draft's scale errors:
      marker error falls, contraction error of a mis-scaled element does not.
@@ -64,7 +73,7 @@ class RefineResult:
     iterations : int
         Re-fits kept.
     scales : ndarray, shape (n_muscles,)
-        Product of the scale factors the anchor applied to each element.
+        The scale factor the anchor applied to each element (once, after the loop).
     contractions : ndarray, shape (n_frames, n_muscles)
         The training take's contractions with the refined marker displacements.
     densify_error_mm : float
@@ -103,7 +112,7 @@ def _peaks(x: np.ndarray, width: int = 5) -> np.ndarray:
 
 
 def refine_markers(basis: Basis, markers: MarkerSet, displacements: np.ndarray, config: SolverConfig | None = None,
-                   anchor: str = "extremes", max_iterations: int = 30, tolerance: float = 1e-3,
+                   anchor: str = "extremes", max_iterations: int = 30, tolerance: float = 1e-2,
                    ridge: float = 1e-6, progress: bool = False, log: Callable[[str], None] | None = None):
     """Step 1 and 2 of the module docstring: the refined ``d_ij`` at the markers.
 
@@ -125,7 +134,6 @@ def refine_markers(basis: Basis, markers: MarkerSet, displacements: np.ndarray, 
     draft = markers.displacement_matrix(basis)
     current = draft.copy()
     draft_norm = np.sqrt((draft[face] ** 2).sum(axis=(0, 2)))
-    scales = np.ones(basis.n_muscles)
     errors, rms = [], []
     best = (current, None)
     iterations = 0
@@ -138,10 +146,6 @@ def refine_markers(basis: Basis, markers: MarkerSet, displacements: np.ndarray, 
         solver = ContractionSolver(basis, markers, config, displacement=current)
         solution = solver.solve_take(displacements, progress=progress)
         contractions = solution.contractions
-        # the re-fit regresses on the unconstrained contractions: clipping resting muscles at 0 biases
-        # them upwards by a constant, which the re-fit would turn into a copy of the take's mean
-        # displacement in every element
-        regressors = np.where(np.isnan(solution.unconstrained), contractions, solution.unconstrained)
         error, count = _total_error(current[face], observed, contractions)
         errors.append(error)
         rms.append(float(np.sqrt(error / max(count, 1))))
@@ -150,31 +154,36 @@ def refine_markers(basis: Basis, markers: MarkerSet, displacements: np.ndarray, 
         if bar is not None and iteration:
             bar.update(1)
             bar.set_postfix(rms_mm=f"{rms[-1]:.4f}")
-        if iteration and error > errors[-2]:  # got worse: keep the previous iterate
+        if iteration and errors[-2] - error <= tolerance * errors[-2]:
+            # stopped falling (or rose: the region split is not an exact solve). A re-fit that gains less
+            # than ``tolerance`` is fitting the noise along the mixing freedom: keep the previous iterate
             errors.pop()
             rms.pop()
             break
         best = (current, contractions)
         iterations = iteration
-        if iteration and errors[-2] - error <= tolerance * errors[-2]:
-            break
         if iteration == max_iterations:
             break
+        # block-coordinate descent on the total error: the re-fit regresses on the same (constrained)
+        # contractions the error is measured with, so it cannot raise that error
         exercised = (contractions > EXERCISED_LEVEL).sum(axis=0) >= EXERCISED_FRAMES
-        refit = refit_displacements(observed, regressors, ridge, prior=current[face])
+        refit = refit_displacements(observed, contractions, ridge, prior=current[face])
         refit[:, ~exercised] = current[face][:, ~exercised]
-        if anchor == "extremes":
-            peak = _peaks(regressors)
-            factor = np.where(exercised & (peak > 0), peak, 1.0)
-        else:
-            norm = np.sqrt((refit ** 2).sum(axis=(0, 2)))
-            factor = np.where(exercised & (norm > 0), draft_norm / np.maximum(norm, 1e-12), 1.0)
-        scales = scales * factor
         current = np.zeros_like(draft)
-        current[face] = refit * factor[None, :, None]
+        current[face] = refit
     if bar is not None:
         bar.close()
     current, contractions = best
+    # pin each element's scale once, at the end: x_i d_ij = (x_i / s) (s d_ij) leaves the fit unchanged
+    exercised = (contractions > EXERCISED_LEVEL).sum(axis=0) >= EXERCISED_FRAMES
+    if anchor == "extremes":
+        peak = _peaks(contractions)
+        scales = np.where(exercised & (peak > 0), peak, 1.0)
+    else:
+        norm = np.sqrt((current[face] ** 2).sum(axis=(0, 2)))
+        scales = np.where(exercised & (norm > 0), draft_norm / np.maximum(norm, 1e-12), 1.0)
+    current = current * scales[None, :, None]
+    contractions = contractions / scales
     return current, errors, rms, iterations, scales, contractions
 
 
@@ -225,7 +234,7 @@ def densify(basis: Basis, markers: MarkerSet, displacement: np.ndarray, falloff:
 
 
 def refine_basis(basis: Basis, markers: MarkerSet, displacements: np.ndarray, config: SolverConfig | None = None,
-                 anchor: str = "extremes", max_iterations: int = 30, tolerance: float = 1e-3,
+                 anchor: str = "extremes", max_iterations: int = 30, tolerance: float = 1e-2,
                  progress: bool = False, log: Callable[[str], None] | None = None) -> RefineResult:
     """Refine ``basis`` on a training take (the module docstring has the method).
 
