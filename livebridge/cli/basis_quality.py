@@ -97,7 +97,7 @@ def check(basis_path: Path, markers_path: Path, take_path: Path, out_dir: Path |
 @click.option("--anchor", type=click.Choice(["extremes", "norm"]), default="extremes", show_default=True,
               help="Pin each element's scale by the take's full contractions, or by the draft's norm.")
 @click.option("--max-iterations", type=click.IntRange(1), default=30, show_default=True)
-@click.option("--tolerance", type=float, default=1e-3, show_default=True,
+@click.option("--tolerance", type=float, default=1e-2, show_default=True,
               help="Stop when the total error falls by less than this fraction.")
 def refine(basis_path: Path, markers_path: Path, take_path: Path, out: Path, mode: str, anchor: str,
            max_iterations: int, tolerance: float) -> None:
