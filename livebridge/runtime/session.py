@@ -232,7 +232,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     mode = solver.get("mode", str)
     if mode is not None:
         solver_options["mode"] = mode
-    for key, kind in (("exaggerate", bool), ("sweeps", int), ("cache_size", int)):
+    for key, kind in (("exaggerate", bool), ("sweeps", int)):
         value = solver.get(key, kind)
         if value is not None:
             solver_options[key] = value

@@ -23,7 +23,7 @@ marker set, the Gram matrices of the visible markers, the active-set steps of ev
 marker errors. The Gram matrices with every marker visible are precomputed, so a frame with the usual
 visibility costs one matrix-vector product plus the active-set steps. Any other visibility pattern costs
 a rank-3 downdate per missing marker (``M x M`` flops each), which is cheaper than looking a cached
-pattern up would be, so no pattern cache is kept (``SolverConfig.cache_size`` is accepted and ignored);
+pattern up would be, so no pattern cache is kept;
 markers dropping out at random make most patterns new anyway. Why compiled: the QPs are tiny (<= 16
 variables), and with numpy and LAPACK wrappers the per-call overhead, not the arithmetic, was the cost.
 The kernels are compiled the first time a solver is constructed (seconds, once per installation: numba
@@ -75,23 +75,17 @@ class SolverConfig:
         Allow contractions above 1 (only ``x >= 0``).
     sweeps : int
         Alternations of the two regions in ``split-compensated`` mode.
-    cache_size : int
-        Accepted for configuration files of earlier versions and ignored: the compiled kernel rebuilds a
-        visibility pattern's Gram matrices faster than a cache could look them up (see the module docstring).
     """
 
     mode: str = "split-compensated"
     exaggerate: bool = False
     sweeps: int = 2
-    cache_size: int = 64
 
     def __post_init__(self):
         if self.mode not in MODES:
             raise InputError(f"mode must be one of {MODES}, got {self.mode!r}", field="mode")
         if int(self.sweeps) < 1:
             raise InputError(f"sweeps must be >= 1, got {self.sweeps}", field="sweeps")
-        if int(self.cache_size) < 1:
-            raise InputError(f"cache_size must be >= 1, got {self.cache_size}", field="cache_size")
 
 
 @dataclass(frozen=True)
