@@ -72,3 +72,12 @@ def test_lead_in_holds_a_still_neutral_face_then_performs():
         assert np.allclose(frame.contractions, before.contractions) and np.allclose(frame.head2world, before.head2world)
         assert np.allclose(frame.marker_positions, before.marker_positions, atol=1e-9)
     assert np.allclose(lead.script(np.array([1.0]))[0], performer.script(np.array([0.5]))[0])
+
+
+def test_demo_record_frames_needs_a_record_folder():
+    from click.testing import CliRunner
+
+    from livebridge.cli import main
+
+    result = CliRunner().invoke(main, ["demo", "--record-frames", "--frames", "1"])
+    assert result.exit_code != 0 and "--record" in result.output

@@ -192,3 +192,31 @@ def test_sigkill_during_recording_keeps_everything_up_to_the_last_second(tmp_pat
     assert np.allclose(loaded.contractions[:, 2], np.sin(frames), atol=1e-6)
     assert np.allclose(loaded.markers[:, 0, 1], 2.0 * frames, atol=1e-4)
     assert np.allclose(loaded.markers[:, 1, 2], frames / 7, atol=1e-4)
+
+
+def test_a_busy_disk_drops_whole_frame_sets(tmp_path):
+    import threading
+
+    from livebridge.capture.frame import Frame
+    from livebridge.capture.sources import open_sources
+
+    release = threading.Event()
+    rec = TakeRecorder(tmp_path / "t", MUSCLES, MARKERS, record_frames=True, frame_queue=2)
+    write = rec._write_image
+    rec._write_image = lambda frame: (release.wait(), write(frame))  # the disk stalls
+    image = np.zeros((8, 8), np.uint8)
+    for seq in range(6):
+        rec.record_frames([Frame(image, seq / 60, seq, f"cam{k}", sync_domain="rig") for k in range(3)])
+        if seq >= 3:
+            release.set()  # the disk catches up
+            while rec._frame_queue.qsize():
+                time.sleep(0.01)
+    rec.close()
+    written = load_toml(tmp_path / "t" / "take.toml")["frames_written"]
+    assert rec.frames_dropped > 0 and rec.frames_dropped % 3 == 0
+    assert sorted(written) == ["cam0", "cam1", "cam2"] and len(set(written.values())) == 1
+    seqs = []
+    for source in open_sources(f"replay://{tmp_path / 't'}?realtime=0"):
+        with source:
+            seqs.append([frame.seq for frame in iter(source.read, None)])
+    assert seqs[0] == seqs[1] == seqs[2] and 0 in seqs[0] and 5 in seqs[0] and len(seqs[0]) < 6

@@ -199,11 +199,12 @@ def test_realtime_capture_tolerates_a_uniformly_slow_host():
 
 
 def test_unpaced_capture_follows_frame_time_only():
-    """realtime=False: no ticker; sources slower than their frame period, and slower than each other, are
-    read in step, not reported dead; a consumer slower than the sources still gets every frame set."""
+    """realtime=False: no ticker; with step_sources, sources slower than their frame period and slower
+    than each other are read in step, not reported dead; a slower consumer still gets every frame set."""
     cameras = [_DelayedCamera(f"c{k}", 0.01 * (k + 1), paced=False, period=1 / 120) for k in range(3)]
     got = []
-    with SyncedCapture(cameras, 1 / 120, queue_size=1, realtime=False, dead_after_s=0.05) as capture:
+    with SyncedCapture(cameras, 1 / 120, queue_size=1, realtime=False, step_sources=True,
+                       dead_after_s=0.05) as capture:
         assert not capture.realtime and len(capture._threads) == 3  # reader threads only
         while len(got) < 15:
             fs = capture.read(timeout=2.0)

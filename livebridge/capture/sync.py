@@ -266,17 +266,23 @@ class SyncedCapture:
         clock is taken minus the recent delivery delay of the frames (arrival minus ``t_capture``, the
         largest of the last second, at most ``MAX_DELIVERY_DELAY_S``), so a uniformly slow host -- frames that
         arrive late but together -- does not make every camera look dead. False (unpaced sources:
-        simulators or replays run as fast as possible): time follows the frames only, no ticker; the
-        sources are read in step (a camera reads its next frame only when no live camera is behind it in
-        frame time, as if one clock triggered them all), and no frame set is dropped (the sources wait
-        for the consumer).
+        simulators or replays run as fast as possible): time follows the frames only, no ticker, and no
+        frame set is dropped (the sources wait for the consumer).
+    step_sources : bool
+        Unpaced only: read the sources in step, in frame-time order (a camera reads its next frame only
+        when no live camera is behind it in frame time, as if one clock triggered them all; a camera
+        with gaps in its recording waits for the others). Without it (default) unpaced sources race
+        each other unless something else paces them (the runtime pipeline's ``Lockstep`` does; do not
+        combine the two).
     **sync_options
         Passed to :class:`Synchronizer`.
     """
 
-    def __init__(self, sources, period_s: float, queue_size: int = 2, realtime: bool = True, **sync_options):
+    def __init__(self, sources, period_s: float, queue_size: int = 2, realtime: bool = True,
+                 step_sources: bool = False, **sync_options):
         self.sources = list(sources)
         self.realtime = bool(realtime)
+        self.step_sources = bool(step_sources) and not self.realtime
         self.sync = Synchronizer([s.source_id for s in self.sources], period_s, **sync_options)
         self._lock = threading.Lock()
         self._queue: queue.Queue[FrameSet] = queue.Queue(maxsize=queue_size)
@@ -381,7 +387,7 @@ class SyncedCapture:
     def _reader(self, source) -> None:
         k = self.sources.index(source)
         while self._running.is_set():
-            if not self.realtime:  # keep unpaced sources in step: merge the streams in frame-time order
+            if self.step_sources:  # keep unpaced sources in step: merge the streams in frame-time order
                 with self._step:
                     if not self._step.wait_for(lambda: not self._running.is_set() or self._may_read(k), 0.1):
                         continue
@@ -399,7 +405,7 @@ class SyncedCapture:
                     self._offer(ready)
                     return
                 continue
-            if not self.realtime:
+            if self.step_sources:
                 with self._step:
                     self._read_t[k] = frame.t_capture
                     self._step.notify_all()

@@ -49,6 +49,7 @@ import queue
 import shutil
 import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -121,7 +122,7 @@ class TakeRecorder:
         True: :meth:`record_frames` waits for the disk instead of dropping frames (for unpaced runs, whose
         cameras can wait; a live camera cannot, so the default drops and counts).
     frame_queue : int
-        Raw frames waiting for the disk at most.
+        Raw frames waiting for the disk beyond which a new frame set is dropped.
     """
 
     def __init__(self, path: str | Path, muscle_names, marker_names, session_file=None, calibration_file=None,
@@ -170,7 +171,10 @@ class TakeRecorder:
             from livebridge.capture.replay import RECORDED_FRAMES, TakeWriter
 
             self._frame_writer = TakeWriter(self.path / RECORDED_FRAMES)
-            self._frame_queue = queue.Queue(maxsize=max(1, int(frame_queue)))
+            self._frame_soft_limit = max(1, int(frame_queue))  # a new frame set is dropped beyond this
+            self._frame_queue = queue.Queue(maxsize=4 * self._frame_soft_limit)  # the rest of a kept set fits
+            self._frames_lock = threading.Lock()
+            self._frame_decisions: OrderedDict[tuple[str, int], bool] = OrderedDict()
             manifest["raw_frames"] = RECORDED_FRAMES
             save_toml(self.path / "take.toml", manifest)
         self.frames = 0
@@ -216,7 +220,9 @@ class TakeRecorder:
         """Queue raw camera frames (:class:`~livebridge.capture.frame.Frame`) for the ``frames/`` take.
 
         Never blocks unless ``lossless_frames``: frames arriving faster than the disk takes them are
-        dropped and counted in ``frames_dropped``.
+        dropped and counted in ``frames_dropped`` -- whole frame sets at a time (the frames of one
+        ``sync_domain`` and ``seq`` are all kept or all dropped), so that the recording replays as
+        complete frame sets.
         """
         if self._frame_queue is None:
             return
@@ -231,10 +237,20 @@ class TakeRecorder:
                     except queue.Full:
                         continue
                 continue
-            try:
-                self._frame_queue.put_nowait(frame)
-            except queue.Full:
-                self.frames_dropped += 1
+            with self._frames_lock:  # keep or drop whole frame sets (same domain and seq), not single frames
+                key = (frame.sync_domain, int(frame.seq))
+                keep = self._frame_decisions.get(key)
+                if keep is None:
+                    keep = self._frame_decisions[key] = self._frame_queue.qsize() < self._frame_soft_limit
+                    while len(self._frame_decisions) > 1024:
+                        self._frame_decisions.popitem(last=False)
+            if keep:
+                try:
+                    self._frame_queue.put_nowait(frame)
+                    continue
+                except queue.Full:
+                    pass
+            self.frames_dropped += 1
 
     def wrap_sources(self, sources) -> list:
         """Camera sources whose every frame read is also recorded (see :meth:`record_frames`); the sources
