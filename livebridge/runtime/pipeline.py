@@ -113,13 +113,24 @@ class SolvedFrame:
 
 
 class NewestQueue:
-    """A bounded queue that keeps the newest items: ``put`` never blocks, it drops the oldest."""
+    """A bounded queue that keeps the newest items: ``put`` never blocks, it drops the oldest.
 
-    def __init__(self, maxsize: int = 1):
+    With ``wait_until`` (an event: unpaced pipelines, where sources wait for the consumer anyway) ``put``
+    instead waits for room, so nothing is dropped, until that event is set.
+    """
+
+    def __init__(self, maxsize: int = 1, wait_until: threading.Event | None = None):
         self._queue: queue.Queue = queue.Queue(maxsize=maxsize)
+        self._wait_until = wait_until
         self.dropped = 0
 
     def put(self, item) -> None:
+        while self._wait_until is not None and not self._wait_until.is_set():
+            try:
+                self._queue.put(item, timeout=0.05)
+                return
+            except queue.Full:
+                continue
         while True:
             try:
                 self._queue.put_nowait(item)
@@ -414,8 +425,8 @@ class Pipeline:
         self.on_frame = on_frame
         self.status_interval = status_interval
         self.stats = PipelineStats()
-        self._queue = NewestQueue(1)
         self._stop = threading.Event()
+        self._queue = NewestQueue(1, wait_until=None if realtime else self._stop)
         self._finished = threading.Event()
         self._ended = threading.Event()
         self._threads: list[threading.Thread] = []
