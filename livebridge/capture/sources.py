@@ -109,6 +109,37 @@ class CameraSource(Protocol):
     def error(self) -> str | None: ...
 
 
+class SourceWrapper:
+    """A camera source that wraps another and adds to ``read``; everything else is the inner source's.
+
+    The runtime stacks these (detection on the reader thread, recording, unpaced lockstep); subclasses
+    override ``read`` (and ``stop`` where they must).
+    """
+
+    def __init__(self, source):
+        self.source = source
+        self.source_id = source.source_id
+
+    def __getattr__(self, name):
+        return getattr(self.source, name)
+
+    def start(self) -> None:
+        self.source.start()
+
+    def stop(self) -> None:
+        self.source.stop()
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def read(self, timeout: float | None = None):
+        return self.source.read(timeout)
+
+
 class SourceBase:
     """Context-manager plumbing shared by the implementations (subclasses define start/stop)."""
 

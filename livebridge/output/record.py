@@ -55,6 +55,7 @@ from pathlib import Path
 
 import numpy as np
 
+from livebridge.capture.sources import SourceWrapper
 from livebridge.errors import InputError
 from livebridge.tomlio import load_toml, save_toml
 
@@ -314,31 +315,15 @@ class TakeRecorder:
         self.close()
 
 
-class RecordingSource:
+class RecordingSource(SourceWrapper):
     """A camera source that hands every frame it reads to a :class:`TakeRecorder` (raw frames).
 
     Wraps any :class:`~livebridge.capture.sources.CameraSource`; everything else is the inner source's.
     """
 
     def __init__(self, source, recorder: TakeRecorder):
-        self.source, self.recorder = source, recorder
-        self.source_id = source.source_id
-
-    def __getattr__(self, name):
-        return getattr(self.source, name)
-
-    def start(self) -> None:
-        self.source.start()
-
-    def stop(self) -> None:
-        self.source.stop()
-
-    def __enter__(self):
-        self.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
+        super().__init__(source)
+        self.recorder = recorder
 
     def read(self, timeout: float | None = None):
         frame = self.source.read(timeout)

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from livebridge.capture.sources import SourceWrapper
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
 
@@ -149,7 +150,7 @@ class NewestQueue:
             return None
 
 
-class DetectingSource:
+class DetectingSource(SourceWrapper):
     """A camera source that detects its markers on its own reader thread.
 
     Wraps any :class:`~livebridge.capture.sources.CameraSource`; ``read`` returns the frame as the
@@ -158,8 +159,7 @@ class DetectingSource:
     """
 
     def __init__(self, source, detect: Callable[[np.ndarray], np.ndarray], keep: int = 64):
-        self.source = source
-        self.source_id = source.source_id
+        super().__init__(source)
         self._detect = detect
         self._results: dict[int, tuple[np.ndarray, float, float]] = {}
         self._order: deque[int] = deque()
@@ -167,34 +167,6 @@ class DetectingSource:
         self._lock = threading.Lock()
         self.cpu_s = 0.0
         self.frames = 0
-
-    def start(self) -> None:
-        self.source.start()
-
-    def stop(self) -> None:
-        self.source.stop()
-
-    def __enter__(self):
-        self.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
-
-    @property
-    def ended(self) -> bool:
-        return self.source.ended
-
-    @property
-    def error(self) -> str | None:
-        return self.source.error
-
-    @property
-    def capabilities(self):
-        return self.source.capabilities
-
-    def set_exposure(self, *args, **kwargs):
-        return self.source.set_exposure(*args, **kwargs)
 
     def read(self, timeout: float | None = None):
         frame = self.source.read(timeout)
@@ -295,16 +267,10 @@ class Lockstep:
             self._cond.notify_all()
 
 
-class _LockstepSource:
+class _LockstepSource(SourceWrapper):
     def __init__(self, source, lockstep: Lockstep, k: int):
-        self.source, self._lockstep, self._k = source, lockstep, k
-        self.source_id = source.source_id
-
-    def __getattr__(self, name):
-        return getattr(self.source, name)
-
-    def start(self) -> None:
-        self.source.start()
+        super().__init__(source)
+        self._lockstep, self._k = lockstep, k
 
     def stop(self) -> None:
         self.source.stop()
