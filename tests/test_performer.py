@@ -4,10 +4,10 @@ import time
 import numpy as np
 import pytest
 from factories import random_basis
-from livebridge.simulators.performer import EXPRESSIONS, Performer, perform
 
 from livebridge.face.basis import CHOE_KO_MUSCLES, Basis
 from livebridge.face.markers import MarkerSet
+from livebridge.simulators.performer import EXPRESSIONS, Performer, perform
 from livebridge.take import Take
 
 
