@@ -392,7 +392,8 @@ class Pipeline:
         self.status_interval = status_interval
         self.stats = PipelineStats()
         self._stop = threading.Event()
-        self._queue = NewestQueue(1, wait_until=None if realtime else self._stop)
+        self._outputs_gone = threading.Event()  # unpaced: the reconstruct thread waits for the outputs until then
+        self._queue = NewestQueue(1, wait_until=None if realtime else self._outputs_gone)
         self._finished = threading.Event()
         self._ended = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -543,6 +544,12 @@ class Pipeline:
             self._lockstep.done()
 
     def _outputs_loop(self) -> None:
+        try:
+            self._run_outputs()
+        finally:
+            self._outputs_gone.set()
+
+    def _run_outputs(self) -> None:
         cpu = 0.0
         stats = self.stats
         while True:
