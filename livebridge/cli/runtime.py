@@ -56,7 +56,8 @@ def run(session: str, frames: int | None) -> None:
 @click.option("--frames", type=click.IntRange(min=0), default=0, help="End after N frame sets and print a summary.")
 @click.option("--cameras", type=click.IntRange(2, 8), default=4, show_default=True, help="Simulated cameras.")
 @click.option("--seed", type=int, default=1, show_default=True)
-@click.option("--fps", type=float, default=60.0, show_default=True, help="Camera frame rate.")
+@click.option("--fps", type=float, default=30.0, show_default=True,
+              help="Camera frame rate (30 keeps up on a 2-core machine; real rigs run 30-120).")
 @click.option("--size", default="1280x800", show_default=True, help="Simulated image size WxH.")
 @click.option("--host", default="127.0.0.1", show_default=True, help="Render client interface.")
 @click.option("--port", type=click.IntRange(0, 65535), default=8765, show_default=True,
