@@ -4,7 +4,8 @@ import pytest
 from livebridge.face import builtin
 from livebridge.face.basis import CHOE_KO_MUSCLES
 from livebridge.face.builtin import builtin_basis, builtin_markers
-from livebridge.face.layout import farthest_point_markers, layout_report, vertex_normals
+from livebridge.face.layout import farthest_point_markers, layout_report
+from livebridge.face.meshio import vertex_normals
 
 
 @pytest.fixture(scope="module")

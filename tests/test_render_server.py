@@ -13,13 +13,13 @@ import pytest
 from factories import random_basis
 
 from livebridge.face.markers import MarkerSet
+from livebridge.face.meshio import vertex_normals
 from livebridge.output.render_server import (
     STATIC_DIR,
     RenderFrame,
     RenderServer,
     decode_frame,
     encode_mesh,
-    vertex_normals,
 )
 
 _HANDSHAKE = (

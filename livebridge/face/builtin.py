@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from livebridge.face.basis import CHOE_KO_MUSCLES, Basis
 from livebridge.face.markers import MarkerSet
+from livebridge.face.meshio import vertex_normals
 
 MOUTH_Y = -40.0  # height of the mouth line, mm
 MOUTH_HALF_WIDTH = 24.0
@@ -168,12 +169,6 @@ def _build_mesh() -> _Mesh:
     return _Mesh(vertices, triangles, lower_lip, upper_lip)
 
 
-def _normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    from livebridge.face.layout import vertex_normals
-
-    return vertex_normals(vertices, triangles)
-
-
 def _tangential(displacement: np.ndarray, normals: np.ndarray, keep_normal: float = 0.25) -> np.ndarray:
     """Mostly slide along the skin: scale the normal component of ``displacement (V, 3)`` by ``keep_normal``."""
     along = np.einsum("vd,vd->v", displacement, normals)[:, None] * normals
@@ -214,7 +209,7 @@ def _both_sides(make) -> np.ndarray:
 
 
 def _elements(mesh: _Mesh) -> dict[str, np.ndarray]:
-    v, n = mesh.vertices, _normals(mesh.vertices, mesh.triangles)
+    v, n = mesh.vertices, vertex_normals(mesh.vertices, mesh.triangles)
     upper_side = ~mesh.lower_lip & ((v[:, 1] > MOUTH_Y) | mesh.upper_lip)  # skin above the mouth line
     elements: dict[str, np.ndarray] = {}
 

@@ -44,22 +44,6 @@ POOL = 256  # candidates (largest D-optimal gains) scored in full at each step
 EXCHANGE_PASSES = 3  # sweeps of single-marker exchanges after the greedy design
 
 
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals, shape (n_vertices, 3).
-
-    Parameters
-    ----------
-    vertices : ndarray, shape (n_vertices, 3)
-    triangles : ndarray of int, shape (n_triangles, 3)
-    """
-    corners = vertices[triangles]
-    face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    normals = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(normals, triangles[:, k], face)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-
-
 def triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Unit triangle normals, shape (n_triangles, 3)."""
     corners = vertices[triangles]

@@ -54,20 +54,24 @@ def read_obj(path: str | Path) -> Mesh:
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals.
+    """Area-weighted unit vertex normals, of one mesh or a batch of deformations of it.
 
     Parameters
     ----------
-    vertices : ndarray, shape (n_vertices, 3)
+    vertices : ndarray, shape (..., n_vertices, 3)
     triangles : ndarray of int, shape (n_triangles, 3)
 
     Returns
     -------
-    ndarray, shape (n_vertices, 3)
+    ndarray, shape (..., n_vertices, 3)
     """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    if vertices.ndim > 2:
+        flat = vertices.reshape(-1, vertices.shape[-2], 3)
+        return np.stack([vertex_normals(v, triangles) for v in flat]).reshape(vertices.shape)
     corner = vertices[triangles]  # (T, 3, 3)
-    face_normals = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
-    normals = np.zeros_like(vertices, dtype=np.float64)
+    face_normals = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])  # length = 2 * area
+    normals = np.zeros_like(vertices)
     for k in range(3):
         np.add.at(normals, triangles[:, k], face_normals)
     length = np.linalg.norm(normals, axis=-1, keepdims=True)

@@ -50,6 +50,7 @@ import numpy as np
 
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
+from livebridge.face.meshio import vertex_normals
 
 STATIC_DIR = Path(__file__).with_name("static")
 WS_PATH = "/ws"
@@ -91,32 +92,6 @@ class RenderFrame:
     markers: np.ndarray | None = None
     region_errors: tuple[float, float] = (float("nan"), float("nan"))
     servo_targets: np.ndarray | None = None
-
-
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals.
-
-    Parameters
-    ----------
-    vertices : ndarray, shape (..., n_vertices, 3)
-    triangles : ndarray of int, shape (n_triangles, 3)
-
-    Returns
-    -------
-    ndarray, shape (..., n_vertices, 3)
-    """
-    vertices = np.asarray(vertices, dtype=np.float64)
-    flat = vertices.reshape(-1, vertices.shape[-2], 3)
-    normals = np.zeros_like(flat)
-    for out, verts in zip(normals, flat):
-        a, b, c = (verts[triangles[:, k]] for k in range(3))
-        face = np.cross(b - a, c - a)  # (T, 3), length = 2 * area
-        for k in range(3):
-            for d in range(3):
-                out[:, d] += np.bincount(triangles[:, k], face[:, d], minlength=len(verts))
-    normals = normals.reshape(vertices.shape)
-    length = np.linalg.norm(normals, axis=-1, keepdims=True)
-    return normals / np.where(length > 0, length, 1.0)
 
 
 def encode_mesh(basis: Basis) -> bytes:
