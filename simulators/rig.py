@@ -36,6 +36,7 @@ from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
+from livebridge.face.meshio import triangle_normals
 
 SYNC_MODES = ("hardware", "free")
 
@@ -240,7 +241,7 @@ def generate_markers(basis: Basis, n_face: int = 40, n_head: int = 4, seed: int 
     """
     rng = np.random.default_rng([int(seed), 7])
     vertices, triangles = basis.neutral, basis.triangles
-    normals = _triangle_normals(vertices, triangles)
+    normals = triangle_normals(vertices, triangles)
     centroids = vertices[triangles].mean(axis=1)
     low, high = vertices.min(axis=0), vertices.max(axis=0)
     front = (normals[:, 2] > 0.5) & (centroids[:, 2] > low[2] + 0.45 * (high[2] - low[2]))
@@ -285,13 +286,6 @@ def default_face() -> tuple[Basis, MarkerSet]:
     if basis is None:
         raise InputError("no face basis: the built-in face is missing and the reference data is absent")
     return basis, generate_markers(basis)
-
-
-def _triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Unit normals, shape (..., n_triangles, 3), of triangles ``(n, 3)`` over vertices ``(..., V, 3)``."""
-    a = vertices[..., triangles[:, 0], :]
-    normal = np.cross(vertices[..., triangles[:, 1], :] - a, vertices[..., triangles[:, 2], :] - a)
-    return normal / np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
 
 
 def _apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -355,7 +349,7 @@ def _render_face(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, fa
     image = np.full((height, width), ambient_level, dtype=np.float32)
     pixels = camera.project(vertices)
     cam_points = _apply(camera.world2cam, vertices)
-    normals = _triangle_normals(vertices, triangles)
+    normals = triangle_normals(vertices, triangles)
     centroids = vertices[triangles].mean(axis=1)
     to_camera = camera.center - centroids
     to_camera /= np.linalg.norm(to_camera, axis=1, keepdims=True)
@@ -650,9 +644,7 @@ class SimRig:
         head2world = np.asarray(frame.head2world, dtype=np.float64)
         model = self.basis.neutral + (contractions @ self._elements).reshape(-1, 3)
         vertices = _apply(head2world, model)
-        corners = vertices[self._marker_triangles]  # (n, 3, 3)
-        normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+        normal = triangle_normals(vertices, self._marker_triangles)  # (n, 3)
         return _State(int(frame.seq), float(frame.t), contractions, head2world,
                       np.asarray(frame.marker_positions, dtype=np.float64), np.asarray(previous, dtype=np.float64),
                       vertices if self.config.occlusion else None, normal)

@@ -80,6 +80,7 @@ def simulate(basis, markers, cameras, n_frames: int, seed: int = 0, noise_px: fl
     """
     from scipy.spatial.transform import Rotation
 
+    from livebridge.face.meshio import triangle_normals
     from livebridge.simulators.performer import perform
     from livebridge.simulators.rig import face_centre
 
@@ -94,9 +95,7 @@ def simulate(basis, markers, cameras, n_frames: int, seed: int = 0, noise_px: fl
     head2world = turn @ performance.head2world
     points = performance.marker_positions @ turn[:3, :3].T + turn[:3, 3]
     # marker normals: neutral triangle normals carried by the head pose
-    corners = basis.neutral[basis.triangles[markers.triangles]]
-    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = triangle_normals(basis.neutral, basis.triangles[markers.triangles])
     normals_world = np.einsum("fij,nj->fni", head2world[:, :3, :3], normals)
     n_cams, n_markers = len(cameras), len(markers)
     labelled = np.full((n_frames, n_cams, n_markers, 2), np.nan)

@@ -25,9 +25,10 @@ def _draw_mesh(ax, vertices, triangles, colours, light=_LIGHT):
     """Painter's-algorithm orthographic render of the triangles that face the viewer."""
     from matplotlib.collections import PolyCollection
 
+    from livebridge.face.meshio import triangle_normals
+
     corners = vertices[triangles]  # (T, 3, 3)
-    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    normals = triangle_normals(vertices, triangles)
     visible = normals[:, 2] > 0
     order = np.flatnonzero(visible)[np.argsort(corners[visible, :, 2].mean(axis=1))]
     shade = np.clip(normals[order] @ light, 0, 1)[:, None]

@@ -33,6 +33,7 @@ import numpy as np
 
 from livebridge.face.basis import REGIONS, Basis
 from livebridge.face.markers import MarkerSet
+from livebridge.face.meshio import triangle_normals
 
 OBSERVE_FRACTION = 0.2  # a marker observes a muscle that moves it by >= this share of the muscle's peak ...
 OBSERVE_MIN_MM = 0.5  # ... and by at least this many mm
@@ -42,13 +43,6 @@ FLOOR_WEIGHT = 1.0  # weight of log lambda_min in the design score
 CEILING_WEIGHT = 0.25  # weight of -log lambda_max in the design score
 POOL = 256  # candidates (largest D-optimal gains) scored in full at each step
 EXCHANGE_PASSES = 3  # sweeps of single-marker exchanges after the greedy design
-
-
-def triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Unit triangle normals, shape (n_triangles, 3)."""
-    corners = vertices[triangles]
-    face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    return face / np.maximum(np.linalg.norm(face, axis=1, keepdims=True), 1e-12)
 
 
 def region_boundary(basis: Basis) -> float:

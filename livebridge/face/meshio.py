@@ -76,3 +76,20 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
         np.add.at(normals, triangles[:, k], face_normals)
     length = np.linalg.norm(normals, axis=-1, keepdims=True)
     return normals / np.where(length > 0, length, 1.0)
+
+
+def triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unit normals of the given triangles, of one mesh or a batch of deformations of it.
+
+    Parameters
+    ----------
+    vertices : ndarray, shape (..., n_vertices, 3)
+    triangles : ndarray of int, shape (n_triangles, 3)
+
+    Returns
+    -------
+    ndarray, shape (..., n_triangles, 3)
+    """
+    a = vertices[..., triangles[:, 0], :]
+    normal = np.cross(vertices[..., triangles[:, 1], :] - a, vertices[..., triangles[:, 2], :] - a)
+    return normal / np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
