@@ -20,7 +20,9 @@ functions, so importing this module needs no SDK). Implements
   start) succeeds;
 - ``estop``: broadcast torque off.
 
-A hint is logged when a USB adapter's latency timer is above 1 ms.
+A hint is logged when a USB adapter's latency timer is above 1 ms. Replies are
+waited for in ``select`` on the port, not in the SDK's spin of non-blocking
+reads (:func:`sdk_port`).
 """
 
 from __future__ import annotations
@@ -53,21 +55,53 @@ def latency_timer_hint(port: str) -> str | None:
             f"Set it to 1 ms: echo 1 | sudo tee {timer}")
 
 
+def _fileno(ser) -> int | None:
+    """The OS file descriptor of a pyserial port, or None where there is none (Windows, ``loop://``, closed)."""
+    try:
+        return ser.fileno()
+    except (AttributeError, OSError, ValueError):  # pyserial's PortNotOpenError is an OSError
+        return None
+
+
 def sdk_port(port: str, timeout_margin_ms: float = 34.0):
-    """A ``dynamixel_sdk.PortHandler`` for ``port`` (not opened) whose reply timeout margin is configurable.
+    """A ``dynamixel_sdk.PortHandler`` for ``port`` (not opened) that waits for replies without spinning.
 
     The SDK waits the bytes' wire time + 2 x its 16 ms latency constant + 2 ms (34 ms) for a reply. A
     simulated bus is served by a thread of this machine: when the machine is loaded, that thread can be
     descheduled for longer than 34 ms, and a reply that comes after the client stopped waiting is then read
     as the reply to the *next* request. The margin (ms, beyond the wire time) is the instance's
     ``timeout_margin_ms`` attribute and may be changed at any time.
+
+    The SDK's packet loops call ``readPort`` (a non-blocking read) over and over until the bytes or the
+    timeout come: thousands of reads per status reply, CPU and GIL taken from the pipeline threads. This
+    port's ``readPort`` sleeps in ``select`` on the serial fd until bytes arrive or the packet timeout
+    passes, so each call returns with data or with the timeout due. The bytes on the wire and the SDK's
+    results are unchanged; a port without a file descriptor reads as the SDK does.
     """
+    import select
+
     from dynamixel_sdk import PortHandler
 
     class Port(PortHandler):
         def setPacketTimeout(self, packet_length):
             self.packet_start_time = self.getCurrentTime()
             self.packet_timeout = self.tx_time_per_byte * packet_length + self.timeout_margin_ms
+
+        def readPort(self, length):
+            data = self.ser.read(length)
+            if data or length <= 0:
+                return data
+            wait_s = self._wait_left_ms() / 1000.0
+            fd = _fileno(self.ser)
+            if wait_s <= 0 or fd is None:
+                return data  # timeout due (the SDK checks it next) or nothing to wait on: the SDK's own loop
+            select.select([fd], [], [], wait_s)
+            return self.ser.read(length)
+
+        def _wait_left_ms(self) -> float:
+            """Milliseconds until the packet timeout; at most one whole timeout (the SDK's clock is wall time)."""
+            left = self.packet_start_time + self.packet_timeout - self.getCurrentTime()
+            return min(left, self.packet_timeout)
 
     handler = Port(port)
     handler.timeout_margin_ms = float(timeout_margin_ms)

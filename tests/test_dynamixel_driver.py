@@ -158,3 +158,70 @@ def test_bad_url():
         open_bus("dynamixel:///dev/does-not-exist?baud=1000000")
     with pytest.raises(InputError, match="scheme"):
         open_bus("canbus:///dev/x")
+
+
+def _count_reads(port) -> list[int]:
+    """Record the length of every ``port.readPort`` call the SDK makes from now on."""
+    calls: list[int] = []
+    read = port.readPort
+
+    def counted(length):
+        calls.append(length)
+        return read(length)
+
+    port.readPort = counted
+    return calls
+
+
+@pytest.fixture
+def slow_bus():
+    # the servos' factory return delay (500 us per status packet): the SDK's own readPort spins through it
+    bus = open_bus("simdynamixel://?ids=1-4&model=XL330-M288", timeout_margin_ms=REPLY_MS, fast_read=False)
+    bus.configure(_setups([1, 2, 3, 4]), 0.02)
+    bus.activate()
+    yield bus
+    bus.close()
+
+
+# Each status packet takes the SDK two reads (header, rest) plus one that sleeps until bytes come; spinning
+# the SDK way costs hundreds of reads per sync read here (thousands while a reply never comes).
+READS_PER_PACKET = 4
+
+
+def test_sync_read_waits_for_replies_without_spinning(slow_bus):
+    calls = _count_reads(slow_bus.port)
+    for _ in range(10):
+        got = slow_bus.sync_read(132, 4, [1, 2, 3, 4])
+        assert {i: dxl.to_int(d) for i, (d, _) in got.items()} == {i: 2048 for i in (1, 2, 3, 4)}
+    assert len(calls) <= 10 * 4 * READS_PER_PACKET
+
+
+def test_reply_timeout_is_slept_through_not_spun(slow_bus):
+    slow_bus.port.timeout_margin_ms = 100.0  # id 2 never answers: every sync read waits out the timeout
+    slow_bus.simulator.disconnect(2)
+    calls = _count_reads(slow_bus.port)
+    for _ in range(3):
+        assert set(slow_bus.sync_read(132, 4, [1, 2, 3])) == {1, 3}
+    assert len(calls) <= 3 * 3 * READS_PER_PACKET
+
+
+class _NoFileno:
+    """A pyserial port seen without a file descriptor (as on Windows): reads fall back to the SDK's loop."""
+
+    def __init__(self, ser):
+        self._ser = ser
+
+    def __getattr__(self, name):
+        if name == "fileno":
+            raise AttributeError(name)
+        return getattr(self._ser, name)
+
+
+def test_port_without_fileno_reads_as_the_sdk(slow_bus):
+    ser = slow_bus.port.ser
+    slow_bus.port.ser = _NoFileno(ser)
+    try:
+        got = slow_bus.sync_read(132, 4, [1, 2, 3, 4])
+    finally:
+        slow_bus.port.ser = ser
+    assert {i: dxl.to_int(d) for i, (d, _) in got.items()} == {i: 2048 for i in (1, 2, 3, 4)}
