@@ -8,12 +8,13 @@ import subprocess
 import sys
 import textwrap
 import time
+import warnings
 
 import numpy as np
 import pytest
 
 from livebridge.errors import InputError
-from livebridge.output.record import TakeRecorder, load_take_dir
+from livebridge.output.record import TakeRecorder, export_c3d, load_take_dir
 from livebridge.tomlio import load_toml
 
 MUSCLES = ("a", "b", "c")
@@ -220,3 +221,77 @@ def test_a_busy_disk_drops_whole_frame_sets(tmp_path):
         with source:
             seqs.append([frame.seq for frame in iter(source.read, None)])
     assert seqs[0] == seqs[1] == seqs[2] and 0 in seqs[0] and 5 in seqs[0] and len(seqs[0]) < 6
+
+
+def _read_c3d(path):
+    """Labels, rate, units, frame count and points (n_frames, n_markers, 5) of a C3D file, read with py-c3d."""
+    import c3d
+
+    with open(path, "rb") as handle, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "No analog data")  # markers only: no analog channels
+        reader = c3d.Reader(handle)
+        points = np.array([p for _, p, _ in reader.read_frames()])
+        units = reader.get("POINT:UNITS").string_value.strip()
+        return ([label.strip() for label in reader.point_labels], reader.point_rate, units, reader.frame_count,
+                points)
+
+
+def _assert_c3d_matches(points, markers):
+    """C3D points (n_frames, n_markers, 5) hold ``markers`` (n_frames, n_markers, 3); unseen = invalid."""
+    seen = ~np.isnan(markers).any(axis=-1)
+    assert np.array_equal(points[..., 3], np.where(seen, 0.0, -1.0))  # residual -1: C3D's invalid point
+    assert np.allclose(points[seen][:, :3], markers[seen], atol=1e-3)  # float32 of the CSV's 1e-4 mm
+    as_nan = np.where(points[..., 3:4] < 0, np.nan, points[..., :3])
+    assert np.allclose(as_nan, markers, atol=1e-3, equal_nan=True)
+
+
+def test_close_writes_markers_as_c3d(tmp_path):
+    take = tmp_path / "take"
+    with TakeRecorder(take, MUSCLES, MARKERS, fps=60) as rec:
+        for k in range(20):
+            rec.record(k, k / 60, *_values(k))
+    labels, rate, units, n_frames, points = _read_c3d(take / "markers.c3d")
+    assert labels == list(MARKERS) and rate == 60.0 and units == "mm" and n_frames == 20
+    expected = np.array([_values(k)[1] for k in range(20)])
+    assert np.isnan(expected).any() and points.shape == (20, 2, 5)
+    _assert_c3d_matches(points, expected)
+    _assert_c3d_matches(points, load_take_dir(take).markers)
+    assert not list(take.glob("*.partial"))
+
+
+def test_a_take_never_closed_exports_to_c3d_from_the_command_line(tmp_path):
+    from click.testing import CliRunner
+
+    from livebridge.cli import main
+
+    take = tmp_path / "crashed"
+    rec = TakeRecorder(take, MUSCLES, MARKERS, flush_interval=0.1)  # no fps: the rate comes from the times
+    try:
+        for k in range(12):
+            rec.record(k, 3.0 + k / 50, *_values(k))
+        deadline = time.monotonic() + 5.0
+        while load_take_dir(take).n_frames < 12:
+            assert time.monotonic() < deadline, "the frames were not flushed"
+            time.sleep(0.02)
+        with open(take / "markers.csv", "a") as stream:
+            stream.write("12,12,3.24,1.0,2")  # a crash in the middle of a line
+        result = CliRunner().invoke(main, ["take", "export-c3d", str(take)])
+        assert result.exit_code == 0, result.output
+        assert "markers.c3d" in result.output
+        labels, rate, _, n_frames, points = _read_c3d(take / "markers.c3d")
+        assert labels == list(MARKERS) and rate == 50.0 and n_frames == 12
+        _assert_c3d_matches(points, np.array([_values(k)[1] for k in range(12)]))
+    finally:
+        rec.close()
+
+
+def test_c3d_export_needs_a_frame_rate(tmp_path):
+    with TakeRecorder(tmp_path / "t", MUSCLES, MARKERS) as rec:  # one frame, no fps: no rate to write
+        rec.record(0, 0.0, *_values(1))
+    assert not (tmp_path / "t" / "markers.c3d").exists()
+    with pytest.raises(InputError, match="frame rate"):
+        export_c3d(tmp_path / "t")
+    out = export_c3d(tmp_path / "t", tmp_path / "one.c3d", rate=30.0)
+    _, rate, _, n_frames, points = _read_c3d(out)
+    assert rate == 30.0 and n_frames == 1
+    _assert_c3d_matches(points, _values(1)[1][None])

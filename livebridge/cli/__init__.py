@@ -23,6 +23,7 @@ _COMMANDS = (
     ("livebridge.cli.bench", "bench"),
     ("livebridge.cli.runtime", "run"),
     ("livebridge.cli.runtime", "demo"),
+    ("livebridge.cli.take", "take"),
 )
 
 

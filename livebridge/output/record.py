@@ -19,6 +19,15 @@ Take directory format (``livebridge-take-dir``, version 1)
 ``displacements.csv`` (when recorded)
     Same layout: each labelled marker's displacement from neutral in the face
     model frame, mm (what the solver consumed).
+``markers.c3d`` (written when the take is closed)
+    The labelled markers as a C3D file (``c3d.Writer``): one point per marker,
+    labelled with the marker name, one frame per row of ``markers.csv``, at the
+    take's ``fps`` (or the rate of its timestamps), units mm, float storage; a
+    marker not seen in a frame is an invalid point (residual -1). C3D needs the
+    frame count up front, so it is an export written from ``markers.csv`` at
+    close, to a temporary name and renamed; ``markers.csv`` stays the
+    crash-safe record. A take whose close never ran (a crash) is exported with
+    :func:`export_c3d` (``livebridge take export-c3d TAKE_DIR``).
 ``session.toml``, ``calibration.*``
     Copies of the files the take was recorded with (``calibration.toml`` is
     written from the cameras themselves when there is no file, e.g. for a
@@ -49,6 +58,7 @@ import queue
 import shutil
 import threading
 import time
+import warnings
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,6 +71,7 @@ from livebridge.tomlio import load_toml, save_toml
 
 TAKE_DIR_FORMAT = "livebridge-take-dir"
 TAKE_DIR_VERSION = 1
+C3D_NAME = "markers.c3d"
 
 
 class _CsvStream:
@@ -307,6 +318,15 @@ class TakeRecorder:
             self._manifest.update(t0=self._t0, frames=self.frames)
         if self._t0 is not None or self._frame_writer is not None:
             save_toml(self.path / "take.toml", self._manifest)
+        if self.frames and self.marker_names:
+            self._export_c3d()
+
+    def _export_c3d(self) -> None:
+        """``markers.c3d`` from the closed ``markers.csv``; skipped when one frame and no fps give no rate."""
+        names, markers, t = _read_markers(self.path)
+        rate = _take_rate(self._manifest.get("fps"), t)
+        if rate is not None:
+            write_c3d(self.path / C3D_NAME, names, markers, rate)
 
     def __enter__(self) -> TakeRecorder:
         return self
@@ -399,6 +419,17 @@ def _read_csv(path: Path, n_columns: int) -> tuple[list[str], np.ndarray, bool]:
     return header, np.array(rows, dtype=np.float64).reshape(len(rows), n_columns), torn
 
 
+def _load_manifest(path: Path) -> dict:
+    """``take.toml`` of the take directory ``path``, format and version checked."""
+    manifest = load_toml(path / "take.toml")
+    if manifest.get("format") != TAKE_DIR_FORMAT:
+        raise InputError(f"format must be {TAKE_DIR_FORMAT!r}", path / "take.toml", "format")
+    if manifest.get("version", 0) > TAKE_DIR_VERSION:
+        raise InputError(f"version {manifest['version']} is newer than this livebridge reads",
+                         path / "take.toml", "version")
+    return manifest
+
+
 def load_take_dir(path: str | Path) -> RecordedTake:
     """Read a take directory, including one cut short by a crash (up to its last flushed line).
 
@@ -406,12 +437,7 @@ def load_take_dir(path: str | Path) -> RecordedTake:
     files' flushes) are dropped, so every array has the same frames.
     """
     path = Path(path)
-    manifest = load_toml(path / "take.toml")
-    if manifest.get("format") != TAKE_DIR_FORMAT:
-        raise InputError(f"format must be {TAKE_DIR_FORMAT!r}", path / "take.toml", "format")
-    if manifest.get("version", 0) > TAKE_DIR_VERSION:
-        raise InputError(f"version {manifest['version']} is newer than this livebridge reads",
-                         path / "take.toml", "version")
+    manifest = _load_manifest(path)
     muscles = tuple(manifest.get("muscle_names", ()))
     markers = tuple(manifest.get("marker_names", ()))
     _, c_rows, torn_c = _read_csv(path / "contractions.csv", 3 + len(muscles) + 2)
@@ -433,3 +459,123 @@ def load_take_dir(path: str | Path) -> RecordedTake:
         markers=m_rows[:, 3:].reshape(n, len(markers), 3), displacements=displacements,
         muscle_names=muscles, marker_names=markers, manifest=manifest, complete=complete,
     )
+
+
+# -- C3D export ------------------------------------------------------------------------------------------------
+
+
+def _read_markers(path: Path) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+    """Marker names, positions ``(n_frames, n_markers, 3)`` (mm, NaN unseen) and times ``(n_frames,)`` of a take.
+
+    Reads ``markers.csv`` alone: every row flushed before a crash counts (a torn last line is dropped).
+    """
+    names = tuple(_load_manifest(path).get("marker_names", ()))
+    if not (path / "markers.csv").is_file():
+        raise InputError("file not found", path / "markers.csv")
+    _, rows, _ = _read_csv(path / "markers.csv", 3 + 3 * len(names))
+    return names, rows[:, 3:].reshape(len(rows), len(names), 3), rows[:, 2]
+
+
+def _take_rate(fps: float | None, t: np.ndarray) -> float | None:
+    """The take's frame rate, Hz: the nominal ``fps``, else from the median step of the times ``t``
+    (shape (n_frames,)); None when neither is known (one frame, no fps)."""
+    if fps:
+        return float(fps)
+    steps = np.diff(t)
+    steps = steps[steps > 0]
+    if not len(steps):
+        return None
+    return round(1.0 / float(np.median(steps)), 3)
+
+
+def c3d_points(markers: np.ndarray) -> np.ndarray:
+    """C3D point rows ``(n_frames, n_markers, 5)`` (x, y, z, residual, camera mask) from positions.
+
+    Parameters
+    ----------
+    markers : ndarray, shape (n_frames, n_markers, 3)
+        mm, NaN where a marker was not seen.
+
+    Returns
+    -------
+    ndarray, shape (n_frames, n_markers, 5)
+        Seen: the position, residual 0 (no residual is measured), camera mask 0. Unseen: zeros and
+        residual -1, C3D's "invalid point".
+    """
+    markers = np.asarray(markers, dtype=np.float64)
+    seen = np.all(np.isfinite(markers), axis=-1)
+    points = np.zeros(markers.shape[:-1] + (5,))
+    points[..., :3] = np.where(seen[..., None], markers, 0.0)
+    points[..., 3] = np.where(seen, 0.0, -1.0)
+    return points
+
+
+def write_c3d(out: str | Path, marker_names, markers: np.ndarray, rate: float) -> Path:
+    """Write labelled markers as a C3D file (no analog channels), atomically.
+
+    Parameters
+    ----------
+    out : Path
+        The file; written as ``<out>.partial`` and renamed, so a crash never leaves a half file at ``out``.
+    marker_names : sequence of str
+        Point labels, one per marker.
+    markers : ndarray, shape (n_frames, n_markers, 3)
+        Positions, mm, NaN unseen (written as invalid points).
+    rate : float
+        Frames per second.
+
+    Returns
+    -------
+    Path
+        ``out``.
+    """
+    import c3d
+
+    out = Path(out)
+    points = c3d_points(markers)
+    # point_scale < 0: float32 coordinates, no 16-bit quantisation of the millimetres
+    writer = c3d.Writer(point_rate=float(rate), point_scale=-1.0, point_units="mm")
+    writer.set_point_labels(list(marker_names))
+    # py-c3d 0.6 leaves an invalid point's x, y, z in the file as that point's last valid ones; C3D readers
+    # go by the residual -1, not the coordinates
+    no_analog = np.zeros((0, 0))
+    writer.add_frames([(frame, no_analog) for frame in points])
+    partial = out.with_name(out.name + ".partial")
+    with open(partial, "wb") as handle, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "No analog data", UserWarning)  # markers only, by design
+        writer.write(handle)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(partial, out)
+    return out
+
+
+def export_c3d(path: str | Path, out: str | Path | None = None, rate: float | None = None) -> Path:
+    """Write the markers of the take directory ``path`` as C3D (see the module docstring).
+
+    For a take whose recorder was never closed (a crash), or to re-export one.
+
+    Parameters
+    ----------
+    path : Path
+        The take directory.
+    out : Path, optional
+        The C3D file; default ``<path>/markers.c3d``.
+    rate : float, optional
+        Frames per second; default the take's ``fps``, else the rate of its timestamps.
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
+    path = Path(path)
+    names, markers, t = _read_markers(path)
+    if not names:
+        raise InputError("the take has no markers", path / "take.toml", "marker_names")
+    if not len(markers):
+        raise InputError("no frames recorded", path / "markers.csv")
+    rate = rate or _take_rate(_load_manifest(path).get("fps"), t)
+    if rate is None or not rate > 0:
+        raise InputError("the frame rate is unknown (one frame and no fps); give it", path / "take.toml", "fps")
+    return write_c3d(path / C3D_NAME if out is None else out, names, markers, rate)

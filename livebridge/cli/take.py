@@ -1,0 +1,34 @@
+"""``livebridge take``: work on recorded take directories (``livebridge run`` / ``demo --record``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.group()
+def take() -> None:
+    """Recorded take directories: exports."""
+
+
+@take.command("export-c3d")
+@click.argument("take_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="The C3D file (default: TAKE_DIR/markers.c3d).")
+@click.option("--rate", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Frames per second (default: the take's fps, else the rate of its timestamps).")
+def export_c3d(take_dir: Path, out: Path | None, rate: float | None) -> None:
+    """Write the labelled markers of TAKE_DIR as C3D (mm; unseen markers are invalid points).
+
+    A closed take already has markers.c3d; this exports one whose recording was cut short (a crash),
+    up to its last flushed frame, or writes it again elsewhere.
+    """
+    from livebridge.errors import InputError
+    from livebridge.output.record import export_c3d as export
+
+    try:
+        written = export(take_dir, out, rate)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
+    click.echo(f"wrote {written}")
