@@ -55,6 +55,36 @@ def test_step_api_matches_batch_and_frames_are_frozen(setup):
     assert frame.head2world.shape == (4, 4) and frame.displacements.shape == (len(markers), 3)
 
 
+def test_labels_come_back_after_every_camera_lost_the_face(setup):
+    """A dropout of 0.5 s (nothing detected in any camera; the head keeps moving) is longer than the
+    tracker can coast: it declares itself lost and labels the markers again from scratch, without a swap."""
+    basis, markers, cameras = setup
+    take = simulate(basis, markers, cameras, 150, seed=8)
+    gap = range(40, 70)
+    frames_2d = [[np.zeros((0, 2))] * len(cameras) if f in gap else take.frames_2d[f] for f in range(150)]
+    reconstructor = Reconstructor(cameras, markers, basis)
+    state, frames = reconstructor.initial_state(), []
+    for f, (points_2d, t) in enumerate(zip(frames_2d, take.t)):
+        state, frame = reconstructor.step(state, points_2d, t)
+        frames.append(frame)
+        if f == gap[-1]:
+            assert state.tracker.lost(state.track)
+    assert all(frames[f].labelled_fraction == 0 for f in gap)
+    after = slice(gap[-1] + 3, None)
+    result = evaluate(frames[after], simulate_slice(take, after))
+    assert result["swaps"] == 0 and result["labelled_fraction_reconstructible"] >= 0.98
+    assert result["rmse_mm"] <= 0.2
+
+
+def simulate_slice(take, frames: slice):
+    """The frames ``frames`` of a simulated take (for :func:`evaluate`)."""
+    from dataclasses import replace
+
+    return replace(take, frames_2d=take.frames_2d[frames], t=take.t[frames], points_3d=take.points_3d[frames],
+                   head2world=take.head2world[frames], displacements=take.displacements[frames],
+                   labelled_2d=take.labelled_2d[frames])
+
+
 @pytest.mark.parametrize("axis", [(0, 1, 0), (1, 0, 0), (0, 0, 1)])
 def test_first_labelling_with_head_turned_20_degrees(setup, axis):
     basis, markers, cameras = setup

@@ -15,7 +15,7 @@ Displacements are measured from the captured neutral frame, in the model frame.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -26,6 +26,7 @@ from livebridge.reconstruct.align import Alignment, align_to_model
 from livebridge.reconstruct.correspond import Correspondence, Correspondence3D
 from livebridge.reconstruct.detect import DetectConfig, detect_markers
 from livebridge.reconstruct.label import guided_first_labelling
+from livebridge.reconstruct.predicted import PredictedMatcher
 from livebridge.reconstruct.stabilize import apply, transform_scale
 from livebridge.reconstruct.track import TrackConfig, Tracker, TrackState
 from livebridge.reconstruct.triangulate import Triangulator
@@ -145,6 +146,7 @@ class Reconstructor:
         self.config = config
         self.triangulator = Triangulator(cameras)
         self.correspond = Correspondence3D(self.triangulator, config.tolerance_px)
+        self.matcher = PredictedMatcher(self.triangulator, config.tolerance_px, config.track.ratio)
         self.model_points = markers.neutral_positions(basis)
 
     @property
@@ -189,9 +191,16 @@ class Reconstructor:
         """
         if state.track is None:
             return self._first(state, points_2d, t)
-        _, predicted = state.tracker.predict(state.track, t)
-        points = self.points_3d(points_2d, predicted).points_3d
-        track, out = state.tracker.step(state.track, points, t)
+        if state.tracker.lost(state.track):
+            return self._reacquire(state, points_2d, t)
+        tracker = state.tracker
+        prediction = tracker.predict(state.track, t)
+        predicted = prediction[1]
+        # markers followed into the last frame are found around their predicted projections; the
+        # detections they leave go through the general correspondence and the tracker's assignment
+        found = self.matcher(points_2d, predicted, state.track.unseen == 0, tracker.gates(state.track))
+        points = self.points_3d(found.remaining, predicted).points_3d
+        track, out = tracker.step(state.track, points, t, found.positions_world, prediction)
         seen = np.isfinite(out.positions_model).all(axis=1)
         frame = LabelledFrame(float(t), out.positions_model, out.positions_model - state.neutral, out.positions_world,
                               out.head2world, out.n_stray, float(seen.mean()))
@@ -229,6 +238,32 @@ class Reconstructor:
         frame = LabelledFrame(float(t), positions, positions - neutral, captured, head2world,
                               int(np.isfinite(points).all(axis=1).sum() - seen.sum()), float(seen.mean()))
         return ReconstructorState(track, tracker, alignment, neutral, state.frames + 1), frame
+
+    def _reacquire(self, state: ReconstructorState, points_2d: Sequence[np.ndarray], t: float):
+        """Label a frame from scratch after the tracker lost every marker (a dropout longer than it coasts).
+
+        The same labelling as the first frame's (rotation hypotheses, assignment, similarity, then the
+        model-guided correspondence), against the markers' last known positions in the head frame (the
+        face as last seen); the tracker then restarts from the head pose this gives.
+        """
+        config, track = self.config, state.track
+        points, labelling = guided_first_labelling(lambda predicted: self.points_3d(points_2d, predicted).points_3d,
+                                                   track.positions_model, gate_mm=config.label_gate_mm,
+                                                   max_angle_deg=config.max_head_turn_deg)
+        world = labelling.marker_points(points, self.n_markers)
+        head_seen = np.isfinite(world[self.markers.head_mask]).all(axis=1).sum()
+        if labelling.n_matched < max(4, self.n_markers // 2) or head_seen < 3:
+            track = state.tracker.coast(track, t)
+            nothing = np.full((self.n_markers, 3), np.nan)
+            frame = LabelledFrame(float(t), nothing, nothing.copy(), nothing.copy(), track.head2world,
+                                  int(np.isfinite(points).all(axis=1).sum()), 0.0)
+            return replace(state, track=track, frames=state.frames + 1), frame
+        track, out = state.tracker.restart(track, t, world)
+        seen = np.isfinite(out.positions_model).all(axis=1)
+        frame = LabelledFrame(float(t), out.positions_model, out.positions_model - state.neutral, out.positions_world,
+                              out.head2world, out.n_stray + int(np.isfinite(points).all(axis=1).sum() - seen.sum()),
+                              float(seen.mean()))
+        return replace(state, track=track, frames=state.frames + 1), frame
 
     def run(self, frames_2d: Sequence[Sequence[np.ndarray]], t: np.ndarray) -> list[LabelledFrame]:
         """Batch form: reconstruct a whole take of frame sets (the first is the neutral face).

@@ -46,6 +46,10 @@ class TrackConfig:
     ratio : float
         A point is labelled only if its distance to its marker's prediction is below ``ratio`` times
         its distance to every other marker's prediction.
+    lost_frames : int
+        After this many frames in a row with fewer than 3 markers labelled (no head pose), the tracker
+        is lost: its predictions are no longer trusted and the markers are labelled from scratch
+        (:meth:`Tracker.lost`).
     """
 
     gate_mm: float = 4.0
@@ -53,6 +57,7 @@ class TrackConfig:
     max_gate_mm: float = 7.0
     velocity_frames: int = 3
     ratio: float = 0.6
+    lost_frames: int = 6
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,6 +80,8 @@ class TrackState:
         Head velocity, rotation vector (rad/s) then translation (mm/s), of ``head2world`` over time.
     model_offsets : ndarray, shape (n_markers, 3)
         Each marker's offset from the face model's prediction when last seen (model frame).
+    starved : int
+        Frames in a row with fewer than 3 markers labelled.
     """
 
     t: float
@@ -84,6 +91,7 @@ class TrackState:
     head2world: np.ndarray
     head_motion: np.ndarray
     model_offsets: np.ndarray
+    starved: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -172,6 +180,26 @@ class Tracker:
         return TrackState(float(t), positions, np.zeros_like(positions), unseen, np.array(head2world, dtype=np.float64),
                           np.zeros(6), positions - self.reference)
 
+    def lost(self, state: TrackState) -> bool:
+        """True when too few markers were labelled for too long to trust the predictions (``lost_frames``)."""
+        return state.starved > self.config.lost_frames
+
+    def coast(self, state: TrackState, t: float) -> TrackState:
+        """The state at ``t`` after a frame in which nothing was labelled while lost: the head held still."""
+        return replace(state, t=float(t), unseen=state.unseen + 1, head_motion=np.zeros(6), starved=state.starved + 1)
+
+    def restart(self, state: TrackState, t: float, found_world: np.ndarray) -> tuple[TrackState, TrackFrame]:
+        """Continue from markers labelled from scratch (after :meth:`lost`), ``found_world (n_markers, 3)``.
+
+        The head pose comes from the labelled head markers (at least 3 needed); velocities start at zero.
+        """
+        pose = head_pose(self.reference[self.head_mask], found_world[self.head_mask], self.model_scale)
+        if not np.isfinite(pose).all():
+            raise ValueError("restart needs at least 3 labelled head markers")
+        fresh = replace(state, head2world=pose, head_motion=np.zeros(6),
+                        velocities_model=np.zeros_like(state.velocities_model))
+        return self.step(fresh, np.zeros((0, 3)), t, found_world)
+
     def predict(self, state: TrackState, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Predicted head pose ``(4, 4)`` and world marker positions ``(n_markers, 3)`` at time ``t``."""
         dt = t - state.t
@@ -181,7 +209,14 @@ class Tracker:
         positions = state.positions_model + np.where(moving, state.velocities_model * ahead, 0.0)
         return head2world, apply(head2world, positions)
 
-    def step(self, state: TrackState, points_3d: np.ndarray, t: float) -> tuple[TrackState, TrackFrame]:
+    def gates(self, state: TrackState) -> np.ndarray:
+        """Each marker's assignment gate this frame (world mm), shape (n_markers,)."""
+        config = self.config
+        gate = np.minimum(config.gate_mm + config.gate_growth_mm * state.unseen, config.max_gate_mm)
+        return gate * self.model_scale
+
+    def step(self, state: TrackState, points_3d: np.ndarray, t: float, found_world: np.ndarray | None = None,
+             prediction: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[TrackState, TrackFrame]:
         """Label one frame's unlabelled points.
 
         Parameters
@@ -191,6 +226,12 @@ class Tracker:
             Unlabelled world points of this frame.
         t : float
             Seconds.
+        found_world : ndarray, shape (n_markers, 3), optional
+            Markers already labelled this frame (world positions; NaN for the others), e.g. by
+            :class:`~livebridge.reconstruct.predicted.PredictedMatcher`; ``points_3d`` are assigned to
+            the rest.
+        prediction : (ndarray (4, 4), ndarray (n_markers, 3)), optional
+            ``self.predict(state, t)`` when the caller already has it.
 
         Returns
         -------
@@ -200,16 +241,18 @@ class Tracker:
         points_3d = np.asarray(points_3d, dtype=np.float64).reshape(-1, 3)
         n_markers = len(state.positions_model)
         dt = max(t - state.t, 1e-6)
-        predicted_pose, predicted = self.predict(state, t)
-        gate = np.minimum(config.gate_mm + config.gate_growth_mm * state.unseen, config.max_gate_mm)
-        gate = gate * self.model_scale
+        predicted_pose, predicted = self.predict(state, t) if prediction is None else prediction
+        world = np.full((n_markers, 3), np.nan) if found_world is None else np.array(found_world, dtype=np.float64)
+        found = np.isfinite(world).all(axis=1)
+        gate = self.gates(state)
         cost = np.linalg.norm(predicted[:, None] - points_3d[None], axis=-1)  # (n_markers, n_points)
         contractions = None
-        returning = state.unseen > 0
-        if self.displacement is not None and returning.any():
-            contractions, predicted = self._model_prediction(state, points_3d, cost, gate, predicted_pose, predicted)
+        returning = (state.unseen > 0) & ~found
+        if self.displacement is not None and returning.any() and len(points_3d):
+            contractions, predicted = self._model_prediction(state, points_3d, cost, gate, predicted_pose, predicted,
+                                                             world)
             cost = np.linalg.norm(predicted[:, None] - points_3d[None], axis=-1)
-        rows, cols = gated_assignment(cost, gate)
+        rows, cols = gated_assignment(np.where(found[:, None], np.inf, cost), gate)
         # refuse an assignment unless the point is clearly nearer its own prediction than any other (swap guard)
         if len(rows):
             others = cost[:, cols].copy()
@@ -221,7 +264,6 @@ class Tracker:
         rows, cols = rows[keep], cols[keep]
         labels = np.full(len(points_3d), -1, dtype=np.int64)
         labels[cols] = rows
-        world = np.full((n_markers, 3), np.nan)
         world[rows] = points_3d[cols]
         head2world = head_pose(self.reference[self.head_mask], world[self.head_mask], self.model_scale)
         if not np.isfinite(head2world).all():
@@ -248,7 +290,7 @@ class Tracker:
                 offsets[seen] = model[seen] - self.reference[seen] - fitted
         new_state = replace(state, t=float(t), positions_model=positions, velocities_model=velocities, unseen=unseen,
                             head2world=head2world, head_motion=_pose_motion(state.head2world, head2world, dt),
-                            model_offsets=offsets)
+                            model_offsets=offsets, starved=0 if seen.sum() >= 3 else state.starved + 1)
         frame = TrackFrame(labels, world, model, head2world, int(len(points_3d) - len(rows)), n_refused)
         return new_state, frame
 
@@ -260,14 +302,15 @@ class Tracker:
         b = (model[use] - self.reference[use]).reshape(-1)
         return nnls(a, b)[0]
 
-    def _model_prediction(self, state, points_3d, cost, gate, predicted_pose, predicted):
+    def _model_prediction(self, state, points_3d, cost, gate, predicted_pose, predicted, found_world):
         """Predictions of markers returning from a gap from the face model, fitted to the continuing markers."""
         continuing = state.unseen == 0
-        rows, cols = gated_assignment(np.where(continuing[:, None], cost, np.inf), gate)
-        if len(rows) < 3:
-            return None, predicted
-        world = np.full_like(predicted, np.nan)
+        found = np.isfinite(found_world).all(axis=1)
+        rows, cols = gated_assignment(np.where((continuing & ~found)[:, None], cost, np.inf), gate)
+        world = found_world.copy()
         world[rows] = points_3d[cols]
+        if np.isfinite(world).all(axis=1).sum() < 3:
+            return None, predicted
         pose = head_pose(self.reference[self.head_mask], world[self.head_mask], self.model_scale)
         if not np.isfinite(pose).all():
             pose = predicted_pose
