@@ -91,7 +91,7 @@ def test_replay_with_gaps_synchronised_in_step(recorded):
     assert any(len(v) == 1 for v in expected.values())  # the take has gaps (drop=0.1)
     sources = open_sources(f"replay://{folder}?realtime=0")
     got = []
-    with SyncedCapture(sources, 1 / 50, queue_size=1, realtime=False, step_sources=True) as capture:
+    with SyncedCapture(sources, 1 / 50, queue_size=1, realtime=False) as capture:
         while (frameset := capture.read(timeout=2.0)) is not None:
             got.append(frameset)
             if len(got) == len(expected):

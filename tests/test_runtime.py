@@ -16,7 +16,7 @@ import pytest
 
 from livebridge.output.record import load_take_dir
 from livebridge.runtime.demo import build_demo
-from livebridge.runtime.pipeline import Lockstep, NewestQueue, run_until_stopped
+from livebridge.runtime.pipeline import NewestQueue, run_until_stopped
 
 _HANDSHAKE = (
     "GET /ws HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
@@ -32,45 +32,6 @@ def test_newest_queue_keeps_the_newest_and_never_blocks():
     assert (q.get(0), q.get(0), q.get(0)) == (8, 9, None) and q.dropped == 8
 
 
-class _CountingSource:
-    """An unpaced source that always has a frame (counts its reads)."""
-
-    def __init__(self, name):
-        self.source_id, self.reads, self.ended = name, 0, False
-
-    def start(self):
-        pass
-
-    def stop(self):
-        self.ended = True
-
-    def read(self, timeout=None):
-        self.reads += 1
-        return self.reads
-
-
-def test_lockstep_lets_cameras_run_only_as_far_as_the_pipeline():
-    lockstep = Lockstep(in_flight=1, stall_s=30.0)
-    a, b = lockstep.wrap([_CountingSource("a"), _CountingSource("b")])
-    assert a.read(0.01) == 1 and b.read(0.01) == 1
-    assert a.read(0.05) is None  # frame set 1 is still in the pipeline
-    lockstep.done()
-    assert a.read(0.01) == 2 and a.read(0.05) is None  # one ahead of camera b at most
-    assert b.read(0.01) == 2
-    free = Lockstep(in_flight=None)
-    (c,) = free.wrap([_CountingSource("c")])
-    assert [c.read(0.01) for _ in range(5)] == [1, 2, 3, 4, 5]  # without in_flight: as fast as it reads
-
-
-def test_lockstep_stall_guard_never_deadlocks():
-    lockstep = Lockstep(in_flight=1, stall_s=0.1)
-    (a,) = lockstep.wrap([_CountingSource("a")])
-    assert a.read(0.01) == 1
-    start = time.monotonic()
-    assert a.read(1.0) == 2  # nothing reported back: goes on after stall_s
-    assert 0.05 < time.monotonic() - start < 0.9
-
-
 def test_unpaced_pipeline_drops_nothing():
     parts = build_demo(size=SMALL, realtime=False, servo=False, render=False, log=lambda m: None)
     summary = run_until_stopped(parts.pipeline, frames=60, log=lambda m: None)
@@ -84,7 +45,7 @@ def test_a_camera_dies_mid_take_and_the_rest_keep_going():
                        on_frame=frames.append)
     pipeline = parts.pipeline
     dying = pipeline.sources[2]
-    inner = dying.source.source  # DetectingSource -> lockstep wrapper -> SimCameraSource
+    inner = dying.source  # DetectingSource -> SimCameraSource
     inner.kill_after(40)
     summary = run_until_stopped(pipeline, frames=120, log=lambda m: None)
     assert summary["solved"] >= 120

@@ -199,11 +199,11 @@ def test_realtime_capture_tolerates_a_uniformly_slow_host():
 
 
 def test_unpaced_capture_follows_frame_time_only():
-    """realtime=False: no ticker; with step_sources, sources slower than their frame period and slower
+    """realtime=False: no ticker; sources slower than their frame period and slower
     than each other are read in step, not reported dead; a slower consumer still gets every frame set."""
     cameras = [_DelayedCamera(f"c{k}", 0.01 * (k + 1), paced=False, period=1 / 120) for k in range(3)]
     got = []
-    with SyncedCapture(cameras, 1 / 120, queue_size=1, realtime=False, step_sources=True,
+    with SyncedCapture(cameras, 1 / 120, queue_size=1, realtime=False,
                        dead_after_s=0.05) as capture:
         assert not capture.realtime and len(capture._threads) == 3  # reader threads only
         while len(got) < 15:
@@ -215,3 +215,55 @@ def test_unpaced_capture_follows_frame_time_only():
         assert capture.dropped_framesets == 0
     assert not stats.dead and all(fs.complete for fs in got), stats
     assert [fs.frames[0].seq for fs in got] == list(range(15))
+
+
+class _GappyCamera:
+    """An unpaced camera of a recorded take: frames at ``seqs`` only (gaps where it dropped frames)."""
+
+    def __init__(self, name, seqs, period=1 / 60):
+        self.source_id, self.seqs, self.period = name, list(seqs), period
+        self.ended, self.error, self.reads = False, None, 0
+
+    def start(self):
+        pass
+
+    def stop(self):
+        self.ended = True
+
+    def read(self, timeout=None):
+        if self.reads == len(self.seqs):
+            self.ended = True
+            return None
+        seq = self.seqs[self.reads]
+        self.reads += 1
+        return Frame(IMAGE, seq * self.period, seq, self.source_id, sync_domain="hw")
+
+
+def test_unpaced_in_flight_reads_only_as_far_as_the_consumer():
+    """in_flight=1: a camera reads its next frame only once the consumer is done with the frame set of its
+    last one, by frame time, so cameras with different gaps stay in step and no frame set is incomplete
+    for want of waiting."""
+    a = _GappyCamera("a", range(20))
+    b = _GappyCamera("b", [k for k in range(20) if k not in (3, 4, 11)])
+    with SyncedCapture([a, b], 1 / 60, queue_size=1, realtime=False, in_flight=1, stall_s=30.0) as capture:
+        first = capture.read(timeout=2.0)
+        time.sleep(0.1)
+        assert first.frames[0].seq == 0 and (a.reads, b.reads) == (1, 1)  # nothing read ahead of the consumer
+        got = [first]
+        capture.done(first.t)
+        while len(got) < 20 and (frameset := capture.read(timeout=2.0)) is not None:
+            time.sleep(0.002)
+            assert max(a.reads, b.reads) <= frameset.frames[0].seq + 2  # at most the next frame read ahead
+            got.append(frameset)
+            capture.done(frameset.t)
+    assert [fs.frames[0].seq for fs in got] == list(range(20))
+    assert [fs.frames[1] is None for fs in got] == [k in (3, 4, 11) for k in range(20)]
+
+
+def test_unpaced_in_flight_stall_guard_never_deadlocks():
+    a = _GappyCamera("a", range(5))
+    with SyncedCapture([a], 1 / 60, queue_size=8, realtime=False, in_flight=1, stall_s=0.1) as capture:
+        start = time.monotonic()
+        got = [capture.read(timeout=2.0) for _ in range(3)]  # the consumer never reports done
+        assert all(fs is not None for fs in got)
+        assert 0.15 < time.monotonic() - start < 1.5  # two stalls of ~0.1 s

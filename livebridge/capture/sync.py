@@ -266,23 +266,31 @@ class SyncedCapture:
         clock is taken minus the recent delivery delay of the frames (arrival minus ``t_capture``, the
         largest of the last second, at most ``MAX_DELIVERY_DELAY_S``), so a uniformly slow host -- frames that
         arrive late but together -- does not make every camera look dead. False (unpaced sources:
-        simulators or replays run as fast as possible): time follows the frames only, no ticker, and no
-        frame set is dropped (the sources wait for the consumer).
-    step_sources : bool
-        Unpaced only: read the sources in step, in frame-time order (a camera reads its next frame only
-        when no live camera is behind it in frame time, as if one clock triggered them all; a camera
-        with gaps in its recording waits for the others). Without it (default) unpaced sources race
-        each other unless something else paces them (the runtime pipeline's ``Lockstep`` does; do not
-        combine the two).
+        simulators or replays run as fast as possible): time follows the frames only, no ticker, no frame
+        set is dropped (the sources wait for the consumer), and the sources are read in step, in frame-time
+        order: a camera reads its next frame only when no live camera is behind it in frame time, as if
+        one clock triggered them all (a camera with gaps in its recording waits for the others).
+    in_flight : int, optional
+        Unpaced only: the sources also wait for the consumer, which reports each frame set it finished
+        with :meth:`done`. A camera reads its next frame only while fewer than ``in_flight`` frame sets up
+        to its last frame are unfinished: 1, a frame set is read once the previous one is done (no frame
+        set waits behind another: its latency is its processing time); 2, the next set is read while the
+        previous one is processed. None (default): the sources run as far ahead as the queue allows.
+    stall_s : float
+        With ``in_flight``: if the consumer reports nothing for this long (a frame set lost on its way),
+        the sources go on regardless, so nothing deadlocks.
     **sync_options
         Passed to :class:`Synchronizer`.
     """
 
     def __init__(self, sources, period_s: float, queue_size: int = 2, realtime: bool = True,
-                 step_sources: bool = False, **sync_options):
+                 in_flight: int | None = None, stall_s: float = 0.5, **sync_options):
         self.sources = list(sources)
         self.realtime = bool(realtime)
-        self.step_sources = bool(step_sources) and not self.realtime
+        if in_flight is not None and (self.realtime or int(in_flight) < 1):
+            raise ValueError(f"in_flight is for unpaced capture, at least 1; got {in_flight} (realtime={realtime})")
+        self.in_flight = None if in_flight is None else int(in_flight)
+        self.stall_s = float(stall_s)
         self.sync = Synchronizer([s.source_id for s in self.sources], period_s, **sync_options)
         self._lock = threading.Lock()
         self._queue: queue.Queue[FrameSet] = queue.Queue(maxsize=queue_size)
@@ -293,6 +301,8 @@ class SyncedCapture:
         self._step = threading.Condition()  # unpaced: readers in frame-time order (see _may_read)
         self._read_t = [-math.inf] * len(self.sources)
         self._live = [True] * len(self.sources)
+        self._done_t = -math.inf  # unpaced with in_flight: time of the newest frame set the consumer finished
+        self._done_at = time.monotonic()
         self.dropped_framesets = 0
 
     @property
@@ -343,6 +353,13 @@ class SyncedCapture:
         except queue.Empty:
             return None
 
+    def done(self, t: float) -> None:
+        """The consumer finished (or gave up on) the frame set of time ``t`` (see ``in_flight``)."""
+        with self._step:
+            self._done_t = max(self._done_t, float(t))
+            self._done_at = time.monotonic()
+            self._step.notify_all()
+
     def _offer(self, framesets: list[FrameSet]) -> None:
         for frameset in framesets:
             if not self.realtime:  # unpaced sources can wait: hand out every frame set
@@ -380,16 +397,29 @@ class SyncedCapture:
         return self.sync.poll(now - self._delivery_delay(now))
 
     def _may_read(self, k: int) -> bool:
-        """Unpaced: camera ``k`` may read its next frame when no live camera is behind it in frame time."""
+        """Unpaced: camera ``k`` may read its next frame when no live camera is behind it in frame time and,
+        with ``in_flight``, when the consumer is far enough along (call with ``_step`` held)."""
+        tolerance = self.sync.tolerance_s
         behind = min((t for t, live in zip(self._read_t, self._live) if live), default=math.inf)
-        return self._read_t[k] <= behind + self.sync.tolerance_s
+        if self._read_t[k] > behind + tolerance:
+            return False
+        if self.in_flight is None:
+            return True
+        ahead = (self.in_flight - 1) * self.sync.period_s + tolerance
+        if self._read_t[k] <= self._done_t + ahead:
+            return True
+        if time.monotonic() - self._done_at > self.stall_s:  # nothing came back: do not deadlock
+            self._done_t, self._done_at = self._read_t[k] - ahead, time.monotonic()
+            return True
+        return False
 
     def _reader(self, source) -> None:
         k = self.sources.index(source)
+        stepped = not self.realtime
         while self._running.is_set():
-            if self.step_sources:  # keep unpaced sources in step: merge the streams in frame-time order
+            if stepped:  # unpaced: merge the streams in frame-time order (and wait for the consumer)
                 with self._step:
-                    if not self._step.wait_for(lambda: not self._running.is_set() or self._may_read(k), 0.1):
+                    if not self._step.wait_for(lambda: not self._running.is_set() or self._may_read(k), 0.05):
                         continue
             frame = source.read(timeout=0.1)
             if frame is None:
@@ -405,7 +435,7 @@ class SyncedCapture:
                     self._offer(ready)
                     return
                 continue
-            if self.step_sources:
+            if stepped:
                 with self._step:
                     self._read_t[k] = frame.t_capture
                     self._step.notify_all()

@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from livebridge.capture.sources import SourceWrapper
+from livebridge.capture.sync import SyncedCapture
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
 
@@ -194,103 +195,6 @@ class DetectingSource(SourceWrapper):
         return self._detect(frame.image), now, time.monotonic()
 
 
-class Lockstep:
-    """Keeps unpaced sources in step, as hardware-triggered cameras running as fast as the pipeline takes frames.
-
-    Sources with ``realtime=False`` (simulators, replays) would otherwise race each other, and the
-    synchroniser would have to give up on the laggards. :meth:`wrap` returns sources whose ``read``
-    lets no camera get more than one frame ahead of the slowest camera still running.
-
-    With ``in_flight`` set, the cameras also wait for the pipeline: a camera reads its frame number
-    ``r`` (counting from 0) only once fewer than ``in_flight`` frame sets before it are still being
-    processed, i.e. ``r < done + in_flight`` where :meth:`done` counts the frame sets the pipeline has
-    finished. An unpaced source then never builds a queue in front of a slower stage: nothing is
-    dropped, and a frame set's latency is its processing time, not time spent waiting behind earlier
-    sets. If the pipeline reports nothing for ``stall_s`` (a frame set lost on the way), the cameras go
-    on regardless.
-    """
-
-    def __init__(self, in_flight: int | None = None, stall_s: float = 0.5):
-        self._cond = threading.Condition()
-        self._reads: list[int] = []
-        self._live: list[bool] = []
-        self.in_flight = in_flight
-        self.stall_s = stall_s
-        self._done = 0
-        self._done_at = time.monotonic()
-
-    def wrap(self, sources) -> list:
-        out = []
-        for source in sources:
-            self._reads.append(0)
-            self._live.append(True)
-            out.append(_LockstepSource(source, self, len(self._reads) - 1))
-        return out
-
-    def done(self) -> None:
-        """The pipeline finished (or gave up on) one more frame set."""
-        with self._cond:
-            self._done += 1
-            self._done_at = time.monotonic()
-            self._cond.notify_all()
-
-    def _may_read(self, k: int) -> bool:
-        slowest = min((r for r, live in zip(self._reads, self._live) if live), default=self._reads[k])
-        if self._reads[k] > slowest:
-            return False
-        if self.in_flight is None or self._reads[k] < self._done + self.in_flight:
-            return True
-        if time.monotonic() - self._done_at > self.stall_s:  # nothing came back: do not deadlock
-            self._done = self._reads[k] - self.in_flight + 1
-            self._done_at = time.monotonic()
-            return True
-        return False
-
-    def before_read(self, k: int, timeout: float | None) -> bool:
-        with self._cond:
-            if self.in_flight is None:
-                return self._cond.wait_for(lambda: self._may_read(k), timeout)
-            deadline = None if timeout is None else time.monotonic() + timeout
-            while not self._may_read(k):  # wake up now and then for the stall check
-                left = 0.05 if deadline is None else min(0.05, deadline - time.monotonic())
-                if left <= 0:
-                    return False
-                self._cond.wait(left)
-            return True
-
-    def after_read(self, k: int, got_frame: bool, ended: bool) -> None:
-        with self._cond:
-            if got_frame:
-                self._reads[k] += 1
-            if ended:
-                self._live[k] = False
-            self._cond.notify_all()
-
-
-class _LockstepSource(SourceWrapper):
-    def __init__(self, source, lockstep: Lockstep, k: int):
-        super().__init__(source)
-        self._lockstep, self._k = lockstep, k
-
-    def stop(self) -> None:
-        self.source.stop()
-        self._lockstep.after_read(self._k, False, True)
-
-    def read(self, timeout: float | None = None):
-        if not self._lockstep.before_read(self._k, timeout):
-            return None
-        frame = self.source.read(timeout)
-        self._lockstep.after_read(self._k, frame is not None, frame is None and self.source.ended)
-        return frame
-
-
-def _synced_capture(sources, period_s: float, realtime: bool, **options):
-    """The synchroniser on reader threads; unpaced sources get no wall-clock ticker (their time is frame time)."""
-    from livebridge.capture.sync import SyncedCapture
-
-    return SyncedCapture(sources, period_s, queue_size=1, realtime=realtime, **options)
-
-
 def _percentile(values, q) -> float:
     values = np.asarray(values, dtype=np.float64)
     values = values[np.isfinite(values)]
@@ -341,7 +245,8 @@ class Pipeline:
         Frame periods; cross-domain grouping tolerance.
     realtime : bool
         False for sources that run as fast as they can (``realtime=False`` simulators and replays):
-        they are kept in lockstep and the synchroniser follows frame time only.
+        they are read in step, in frame-time order, the synchroniser follows frame time only, and no
+        frame set is dropped.
     log : callable, optional
         Receives status lines and events.
     on_frame : callable, optional
@@ -349,11 +254,10 @@ class Pipeline:
     status_interval : float
         Seconds between status lines.
     unpaced_in_flight : int or None
-        Unpaced sources only: frame sets in the pipeline at once (see :class:`Lockstep`); 1 (default):
-        the cameras read the next frame set once the previous one's servo bytes are written, so no
-        frame set waits behind another (lowest latency, nothing dropped); 2: the next set is detected
-        while the previous one is reconstructed; None: the cameras run freely and the newest-wins
-        queues drop what the slower stages cannot take.
+        Unpaced sources only: frame sets in the pipeline at once (``SyncedCapture(in_flight=)``); 1
+        (default): the cameras read the next frame set once the previous one's servo bytes are written, so
+        no frame set waits behind another (lowest latency); 2: the next set is detected while the previous
+        one is reconstructed; None: the cameras read ahead as far as the bounded queues allow.
     """
 
     def __init__(self, sources, cameras, basis: Basis, markers: MarkerSet, period_s: float,
@@ -375,17 +279,15 @@ class Pipeline:
             else DetectConfig()
         if len(sources) != len(cameras):
             raise ValueError(f"{len(sources)} camera sources for {len(cameras)} calibrated cameras")
-        self._lockstep = None
-        if not realtime:
-            self._lockstep = Lockstep(in_flight=unpaced_in_flight)
-            sources = self._lockstep.wrap(sources)
         self.sources = [
             DetectingSource(source, lambda image, camera=camera: camera.undistort_points(
                 detect_blobs(image, detect_config)))
             for source, camera in zip(sources, cameras.cameras)
         ]
-        self.capture = _synced_capture(self.sources, self.period_s, realtime,
-                                       tolerance_s=sync_tolerance * self.period_s)
+        self.realtime = bool(realtime)
+        self.capture = SyncedCapture(self.sources, self.period_s, queue_size=1, realtime=self.realtime,
+                                     tolerance_s=sync_tolerance * self.period_s,
+                                     in_flight=None if self.realtime else unpaced_in_flight)
         self.servo, self.render, self.vmc, self.recorder = servo, render, vmc, recorder
         self.log = log or (lambda message: None)
         self.on_frame = on_frame
@@ -500,7 +402,7 @@ class Pipeline:
                 present += 1
             seq = next(f.seq for f in frameset.frames if f is not None)
             if not state.labelled and present < len(self.sources) - len(self.capture.sync.dead):
-                self._frameset_done()
+                self._frameset_done(frameset.t)
                 continue  # the first labelling (on the neutral face) waits for a frame set from every camera
             state, labelled = self.reconstructor.step(state, points_2d, frameset.t)
             if not state.labelled:
@@ -514,7 +416,7 @@ class Pipeline:
             self.stats.framesets += 1
             if self._solver is None:
                 cpu += time.thread_time() - t0
-                self._frameset_done()
+                self._frameset_done(frameset.t)
                 continue  # not labelled yet (the first frames must show the neutral face)
             self._solver_state, result = self._solver.step(self._solver_state, labelled.displacements)
             solved = time.monotonic()
@@ -526,7 +428,7 @@ class Pipeline:
                 t_servo = time.monotonic()
                 low, span = self._servo_scale
                 servo_targets = (np.asarray(self.servo.last_targets, dtype=np.float64) - low) / span
-            self._frameset_done()
+            self._frameset_done(frameset.t)
             timing = FrameTiming(frameset.t, complete, detected, dequeued, reconstructed, solved, t_servo)
             self._queue.put((SolvedFrame(
                 seq, frameset.index, timing, result.contractions, labelled.positions, labelled.positions_world,
@@ -539,9 +441,9 @@ class Pipeline:
         self._ended.set()
         self._queue.put(None)
 
-    def _frameset_done(self) -> None:
-        if self._lockstep is not None:
-            self._lockstep.done()
+    def _frameset_done(self, t: float) -> None:
+        if not self.realtime:  # unpaced sources wait for the pipeline (SyncedCapture in_flight)
+            self.capture.done(t)
 
     def _outputs_loop(self) -> None:
         try:
