@@ -4,7 +4,8 @@ Each camera renders, per frame, the markers as bright anti-aliased discs whose r
 distance (``f * diameter / 2 / depth``) on a dark, faintly shaded face (Lambert shading of the basis'
 neutral mesh lit from the camera, as by an IR ring light), rendered once per camera and cached, and
 shifted (translated) with the head. A marker is hidden when the face surface lies in front of it (a per-frame depth
-splat of the deformed, posed mesh) or when it faces away from the camera (more than ``max_view_deg``).
+splat of the deformed, posed mesh), when it faces away from the camera (more than ``max_view_deg``), or at random
+(``occlusion_rate``: a hand, hair, a prop).
 Sensor noise comes from pre-generated noise tiles read at random offsets; optional motion blur smears
 each marker over the exposure, spurious highlights appear on the face, frames drop and timestamps jitter.
 Everything is seeded: frame ``seq`` of camera ``c`` depends only on ``(seed, seq, c)`` and the
@@ -29,6 +30,7 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
+from numba import njit, uint64
 
 from livebridge.calibration.cameras import Camera, CameraGroup
 from livebridge.capture.frame import Frame, FrameSet
@@ -39,6 +41,8 @@ from livebridge.face.markers import MarkerSet
 from livebridge.face.meshio import triangle_normals
 
 SYNC_MODES = ("hardware", "free")
+_EYE = np.eye(4)
+_AT_REST = 1e-9 + 1e-5 * _EYE  # np.allclose's tolerance of head2world to the identity
 
 
 @dataclass(frozen=True)
@@ -84,6 +88,9 @@ class RigConfig:
         Hide markers behind the face surface (depth test).
     max_view_deg : float
         Markers whose normal is more than this angle from the direction to the camera are hidden.
+    occlusion_rate : float
+        Probability that a marker view that would otherwise be visible is hidden (a hand, hair, a prop),
+        independently per marker and camera, seeded by ``(seed, seq, camera)``.
     exposure_us : float
         Nominal exposure; brightness scales with ``exposure * gain`` relative to it.
     follow_head : bool
@@ -113,6 +120,7 @@ class RigConfig:
     free_offset: float = 0.15
     occlusion: bool = True
     max_view_deg: float = 80.0
+    occlusion_rate: float = 0.0
     exposure_us: float = 2000.0
     follow_head: bool = True
     buffers: int = 3
@@ -122,7 +130,7 @@ class RigConfig:
             raise InputError(f"sync must be one of {SYNC_MODES}, got {self.sync!r}", field="sync")
         if not self.fps > 0:
             raise InputError(f"fps must be positive, got {self.fps}", field="fps")
-        for name in ("drop_rate",):
+        for name in ("drop_rate", "occlusion_rate"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise InputError(f"{name} must be in [0, 1), got {getattr(self, name)}", field=name)
         if self.buffers < 1:
@@ -293,9 +301,15 @@ def _apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------- rendering
+#
+# An image is drawn by three compiled kernels: the moved cached background (:func:`_shift`), the discs
+# (:func:`_blend_discs`) and the noise (:func:`_add_noise`). They repeat the numpy formulation's operations in
+# the same order (no fast-math), so images are bit-identical to it; tests/test_rig.py checks them against it.
+# Their row loops index with unsigned integers: numba then leaves out its negative-index fix-up, and they
+# compile to vector code.
 
 def render_discs(image: np.ndarray, centers: np.ndarray, radii: np.ndarray, levels: np.ndarray) -> None:
-    """Draw anti-aliased bright discs in place (alpha-blended towards ``levels``).
+    """Draw anti-aliased bright discs in place (alpha-blended towards ``levels``), one after the other.
 
     Coverage of a pixel is ``clip(radius + 0.5 - distance, 0, 1)`` from the pixel centre (integer pixel
     coordinates are pixel centres, as in OpenCV). Motion blur: pass several ``centers`` per disc.
@@ -312,29 +326,148 @@ def render_discs(image: np.ndarray, centers: np.ndarray, radii: np.ndarray, leve
     if len(centers) == 0:
         return
     centers = np.asarray(centers, dtype=np.float64)
-    if centers.ndim == 2:
-        centers = centers[:, None, :]
+    if centers.ndim == 2:  # one sample per disc: it is the disc's mean position
+        centers, mid, extent = centers[:, None, :], centers, 0.0
+    else:
+        mid = centers.mean(axis=1)  # (n, 2)
+        extent = np.abs(centers - mid[:, None]).max(axis=(1, 2))
+    radii = np.ascontiguousarray(radii, dtype=np.float64)
+    # each disc its own patch: a covered pixel lies within radius + 0.5 of a sample, a sample within extent + 0.5
+    # of the patch centre (a pixel no disc covers keeps its value, so the patch size does not change the image)
+    halves = np.ceil(radii + extent).astype(np.int64) + 1
+    _blend_discs(image, np.ascontiguousarray(centers), np.rint(mid).astype(np.int64), halves, radii,
+                 np.ascontiguousarray(levels, dtype=np.float64))
+
+
+@njit(cache=True, nogil=True)
+def _blend_discs(image, centers, corners, halves, radii, levels):
+    """The kernel of :func:`render_discs`: disc ``k`` (sample centres ``centers[k]``, shape (n_samples, 2)) in
+    the patch of half-width ``halves[k]`` around pixel ``corners[k]``, after disc ``k - 1``. Offsets are taken
+    from the patch centre, as in the numpy formulation, for the same rounding."""
     height, width = image.shape
-    mid = centers.mean(axis=1)  # (n, 2)
-    extent = np.abs(centers - mid[:, None]).max(axis=(1, 2))
-    half = int(math.ceil(float(np.max(radii + extent)) + 1.5))
-    offsets = np.arange(-half, half + 1, dtype=np.float64)
-    corner = np.rint(mid).astype(np.int64)  # patch centre pixel
-    # distance of every patch pixel from every sample centre: (n, s, P, P)
-    fx = (corner[:, None, 0] - centers[:, :, 0])[:, :, None] + offsets
-    fy = (corner[:, None, 1] - centers[:, :, 1])[:, :, None] + offsets
-    distance = np.sqrt(fy[:, :, :, None] ** 2 + fx[:, :, None, :] ** 2)
-    coverage = np.clip(radii[:, None, None, None] + 0.5 - distance, 0.0, 1.0).mean(axis=1)  # (n, P, P)
-    for k in range(len(coverage)):
-        x0, y0 = corner[k, 0] - half, corner[k, 1] - half
-        x1, y1 = x0 + 2 * half + 1, y0 + 2 * half + 1
-        cx0, cy0, cx1, cy1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
-        if cx0 >= cx1 or cy0 >= cy1:
+    n_samples = centers.shape[1]
+    for k in range(centers.shape[0]):
+        cx, cy, half = corners[k, 0], corners[k, 1], halves[k]
+        reach, level = radii[k] + 0.5, levels[k]
+        for y in range(max(cy - half, 0), min(cy + half + 1, height)):
+            for x in range(max(cx - half, 0), min(cx + half + 1, width)):
+                alpha = 0.0
+                for s in range(n_samples):
+                    fx = (cx - centers[k, s, 0]) + (x - cx)
+                    fy = (cy - centers[k, s, 1]) + (y - cy)
+                    alpha += min(max(reach - math.sqrt(fy * fy + fx * fx), 0.0), 1.0)
+                if n_samples > 1:  # the mean; x / 1 is x, and a division per pixel is not free
+                    alpha /= n_samples
+                if alpha > 0.0:  # an uncovered pixel keeps its value exactly, as in the blend below
+                    value = float(image[y, x])
+                    image[y, x] = int(min(max(value + alpha * (level - value) + 0.5, 0.0), 255.0))
+
+
+@njit(cache=True, nogil=True)
+def _shift(out, background, dx, dy, fill):
+    """``out`` = ``background`` moved right by ``dx`` and down by ``dy`` whole pixels, ``fill`` where nothing
+    moves in.
+
+    Parameters
+    ----------
+    out, background : ndarray of uint8, shape (height, width)
+    """
+    height, width = out.shape
+    for y in range(height):
+        row, source = uint64(y), uint64(max(y - dy, 0))
+        lo, hi = (max(dx, 0), min(width + dx, width)) if 0 <= y - dy < height else (width, width)
+        for x in range(lo):
+            out[row, uint64(x)] = fill
+        for x in range(hi, width):
+            out[row, uint64(x)] = fill
+        for x in range(lo, hi):
+            out[row, uint64(x)] = background[source, uint64(x - dx)]
+
+
+@njit(cache=True, nogil=True)
+def _add_noise(image, noise, ox, oy):
+    """Add the noise layers (see :class:`_NoiseTiles`) read from ``(ox, oy)`` to ``image`` in place, saturating.
+
+    Parameters
+    ----------
+    image : ndarray of uint8, shape (height, width)
+    noise : ndarray of int8, shape (n_layers, >= oy + height, >= ox + width)
+    """
+    height, width = image.shape
+    for layer in range(noise.shape[0]):
+        for y in range(height):
+            row, tile_row = uint64(y), uint64(oy + y)
+            for x in range(width):
+                # a signed saturating add, which LLVM makes a vector instruction of: the pixel moved to int8 by
+                # flipping its top bit (x - 128), the sum clamped to int8, the bit flipped back
+                moved = np.int16(np.int8(image[row, uint64(x)] ^ np.uint8(0x80)))
+                total = moved + np.int16(noise[layer, tile_row, uint64(ox + x)])
+                total = min(max(total, np.int16(-128)), np.int16(127))
+                image[row, uint64(x)] = np.uint8(np.int8(total)) ^ np.uint8(0x80)
+
+
+@njit(cache=True, nogil=True)
+def _zbuffer(points, fx, fy, cx, cy, width, height, cell):
+    """Nearest depth of ``points`` in each ``cell`` x ``cell`` pixel block of a pinhole camera (no distortion).
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        Camera frame, mm; points no more than 1 mm in front of the camera are left out.
+    cell : int
+        A power of two, so that ``floor(u / cell)`` is exactly numpy's ``u // cell``.
+
+    Returns
+    -------
+    ndarray, shape ((height // cell + 1) * (width // cell + 1),)
+        Row-major over the blocks; inf where no point falls.
+    """
+    grid_w = width // cell + 1
+    zbuffer = np.full((height // cell + 1) * grid_w, np.inf)
+    for i in range(points.shape[0]):
+        z = points[i, 2]
+        if not z > 1.0:
             continue
-        region = image[cy0:cy1, cx0:cx1]
-        alpha = coverage[k, cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
-        blended = region + alpha * (levels[k] - region)
-        region[...] = np.clip(blended + 0.5, 0, 255).astype(np.uint8)
+        u = fx * points[i, 0] / z + cx
+        v = fy * points[i, 1] / z + cy
+        if u >= 0 and u < width and v >= 0 and v < height:
+            index = int(math.floor(v / cell)) * grid_w + int(math.floor(u / cell))
+            zbuffer[index] = min(zbuffer[index], z)
+    return zbuffer
+
+
+@njit(cache=True, nogil=True)
+def _behind_surface(points, markers, cosine, visible, fx, fy, cx, cy, width, height, cell):
+    """The ``visible`` markers that lie behind the surface ``points`` splats on a coarse grid (see
+    :func:`_zbuffer`), shape (n,) bool.
+
+    Parameters
+    ----------
+    points : ndarray, shape (V, 3)
+        Mesh vertices in the camera frame, mm.
+    markers : ndarray, shape (n, 3)
+        Markers in the camera frame, mm.
+    cosine : ndarray, shape (n,)
+        Cosine of the angle between each marker's normal and its direction to the camera.
+    visible : ndarray of bool, shape (n,)
+    """
+    zbuffer = _zbuffer(points, fx, fy, cx, cy, width, height, cell)
+    grid_w = width // cell + 1
+    hidden = np.zeros(len(visible), dtype=np.bool_)
+    for m in range(len(visible)):
+        if not visible[m]:
+            continue
+        z = markers[m, 2]
+        u = fx * markers[m, 0] / z + cx
+        v = fy * markers[m, 1] / z + cy
+        if not (u >= 0 and u < width and v >= 0 and v < height):
+            continue
+        surface = zbuffer[int(math.floor(v / cell)) * grid_w + int(math.floor(u / cell))]
+        # the surface around the marker itself is closer by up to (cell size) * tan(view angle)
+        facing = min(max(cosine[m], 0.17), 1.0)
+        slope = math.sqrt(1.0 - facing * facing) / facing
+        hidden[m] = z > surface + (3.0 + 1.5 * cell * z / fx * slope)
+    return hidden
 
 
 def _render_face(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, face_level: float,
@@ -364,7 +497,16 @@ def _render_face(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, fa
 
 
 class _NoiseTiles:
-    """Pre-generated zero-mean noise as a saturating add and subtract pair of uint8 tiles, read at offsets."""
+    """Pre-generated zero-mean noise in whole grey levels, read at a random offset per frame.
+
+    Kept as int8 layers whose sum is the noise, each layer of the noise's sign, added to an image one after the
+    other with saturation: the same as adding the positive part and subtracting the negative part, each
+    saturating, in half the memory of two uint8 tiles (one layer unless the noise reaches 128 grey levels).
+
+    Attributes
+    ----------
+    layers : ndarray of int8, shape (n_layers, height + PAD, width + PAD)
+    """
 
     PAD = 97
 
@@ -372,15 +514,16 @@ class _NoiseTiles:
         width, height = size
         rng = np.random.default_rng([int(seed), 13])
         noise = rng.normal(0.0, sigma, size=(height + self.PAD, width + self.PAD)).astype(np.float32)
-        self.plus = np.clip(np.rint(noise), 0, 255).astype(np.uint8)
-        self.minus = np.clip(np.rint(-noise), 0, 255).astype(np.uint8)
-        self.size = size
+        rest = np.clip(np.rint(noise), -255, 255).astype(np.int16)  # beyond 255 a uint8 pixel saturates anyway
+        layers = [np.clip(rest, -127, 127)]
+        while (rest := rest - layers[-1]).any():
+            layers.append(np.clip(rest, -127, 127))
+        self.layers = np.stack(layers).astype(np.int8)
 
     def apply(self, image: np.ndarray, rng: np.random.Generator) -> None:
-        width, height = self.size
+        """Add noise to ``image`` (uint8, shape (height, width)) in place, read at an offset drawn from ``rng``."""
         ox, oy = rng.integers(0, self.PAD, size=2)
-        cv2.add(image, self.plus[oy:oy + height, ox:ox + width], dst=image)
-        cv2.subtract(image, self.minus[oy:oy + height, ox:ox + width], dst=image)
+        _add_noise(image, self.layers, int(ox), int(oy))
 
 
 @dataclass(frozen=True, eq=False)
@@ -395,6 +538,7 @@ class _State:
     previous: np.ndarray  # (n, 3) world, one frame earlier (motion blur)
     vertices: np.ndarray | None  # (V, 3) world, deformed and posed (None when not needed)
     normals: np.ndarray  # (n, 3) marker normals, world
+    anchor: np.ndarray | None  # (1, 3) world face centre, when the background follows a moved head
 
 
 # --------------------------------------------------------------------------------------------------- rig
@@ -461,6 +605,9 @@ class SimRig:
         self._marker_triangles = basis.triangles[markers.triangles]  # (n, 3) vertex indices
         self._elements = basis.elements.reshape(len(basis.elements), -1)  # (M, V*3)
         self._anchor = face_centre(basis)
+        self._anchor_pixels = [camera.project(self._anchor[None])[0] for camera in self.cameras.cameras]
+        self._world2cam = [camera.world2cam for camera in self.cameras.cameras]
+        self._centers = [camera.center for camera in self.cameras.cameras]
 
     # ----------------------------------------------------------------------------- public API
     @property
@@ -645,9 +792,12 @@ class SimRig:
         model = self.basis.neutral + (contractions @ self._elements).reshape(-1, 3)
         vertices = _apply(head2world, model)
         normal = triangle_normals(vertices, self._marker_triangles)  # (n, 3)
+        # np.allclose(head2world, eye, atol=1e-9) written out: it costs 60 us
+        moved = self.config.follow_head and not (np.abs(head2world - _EYE) <= _AT_REST).all()
         return _State(int(frame.seq), float(frame.t), contractions, head2world,
                       np.asarray(frame.marker_positions, dtype=np.float64), np.asarray(previous, dtype=np.float64),
-                      vertices if self.config.occlusion else None, normal)
+                      vertices if self.config.occlusion else None, normal,
+                      _apply(head2world, self._anchor[None]) if moved else None)
 
     def _background(self, c: int, scale: float) -> np.ndarray:
         key = (c, round(scale, 3))
@@ -662,88 +812,55 @@ class SimRig:
                 self._scaled[key] = image
         return image
 
-    def _visibility(self, camera: Camera, state: _State, pixels: np.ndarray, depth: np.ndarray) -> np.ndarray:
-        """Markers facing the camera and not behind the face surface, shape (n,) bool."""
-        to_camera = camera.center - state.markers
+    def _visibility(self, c: int, state: _State, pixels: np.ndarray, marker_cam: np.ndarray) -> np.ndarray:
+        """Markers facing camera ``c``, inside its image and not behind the face surface, shape (n,) bool.
+
+        Parameters
+        ----------
+        pixels : ndarray, shape (n, 2)
+        marker_cam : ndarray, shape (n, 3)
+            The markers in the camera frame.
+        """
+        camera = self.cameras.cameras[c]
+        to_camera = self._centers[c] - state.markers
         distance = np.linalg.norm(to_camera, axis=1)
         cosine = np.einsum("nd,nd->n", state.normals, to_camera) / distance
-        visible = (cosine > math.cos(math.radians(self.config.max_view_deg))) & (depth > 0)
+        visible = (cosine > math.cos(math.radians(self.config.max_view_deg))) & (marker_cam[:, 2] > 0)
         width, height = camera.size
         visible &= (pixels[:, 0] > -0.5) & (pixels[:, 0] < width - 0.5) & (pixels[:, 1] > -0.5) & \
                    (pixels[:, 1] < height - 0.5)
         if not self.config.occlusion or not visible.any():
             return visible
         # depth splat of the deformed mesh on a coarse grid (pinhole, no distortion: used consistently)
-        cell = 4
-        focal = camera.matrix[0, 0]
-        grid_w, grid_h = width // cell + 1, height // cell + 1
-        world2cam = camera.world2cam
-        points = _apply(world2cam, state.vertices)
-        front = points[:, 2] > 1.0
-        points = points[front]
-        u = camera.matrix[0, 0] * points[:, 0] / points[:, 2] + camera.matrix[0, 2]
-        v = camera.matrix[1, 1] * points[:, 1] / points[:, 2] + camera.matrix[1, 2]
-        inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
-        index = (v[inside] // cell).astype(np.int64) * grid_w + (u[inside] // cell).astype(np.int64)
-        zbuffer = np.full(grid_w * grid_h, np.inf)
-        np.minimum.at(zbuffer, index, points[inside, 2])
-        marker_cam = _apply(world2cam, state.markers)
-        mu = camera.matrix[0, 0] * marker_cam[:, 0] / marker_cam[:, 2] + camera.matrix[0, 2]
-        mv = camera.matrix[1, 1] * marker_cam[:, 1] / marker_cam[:, 2] + camera.matrix[1, 2]
-        ok = visible & (mu >= 0) & (mu < width) & (mv >= 0) & (mv < height)
-        cells = (mv[ok] // cell).astype(np.int64) * grid_w + (mu[ok] // cell).astype(np.int64)
-        surface = zbuffer[cells]
-        # the surface around the marker itself is closer by up to (cell size) * tan(view angle)
-        cos_ok = np.clip(cosine[ok], 0.17, 1.0)
-        slope = np.sqrt(1.0 - cos_ok ** 2) / cos_ok
-        margin = 3.0 + 1.5 * cell * marker_cam[ok, 2] / focal * slope
-        hidden = np.zeros_like(visible)
-        hidden[np.flatnonzero(ok)] = marker_cam[ok, 2] > surface + margin
-        return visible & ~hidden
+        (fx, _, cx), (_, fy, cy) = camera.matrix[:2]
+        points = _apply(self._world2cam[c], state.vertices)
+        return visible & ~_behind_surface(points, marker_cam, cosine, visible, fx, fy, cx, cy, width, height, 4)
+
+    def _unoccluded(self, seq: int, c: int) -> np.ndarray:
+        """Marker views of camera ``c`` in frame ``seq`` that ``occlusion_rate`` leaves alone, shape (n,) bool.
+
+        One draw per marker from a stream of its own, so what is hidden depends only on ``(seed, seq, c)``: not
+        on which other markers are visible, on the other random draws, or on the order cameras are read."""
+        rng = np.random.default_rng([self.seed, seq, c, 31])
+        return rng.random(len(self.markers)) >= self.config.occlusion_rate
 
     def _render_camera(self, state: _State, c: int, draw: bool = True):
         camera = self.cameras.cameras[c]
         config = self.config
         rng = np.random.default_rng([self.seed, state.seq, c, 29])
         n_markers = len(self.markers)
-        pixels = camera.project(state.markers)
-        depth = _apply(camera.world2cam, state.markers)[:, 2]
-        focal = float(camera.matrix[0, 0])
-        radii = focal * config.marker_diameter_mm / 2.0 / np.maximum(depth, 1e-6)
-        drop = bool(config.drop_rate > 0 and rng.random() < config.drop_rate)
-        if drop:
+        pixels, shift = self._project(c, state)
+        marker_cam = _apply(self._world2cam[c], state.markers)
+        radii = float(camera.matrix[0, 0]) * config.marker_diameter_mm / 2.0 / np.maximum(marker_cam[:, 2], 1e-6)
+        if config.drop_rate > 0 and rng.random() < config.drop_rate:
             return None, np.zeros(n_markers, bool), pixels, radii, np.zeros((0, 2)), True
-        visible = self._visibility(camera, state, pixels, depth)
+        visible = self._visibility(c, state, pixels, marker_cam)
+        if config.occlusion_rate > 0:
+            visible &= self._unoccluded(state.seq, c)
         if not draw:
             return None, visible, pixels, radii, np.zeros((0, 2)), False
         exposure_us, gain = self._exposure[c]
-        scale = exposure_us / config.exposure_us * gain
-        background = self._background(c, scale)
-        if config.follow_head and not np.allclose(state.head2world, np.eye(4), atol=1e-9):
-            image = self._follow_head(background, camera, state.head2world)  # a new array
-        else:
-            image = background.copy()
-        # spurious highlights: small bright blobs on visible face vertices
-        spurious = np.zeros((0, 2))
-        if config.spurious_rate > 0:
-            count = int(rng.poisson(config.spurious_rate))
-            if count:
-                pick = rng.integers(0, len(self.basis.neutral), size=count)
-                spurious = camera.project(_apply(state.head2world, self.basis.neutral[pick]))
-                spurious = spurious[np.isfinite(spurious).all(axis=1)]
-                render_discs(image, spurious, rng.uniform(0.8, 2.5, size=len(spurious)),
-                             np.minimum(255.0, rng.uniform(0.5, 1.1, size=len(spurious)) * config.marker_level))
-        index = np.flatnonzero(visible)
-        if len(index):
-            centers = pixels[index]
-            if config.motion_blur:
-                previous = camera.project(state.previous[index])
-                fraction = exposure_us * 1e-6 * config.fps  # exposure as a fraction of the frame period
-                steps = np.linspace(-0.5, 0.5, 7)[None, :, None]
-                centers = centers[:, None, :] + steps * fraction * (centers - previous)[:, None, :]
-            render_discs(image, centers, radii[index], np.full(len(index), min(255.0, config.marker_level * scale)))
-        if self._noise[c] is not None:
-            self._noise[c].apply(image, rng)
+        image, spurious = self._image(c, state, rng, np.flatnonzero(visible), pixels, radii, shift, (exposure_us, gain))
         t_capture = self.t0 + state.seq * self.period + self._offsets[c]
         if config.jitter_s > 0:
             t_capture += float(np.clip(rng.normal(0.0, config.jitter_s), -3 * config.jitter_s, 3 * config.jitter_s))
@@ -751,24 +868,80 @@ class SimRig:
                       self.sync_domains[c])
         return frame, visible, pixels, radii, spurious, False
 
-    def _follow_head(self, image: np.ndarray, camera: Camera, head2world: np.ndarray) -> np.ndarray:
-        """Shift the neutral-pose background by the whole-pixel image motion of the face centre.
+    def _project(self, c: int, state: _State) -> tuple[np.ndarray, tuple[int, int]]:
+        """Marker pixels in camera ``c``, shape (n, 2), and the whole-pixel shift ``(dx, dy)`` of the cached
+        background that follows the head.
 
-        A translation only (the head turns by a few degrees at most): as cheap as a copy, and the faint
-        background is not what anyone measures."""
-        anchor = self._anchor[None]
-        shift = camera.project(_apply(head2world, anchor))[0] - camera.project(anchor)[0]
+        The background only translates with the image motion of the face centre (the head turns by a few
+        degrees at most): as cheap as a copy, and the faint background is not what anyone measures.
+        """
+        camera = self.cameras.cameras[c]
+        if state.anchor is None:
+            return camera.project(state.markers), (0, 0)
+        # one projection call for the markers and the face centre (cv2 projects each point on its own)
+        projected = camera.project(np.concatenate([state.markers, state.anchor]))
+        shift = projected[-1] - self._anchor_pixels[c]
         if not np.isfinite(shift).all():
-            return image.copy()
+            return projected[:-1], (0, 0)
         dx, dy = (int(v) for v in np.rint(shift))
-        height, width = image.shape
-        if dx == 0 and dy == 0:
-            return image.copy()
-        out = np.full_like(image, int(round(self.config.ambient_level)))
-        if abs(dx) < width and abs(dy) < height:
-            out[max(dy, 0):height + min(dy, 0), max(dx, 0):width + min(dx, 0)] = \
-                image[max(-dy, 0):height + min(-dy, 0), max(-dx, 0):width + min(-dx, 0)]
-        return out
+        return projected[:-1], (dx, dy)
+
+    def _image(self, c: int, state: _State, rng: np.random.Generator, index: np.ndarray, pixels: np.ndarray,
+               radii: np.ndarray, shift: tuple[int, int], exposure: tuple[float, float]) -> tuple[np.ndarray, ...]:
+        """Camera ``c``'s image: the cached background shifted by ``shift``, spurious highlights, the markers
+        ``index`` and sensor noise (random draws from ``rng`` in that order).
+
+        Parameters
+        ----------
+        index : ndarray of int, shape (n_visible,)
+        pixels : ndarray, shape (n, 2)
+        radii : ndarray, shape (n,)
+
+        Returns
+        -------
+        image : ndarray of uint8, shape (height, width)
+        spurious : ndarray, shape (n_spurious, 2)
+            Centres of the spurious highlights.
+        """
+        config = self.config
+        exposure_us, gain = exposure
+        scale = exposure_us / config.exposure_us * gain
+        background = self._background(c, scale)
+        image = np.empty_like(background)
+        _shift(image, background, *shift, int(round(config.ambient_level)))
+        spurious = self._spurious(image, c, state, rng)
+        if len(index):
+            render_discs(image, self._marker_centers(c, state, index, pixels, exposure_us), radii[index],
+                         np.full(len(index), min(255.0, config.marker_level * scale)))
+        if self._noise[c] is not None:
+            self._noise[c].apply(image, rng)
+        return image, spurious
+
+    def _spurious(self, image: np.ndarray, c: int, state: _State, rng: np.random.Generator) -> np.ndarray:
+        """Draw spurious highlights, small bright blobs on face vertices, into camera ``c``'s ``image``;
+        returns their centres, shape (n_spurious, 2)."""
+        config = self.config
+        count = int(rng.poisson(config.spurious_rate)) if config.spurious_rate > 0 else 0
+        if not count:
+            return np.zeros((0, 2))
+        pick = rng.integers(0, len(self.basis.neutral), size=count)
+        spurious = self.cameras.cameras[c].project(_apply(state.head2world, self.basis.neutral[pick]))
+        spurious = spurious[np.isfinite(spurious).all(axis=1)]
+        render_discs(image, spurious, rng.uniform(0.8, 2.5, size=len(spurious)),
+                     np.minimum(255.0, rng.uniform(0.5, 1.1, size=len(spurious)) * config.marker_level))
+        return spurious
+
+    def _marker_centers(self, c: int, state: _State, index: np.ndarray, pixels: np.ndarray,
+                        exposure_us: float) -> np.ndarray:
+        """Centres of the markers ``index`` in camera ``c``, shape (n_index, 2); with motion blur, their
+        positions over the exposure, shape (n_index, 7, 2)."""
+        centers = pixels[index]
+        if not self.config.motion_blur:
+            return centers
+        previous = self.cameras.cameras[c].project(state.previous[index])
+        fraction = exposure_us * 1e-6 * self.config.fps  # exposure as a fraction of the frame period
+        steps = np.linspace(-0.5, 0.5, 7)[None, :, None]
+        return centers[:, None, :] + steps * fraction * (centers - previous)[:, None, :]
 
 
 # -------------------------------------------------------------------------------------------- sources
@@ -857,13 +1030,14 @@ class SimCameraSource(SourceBase):
 
 
 _URL_KEYS = {"frames", "cameras", "seed", "fps", "noise", "drop", "jitter_ms", "spurious", "blur", "sync", "realtime",
-             "size", "calibration", "script", "occlusion", "diameter_mm", "basis", "markers"}
+             "size", "calibration", "script", "occlusion", "occlusion_rate", "diameter_mm", "basis", "markers"}
 
 
 def rig_from_url(url: SourceURL | str) -> SimRig:
     """A :class:`SimRig` from ``sim://rig?cameras=4&seed=1&fps=60&noise=2&drop=0.01&jitter_ms=0.5&spurious=0.1
-    &blur=1&sync=hardware|free&size=1280x800&script=mixed&occlusion=1&diameter_mm=3&calibration=PATH
-    &basis=PATH.npz&markers=PATH.toml`` (``frames`` and ``realtime`` are the sources', see :func:`open_url`)."""
+    &blur=1&sync=hardware|free&size=1280x800&script=mixed&occlusion=1&occlusion_rate=0.05&diameter_mm=3
+    &calibration=PATH&basis=PATH.npz&markers=PATH.toml`` (``frames`` and ``realtime`` are the sources', see
+    :func:`open_url`)."""
     if isinstance(url, str):
         url = SourceURL.parse(url)
     if url.netloc != "rig":
@@ -873,6 +1047,7 @@ def rig_from_url(url: SourceURL | str) -> SimRig:
     for key, name, kind in (("fps", "fps", float), ("noise", "noise_sigma", float), ("drop", "drop_rate", float),
                             ("spurious", "spurious_rate", float), ("blur", "motion_blur", bool),
                             ("sync", "sync", str), ("occlusion", "occlusion", bool),
+                            ("occlusion_rate", "occlusion_rate", float),
                             ("diameter_mm", "marker_diameter_mm", float)):
         value = url.take(key, kind)
         if value is not None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -276,3 +277,202 @@ def test_rig_renders_calibration_boards(face, spec):
         # a chessboard's corner order is ambiguous up to a half turn: match each corner to the nearest projection
         error = np.linalg.norm(found[seen][:, None] - expected[None], axis=-1).min(axis=1)
         assert np.sqrt((error ** 2).mean()) < 0.5
+
+
+# ---------------------------------------------------------------- the compiled renderer against the numpy one
+# A straightforward numpy renderer (the one the compiled kernels replaced), drawing from the rig's ground
+# truth and seeds; images and visibility must match it bit for bit.
+
+def _reference_discs(image, centers, radii, levels):
+    """render_discs in numpy: one patch size for all discs, each disc blended in turn."""
+    if len(centers) == 0:
+        return
+    centers = np.asarray(centers, dtype=np.float64)
+    if centers.ndim == 2:
+        centers = centers[:, None, :]
+    height, width = image.shape
+    mid = centers.mean(axis=1)
+    extent = np.abs(centers - mid[:, None]).max(axis=(1, 2))
+    half = int(np.ceil(float(np.max(radii + extent)) + 1.5))
+    offsets = np.arange(-half, half + 1, dtype=np.float64)
+    corner = np.rint(mid).astype(np.int64)
+    fx = (corner[:, None, 0] - centers[:, :, 0])[:, :, None] + offsets
+    fy = (corner[:, None, 1] - centers[:, :, 1])[:, :, None] + offsets
+    distance = np.sqrt(fy[:, :, :, None] ** 2 + fx[:, :, None, :] ** 2)
+    coverage = np.clip(radii[:, None, None, None] + 0.5 - distance, 0.0, 1.0).mean(axis=1)
+    for k in range(len(coverage)):
+        x0, y0 = corner[k] - half
+        cx0, cy0, cx1, cy1 = max(x0, 0), max(y0, 0), min(x0 + 2 * half + 1, width), min(y0 + 2 * half + 1, height)
+        if cx0 < cx1 and cy0 < cy1:
+            region = image[cy0:cy1, cx0:cx1]
+            alpha = coverage[k, cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
+            region[...] = np.clip(region + alpha * (levels[k] - region) + 0.5, 0, 255).astype(np.uint8)
+
+
+def _apply(transform, points):
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def _reference_visible(rig, seq, c):
+    """Markers camera ``c`` sees in frame ``seq``: facing it, in the image, not behind a depth splat of the mesh."""
+    camera, state = rig.cameras.cameras[c], rig._state(seq)
+    to_camera = camera.center - state.markers
+    cosine = np.einsum("nd,nd->n", state.normals, to_camera) / np.linalg.norm(to_camera, axis=1)
+    marker_cam = _apply(camera.world2cam, state.markers)
+    pixels = camera.project(state.markers)
+    width, height = camera.size
+    visible = (cosine > np.cos(np.radians(rig.config.max_view_deg))) & (marker_cam[:, 2] > 0)
+    visible &= (pixels[:, 0] > -0.5) & (pixels[:, 0] < width - 0.5) & (pixels[:, 1] > -0.5) & \
+        (pixels[:, 1] < height - 0.5)
+    cell, (fx, fy), (cx, cy) = 4, np.diag(camera.matrix)[:2], camera.matrix[:2, 2]
+    points = _apply(camera.world2cam, state.vertices)
+    points = points[points[:, 2] > 1.0]
+    u, v = fx * points[:, 0] / points[:, 2] + cx, fy * points[:, 1] / points[:, 2] + cy
+    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    zbuffer = np.full((width // cell + 1) * (height // cell + 1), np.inf)
+    np.minimum.at(zbuffer, (v[inside] // cell).astype(int) * (width // cell + 1) + (u[inside] // cell).astype(int),
+                  points[inside, 2])
+    mu = fx * marker_cam[:, 0] / marker_cam[:, 2] + cx
+    mv = fy * marker_cam[:, 1] / marker_cam[:, 2] + cy
+    ok = visible & (mu >= 0) & (mu < width) & (mv >= 0) & (mv < height)
+    surface = zbuffer[(mv[ok] // cell).astype(int) * (width // cell + 1) + (mu[ok] // cell).astype(int)]
+    facing = np.clip(cosine[ok], 0.17, 1.0)
+    margin = 3.0 + 1.5 * cell * marker_cam[ok, 2] / fx * (np.sqrt(1.0 - facing ** 2) / facing)
+    visible[np.flatnonzero(ok)] &= ~(marker_cam[ok, 2] > surface + margin)
+    return visible
+
+
+def _reference_image(rig, seq, c, truth, tiles):
+    """Camera ``c``'s image of frame ``seq`` drawn in numpy from ``truth``, None where the camera drops it.
+
+    ``tiles`` caches the noise tiles, ``(plus, minus)`` per camera."""
+    from livebridge.simulators.rig import face_centre
+
+    config, camera, state = rig.config, rig.cameras.cameras[c], rig._state(seq)
+    rng = np.random.default_rng([rig.seed, seq, c, 29])
+    if config.drop_rate > 0 and rng.random() < config.drop_rate:
+        return None, (0, 0)
+    exposure_us, gain = rig._exposure[c]
+    scale = exposure_us / config.exposure_us * gain
+    background = rig._background(c, scale)
+    dx = dy = 0
+    if config.follow_head and not np.allclose(state.head2world, np.eye(4), atol=1e-9):
+        anchor = face_centre(rig.basis)[None]
+        dx, dy = np.rint(camera.project(_apply(state.head2world, anchor))[0] - camera.project(anchor)[0]).astype(int)
+    height, width = background.shape
+    image = np.full_like(background, int(round(config.ambient_level)))
+    image[max(dy, 0):height + min(dy, 0), max(dx, 0):width + min(dx, 0)] = \
+        background[max(-dy, 0):height + min(-dy, 0), max(-dx, 0):width + min(-dx, 0)]
+    count = int(rng.poisson(config.spurious_rate)) if config.spurious_rate > 0 else 0
+    if count:
+        pick = rng.integers(0, len(rig.basis.neutral), size=count)
+        spurious = camera.project(_apply(state.head2world, rig.basis.neutral[pick]))
+        spurious = spurious[np.isfinite(spurious).all(axis=1)]
+        np.testing.assert_array_equal(spurious, truth.spurious_2d[c])
+        _reference_discs(image, spurious, rng.uniform(0.8, 2.5, size=len(spurious)),
+                         np.minimum(255.0, rng.uniform(0.5, 1.1, size=len(spurious)) * config.marker_level))
+    seen = truth.visible[c]
+    centers = truth.points_2d[c, seen]
+    if config.motion_blur:
+        previous = camera.project(state.previous[seen])
+        steps = np.linspace(-0.5, 0.5, 7)[None, :, None]
+        centers = centers[:, None, :] + steps * (exposure_us * 1e-6 * config.fps) * (centers - previous)[:, None, :]
+    level = min(255.0, config.marker_level * scale)
+    _reference_discs(image, centers, truth.radius_px[c, seen], np.full(seen.sum(), level))
+    if config.noise_sigma > 0:
+        if c not in tiles:
+            noise = np.rint(np.random.default_rng([rig.seed * 1000 + c, 13]).normal(
+                0.0, config.noise_sigma, size=(height + 97, width + 97)).astype(np.float32))
+            tiles[c] = np.clip(noise, 0, 255).astype(np.uint8), np.clip(-noise, 0, 255).astype(np.uint8)
+        ox, oy = rng.integers(0, 97, size=2)
+        cv2.add(image, tiles[c][0][oy:oy + height, ox:ox + width], dst=image)
+        cv2.subtract(image, tiles[c][1][oy:oy + height, ox:ox + width], dst=image)
+    return image, (dx, dy)
+
+
+def test_render_discs_matches_numpy_with_blur_overlaps_and_edges(rng):
+    image = rng.integers(0, 80, size=(90, 160)).astype(np.uint8)
+    n = 40
+    centers = np.column_stack([rng.uniform(-8, 168, n), rng.uniform(-8, 98, n)])  # some past the edges
+    centers[1:6] = centers[0] + rng.uniform(-4, 4, (5, 2))  # discs on top of each other
+    radii, levels = rng.uniform(0.6, 7.0, n), rng.uniform(120, 255, n)
+    for samples in (centers, centers[:, None] + rng.uniform(-3, 3, (n, 7, 2))):  # plain and motion-blurred
+        expected, got = image.copy(), image.copy()
+        _reference_discs(expected, samples, radii, levels)
+        render_discs(got, samples, radii, levels)
+        np.testing.assert_array_equal(got, expected)
+        assert (got != image).sum() > 1000
+
+
+@pytest.mark.parametrize("config, n_cameras", [
+    (RigConfig(), 4),  # the demo's rig: noise, the background following the head
+    (RigConfig(noise_sigma=70.0, spurious_rate=4.0, motion_blur=True, drop_rate=0.2, size=(640, 400)), 3),
+    (RigConfig(noise_sigma=0.0, spread_deg=150.0, marker_diameter_mm=6.0, size=(640, 400)), 5),
+])
+def test_images_and_visibility_match_the_numpy_renderer(face, config, n_cameras):
+    basis, markers = face
+    rig = SimRig(basis, markers, n_cameras=n_cameras, config=config, seed=6)
+    rig.set_exposure(0, 6000.0, 1.5)  # a brighter camera, and a long exposure to blur
+    tiles, shifts, drawn = {}, set(), 0
+    for seq in (0, 17, 60, 95, 140):
+        frames, truth = rig.render(seq)
+        for c in range(n_cameras):
+            expected, shift = _reference_image(rig, seq, c, truth, tiles)
+            assert (frames[c] is None) == (expected is None) == truth.dropped[c]
+            if expected is not None:
+                np.testing.assert_array_equal(frames[c].image, expected)
+                np.testing.assert_array_equal(truth.visible[c], _reference_visible(rig, seq, c))
+                shifts.add(shift)
+                drawn += 1
+    assert drawn >= 10 and len(shifts) > 1  # the background did move with the head
+
+
+# ------------------------------------------------------------------------------------- random occlusion
+
+def test_occlusion_rate_hides_views_at_random_and_leaves_them_undrawn(face):
+    basis, markers = face
+    config, rate = RigConfig(noise_sigma=0.0), 0.3
+    clean = SimRig(basis, markers, n_cameras=4, config=config, seed=5)
+    occluded = SimRig(basis, markers, n_cameras=4, config=replace(config, occlusion_rate=rate), seed=5)
+    seqs = range(0, 240, 6)
+    before = np.array([clean.truth(seq).visible for seq in seqs])
+    after = np.array([occluded.truth(seq).visible for seq in seqs])
+    assert not (after & ~before).any()  # it only hides
+    assert (before & ~after).sum() / before.sum() == pytest.approx(rate, abs=0.03)
+    frames, truth = occluded.render(42)
+    seen = clean.truth(42)
+    hidden = seen.visible & ~truth.visible
+    assert hidden.any() and np.isnan(truth.points_2d[hidden]).all() and np.isnan(truth.radius_px[hidden]).all()
+    for c, m in zip(*np.nonzero(hidden)):
+        others = truth.points_2d[c, truth.visible[c]]
+        if np.linalg.norm(others - seen.points_2d[c, m], axis=1).min() > 15:  # no visible marker's disc nearby
+            x, y = np.rint(seen.points_2d[c, m]).astype(int)
+            assert frames[c].image[y - 1:y + 2, x - 1:x + 2].max() < 100  # markers are drawn at 230
+
+
+def test_occlusion_rate_is_seeded_and_order_independent(face):
+    basis, markers = face
+    config = RigConfig(noise_sigma=0.0, occlusion_rate=0.4, drop_rate=0.1, size=(320, 200))
+    a = SimRig(basis, markers, n_cameras=3, config=config, seed=8)
+    b = SimRig(basis, markers, n_cameras=3, config=config, seed=8)
+    forward = [a.render(seq, cameras=[2])[1].visible[2] for seq in range(12)]
+    backward = [b.truth(seq).visible[2] for seq in reversed(range(12))][::-1]  # other order, truth only
+    np.testing.assert_array_equal(forward, backward)
+    other = SimRig(basis, markers, n_cameras=3, config=config, seed=9)
+    assert not np.array_equal(forward, [other.truth(seq).visible[2] for seq in range(12)])
+
+
+@pytest.mark.parametrize("rate", [-0.1, 1.0, 2.0])
+def test_occlusion_rate_is_validated(rate):
+    with pytest.raises(InputError, match="occlusion_rate") as error:
+        RigConfig(occlusion_rate=rate)
+    assert error.value.field == "occlusion_rate"
+
+
+def test_sim_url_takes_the_occlusion_rate():
+    from livebridge.simulators.rig import rig_from_url
+
+    assert rig_from_url("sim://rig?cameras=1&size=64x40&occlusion_rate=0.25").config.occlusion_rate == 0.25
+    with pytest.raises(InputError, match="occlusion_rate") as error:
+        rig_from_url("sim://rig?cameras=1&occlusion_rate=1.5")
+    assert error.value.field == "occlusion_rate" and "sim://rig" in error.value.path
