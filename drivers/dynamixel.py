@@ -34,7 +34,7 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 from livebridge.drivers import dynamixel_protocol as dxl
-from livebridge.drivers.serial_bus import SerialServoBus, clamp_whole, open_simulated, url_device
+from livebridge.drivers.serial_bus import SerialServoBus, clamp_whole, open_simulated, simulator, url_device
 from livebridge.errors import InputError
 from livebridge.servo.bus import ServoInfo, ServoSetup, ServoStatus, url_options
 
@@ -439,7 +439,8 @@ def open_url(url: str, **options) -> DynamixelBus:
     """``dynamixel:///dev/ttyUSB0?baud=1000000`` or ``simdynamixel://?ids=1-16&model=XL330-M288``.
 
     Simulator options in the URL: ``ids``, ``model``, ``baud``, ``corrupt``,
-    ``drop`` (fault rates), ``seed``, ``delay`` (return delay time, 2 µs units).
+    ``drop`` (fault rates), ``seed``, ``delay`` (return delay time, 2 µs units),
+    ``process=1`` (serve it from its own process, as hardware would be).
     """
     parts = urlsplit(url)
     query = url_options(url)
@@ -451,10 +452,11 @@ def open_url(url: str, **options) -> DynamixelBus:
         from livebridge.simulators.dynamixel_bus import DynamixelSim, parse_ids
 
         try:
-            sim = DynamixelSim(ids=parse_ids(query.get("ids", "1")), model=query.get("model", "XL330-M288"),
-                               baud=baud, corrupt_rate=float(query.get("corrupt", 0)),
-                               drop_rate=float(query.get("drop", 0)), seed=int(query.get("seed", 0)),
-                               return_delay_time=int(query["delay"]) if "delay" in query else None)
+            sim = simulator(query, DynamixelSim, ids=parse_ids(query.get("ids", "1")),
+                            model=query.get("model", "XL330-M288"), baud=baud,
+                            corrupt_rate=float(query.get("corrupt", 0)), drop_rate=float(query.get("drop", 0)),
+                            seed=int(query.get("seed", 0)),
+                            return_delay_time=int(query["delay"]) if "delay" in query else None)
         except ValueError as error:
             raise InputError(str(error), url) from None
         options.setdefault("timeout_margin_ms", 150.0)

@@ -22,7 +22,7 @@ import time
 from collections.abc import Mapping, Sequence
 from urllib.parse import urlsplit
 
-from livebridge.drivers.serial_bus import PySerialServoBus, open_simulated, url_device
+from livebridge.drivers.serial_bus import PySerialServoBus, open_simulated, simulator, url_device
 from livebridge.errors import InputError
 from livebridge.servo.bus import ServoInfo, ServoSetup, ServoStatus, url_options
 
@@ -220,7 +220,8 @@ class MaestroBus(PySerialServoBus):
 
 
 def open_url(url: str, **options) -> MaestroBus:
-    """``maestro:///dev/ttyACM0?device=12`` or ``simmaestro://?channels=12&device=12``."""
+    """``maestro:///dev/ttyACM0?device=12`` or ``simmaestro://?channels=12&device=12`` (``&process=1``: the
+    simulator in its own process)."""
     parts = urlsplit(url)
     query = url_options(url)
     try:
@@ -231,9 +232,9 @@ def open_url(url: str, **options) -> MaestroBus:
     if parts.scheme == "simmaestro":
         from livebridge.simulators.maestro_bus import MaestroSim
 
-        sim = MaestroSim(channels=int(query.get("channels", 24)), device=device if device is not None else 12,
-                         corrupt_rate=float(query.get("corrupt", 0)), drop_rate=float(query.get("drop", 0)),
-                         seed=int(query.get("seed", 0)))
+        sim = simulator(query, MaestroSim, channels=int(query.get("channels", 24)),
+                        device=device if device is not None else 12, corrupt_rate=float(query.get("corrupt", 0)),
+                        drop_rate=float(query.get("drop", 0)), seed=int(query.get("seed", 0)))
         return open_simulated(sim, lambda path: MaestroBus(path, baud=baud, device=device, url=url,
                                                            simulator=sim, **options))
     port = url_device(url, "maestro:///dev/ttyACM0")

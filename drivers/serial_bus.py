@@ -5,8 +5,9 @@
   bus owns (``sim...://`` URLs), and the cadence of the slow status reads;
 - :class:`PySerialServoBus`: the same on a pyserial port (open with an
   :class:`~livebridge.errors.InputError` that names the URL, counted writes);
-- :func:`open_simulated` and :func:`url_device`: the two halves of an
-  ``open_url`` (a simulator on a pseudo-terminal, or a device path);
+- :func:`simulator`, :func:`open_simulated` and :func:`url_device`: the
+  halves of an ``open_url`` (a simulator on a pseudo-terminal, in this
+  process or its own, or a device path);
 - :func:`clamp_whole`: a raw target clamped to a servo's limits in whole units.
 
 pyserial is imported inside :meth:`PySerialServoBus.__init__` only.
@@ -28,6 +29,18 @@ Bus = TypeVar("Bus")
 def clamp_whole(setup: ServoSetup, value: float) -> int:
     """``value`` rounded and clamped to ``[ceil(setup.low), floor(setup.high)]``."""
     return int(min(math.floor(setup.high), max(math.ceil(setup.low), round(value))))
+
+
+def simulator(query: dict[str, str], factory, **options):
+    """The simulated device a ``sim...://`` URL asks for: ``factory(**options)``, or with ``process=1`` the same
+    device served from its own process (:class:`~livebridge.simulators.pty_bus.DeviceProcess`), as hardware
+    would be: no simulator thread then competes with the driving process for the CPU and the GIL."""
+    device = factory(**options)  # built here either way: bad options are reported with the URL, at once
+    if query.get("process", "0").lower() in ("0", "false", "no"):
+        return device
+    from livebridge.simulators.pty_bus import DeviceProcess
+
+    return DeviceProcess(factory, options)
 
 
 def open_simulated(sim, make: Callable[[str], Bus]) -> Bus:

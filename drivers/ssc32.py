@@ -21,7 +21,7 @@ import time
 from collections.abc import Mapping, Sequence
 from urllib.parse import urlsplit
 
-from livebridge.drivers.serial_bus import PySerialServoBus, clamp_whole, open_simulated, url_device
+from livebridge.drivers.serial_bus import PySerialServoBus, clamp_whole, open_simulated, simulator, url_device
 from livebridge.errors import InputError
 from livebridge.servo.bus import ServoInfo, ServoSetup, ServoStatus, url_options
 
@@ -133,7 +133,7 @@ class SSC32Bus(PySerialServoBus):
 
 
 def open_url(url: str, **options) -> SSC32Bus:
-    """``ssc32:///dev/ttyUSB1?baud=115200`` or ``simssc32://``."""
+    """``ssc32:///dev/ttyUSB1?baud=115200`` or ``simssc32://`` (``?process=1``: the simulator in its own process)."""
     parts = urlsplit(url)
     query = url_options(url)
     try:
@@ -143,8 +143,8 @@ def open_url(url: str, **options) -> SSC32Bus:
     if parts.scheme == "simssc32":
         from livebridge.simulators.ssc32_bus import SSC32Sim
 
-        sim = SSC32Sim(corrupt_rate=float(query.get("corrupt", 0)), drop_rate=float(query.get("drop", 0)),
-                       seed=int(query.get("seed", 0)))
+        sim = simulator(query, SSC32Sim, corrupt_rate=float(query.get("corrupt", 0)),
+                        drop_rate=float(query.get("drop", 0)), seed=int(query.get("seed", 0)))
         return open_simulated(sim, lambda path: SSC32Bus(path, baud=baud, url=url, simulator=sim, **options))
     port = url_device(url, "ssc32:///dev/ttyUSB1")
     return SSC32Bus(port, baud=baud, url=url, **options)

@@ -189,3 +189,73 @@ class PtyDevice:
             data = bytearray(data)
             data[self.random.randrange(len(data))] ^= 1 << self.random.randrange(8)
         return bytes(data)
+
+
+def _serve_in_child(factory, options: dict, connection) -> None:
+    """Child process of :class:`DeviceProcess`: serve the device until told to stop or the parent goes."""
+    device = factory(**options)
+    try:
+        connection.send(device.start())
+        try:
+            connection.recv()  # a stop message, or EOF when the parent process is gone
+        except EOFError:
+            pass
+    finally:
+        device.close()
+
+
+class DeviceProcess:
+    """A simulated device (a :class:`PtyDevice` class and its options) served from its own process.
+
+    Like real hardware, it then takes no CPU time or interpreter lock from the process that drives it:
+    a simulator thread in the pipeline's process competes with the pipeline for Python's GIL. Same
+    lifecycle as :class:`PtyDevice` (:meth:`start` returns the pseudo-terminal's path, :meth:`close`);
+    the device's state lives in the child, so tests that inspect it use an in-process simulator.
+
+    Parameters
+    ----------
+    factory : type
+        A :class:`PtyDevice` subclass (picklable: the child is spawned, not forked).
+    options : dict
+        Its constructor's keyword arguments.
+    """
+
+    def __init__(self, factory, options: dict):
+        self.factory, self.options = factory, dict(options)
+        self._process = None
+        self._connection = None
+
+    def start(self, timeout: float = 60.0) -> str:
+        import multiprocessing
+
+        context = multiprocessing.get_context("spawn")
+        self._connection, child = context.Pipe()
+        self._process = context.Process(target=_serve_in_child, args=(self.factory, self.options, child),
+                                        name=f"simulated {self.factory.__name__}", daemon=True)
+        self._process.start()
+        child.close()
+        if not self._connection.poll(timeout):
+            self.close()
+            raise RuntimeError(f"the simulated {self.factory.__name__} did not start within {timeout} s")
+        return self._connection.recv()
+
+    def close(self) -> None:
+        if self._process is None:
+            return
+        try:
+            self._connection.send("stop")
+        except OSError:
+            pass
+        self._process.join(timeout=5.0)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(timeout=5.0)
+        self._connection.close()
+        self._process = None
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

@@ -225,3 +225,34 @@ def test_port_without_fileno_reads_as_the_sdk(slow_bus):
     finally:
         slow_bus.port.ser = ser
     assert {i: dxl.to_int(d) for i, (d, _) in got.items()} == {i: 2048 for i in (1, 2, 3, 4)}
+
+
+def test_simulated_bus_in_its_own_process():
+    """``process=1``: the simulator runs in a child process (as hardware, it takes no GIL from the driver's
+    process); the real driver scans, configures and moves its servos over the pseudo-terminal, and closing
+    the bus ends the child."""
+    import threading
+
+    bus = open_bus("simdynamixel://?ids=1-3&model=XL330-M288&delay=0&process=1", timeout_margin_ms=REPLY_MS)
+    try:
+        process = bus.simulator._process
+        assert process.is_alive() and not any(t.name.startswith("pty-bus") for t in threading.enumerate())
+        assert [i.address for i in bus.scan()] == [1, 2, 3]
+        bus.configure(_setups([1, 2, 3]), frame_period=0.02)
+        assert bus.activate() == {i: 2048.0 for i in (1, 2, 3)}
+        bus.write({1: 2300, 2: 1800, 3: 2048})
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            bus.poll()
+            if abs(bus.status[1].position - 2300) < 2 and abs(bus.status[2].position - 1800) < 2:
+                break
+            time.sleep(0.02)
+        assert abs(bus.status[1].position - 2300) < 2 and abs(bus.status[2].position - 1800) < 2
+    finally:
+        bus.close()
+    assert not process.is_alive()
+
+
+def test_bad_simulator_options_are_reported_before_a_process_starts():
+    with pytest.raises(InputError, match="simdynamixel"):
+        open_bus("simdynamixel://?ids=1-3&model=NOPE-1&process=1")
