@@ -259,8 +259,9 @@ class PredictedMatcher:
     def _clear(self, points_3d, predicted, gate_mm) -> np.ndarray:
         """Points within their marker's 3D gate and clearly nearer it than any other prediction, shape (n,)."""
         n = len(points_3d)
-        distance = np.linalg.norm(points_3d[:, None] - predicted[None], axis=-1)  # (n, n_markers)
-        own = distance[np.arange(n), np.arange(n)]
-        distance[np.arange(n), np.arange(n)] = np.inf
+        squared = ((points_3d**2).sum(axis=1)[:, None] + (predicted**2).sum(axis=1)[None]
+                   - 2.0 * points_3d @ predicted.T)  # (n, n_markers)
+        own = ((points_3d - predicted) ** 2).sum(axis=1)
+        squared[np.arange(n), np.arange(n)] = np.inf
         with np.errstate(invalid="ignore"):
-            return (own <= gate_mm) & (own < self.ratio * np.nanmin(distance, axis=1, initial=np.inf))
+            return (own <= gate_mm**2) & (own < self.ratio**2 * np.nanmin(squared, axis=1, initial=np.inf))

@@ -8,6 +8,44 @@ frames (``src2dst``).
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def _umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, with_scale: bool) -> np.ndarray:
+    """:func:`umeyama` on float64 arrays ``(n, 3)``, ``(n, 3)``, ``(n,)`` (compiled: called every frame)."""
+    valid = np.empty(len(src), np.bool_)
+    total = 0.0
+    for i in range(len(src)):
+        valid[i] = weights[i] > 0 and np.isfinite(src[i]).all() and np.isfinite(dst[i]).all()
+        total += weights[i] if valid[i] else 0.0
+    if valid.sum() < 3:
+        return np.full((4, 4), np.nan)
+    src_mean, dst_mean = np.zeros(3), np.zeros(3)
+    for i in range(len(src)):
+        if valid[i]:
+            src_mean += weights[i] / total * src[i]
+            dst_mean += weights[i] / total * dst[i]
+    covariance = np.zeros((3, 3))
+    variance = 0.0
+    for i in range(len(src)):
+        if valid[i]:
+            w = weights[i] / total
+            a, b = src[i] - src_mean, dst[i] - dst_mean
+            covariance += w * np.outer(b, a)
+            variance += w * (a @ a)
+    u, sigma, vt = np.linalg.svd(covariance)
+    sign = np.ones(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[2] = -1.0
+    rotation = (u * sign) @ vt
+    scale = 1.0
+    if with_scale and variance > 0:
+        scale = (sigma * sign).sum() / variance
+    transform = np.eye(4)
+    transform[:3, :3] = scale * rotation
+    transform[:3, 3] = dst_mean - scale * rotation @ src_mean
+    return transform
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True, weights: np.ndarray | None = None) -> np.ndarray:
@@ -27,30 +65,10 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True, weights: 
     ndarray, shape (4, 4)
         ``[[s R, t], [0, 1]]``; all NaN when fewer than 3 valid pairs.
     """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    valid = np.isfinite(src).all(axis=1) & np.isfinite(dst).all(axis=1)
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
-    valid &= w > 0
-    if valid.sum() < 3:
-        return np.full((4, 4), np.nan)
-    src, dst, w = src[valid], dst[valid], w[valid] / w[valid].sum()
-    src_mean, dst_mean = w @ src, w @ dst
-    src_c, dst_c = src - src_mean, dst - dst_mean
-    covariance = (dst_c * w[:, None]).T @ src_c  # (3, 3)
-    u, sigma, vt = np.linalg.svd(covariance)
-    sign = np.ones(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        sign[2] = -1.0
-    rotation = (u * sign) @ vt
-    scale = 1.0
-    if with_scale:
-        variance = float(w @ (src_c**2).sum(axis=1))
-        scale = float((sigma * sign).sum() / variance) if variance > 0 else 1.0
-    transform = np.eye(4)
-    transform[:3, :3] = scale * rotation
-    transform[:3, 3] = dst_mean - scale * rotation @ src_mean
-    return transform
+    src = np.ascontiguousarray(src, dtype=np.float64).reshape(-1, 3)
+    dst = np.ascontiguousarray(dst, dtype=np.float64).reshape(-1, 3)
+    w = np.ones(len(src)) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
+    return _umeyama(src, dst, w, bool(with_scale))
 
 
 def apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -133,8 +133,8 @@ def _pose_step(head2world: np.ndarray, motion: np.ndarray, dt: float) -> np.ndar
 
 def _pose_motion(before: np.ndarray, after: np.ndarray, dt: float) -> np.ndarray:
     """Constant motion (6,) taking ``before`` to ``after`` in ``dt`` seconds (inverse of :func:`_pose_step`)."""
-    rotation = after[:3, :3] @ np.linalg.inv(before[:3, :3])
-    rotation = rotation / np.cbrt(np.linalg.det(rotation))
+    # both carry the same scale s (the alignment's): A B^-1 = (s R_a)(R_b^T / s) = A B^T / s^2
+    rotation = after[:3, :3] @ before[:3, :3].T / np.cbrt(np.linalg.det(before[:3, :3])) ** 2
     rotvec = cv2.Rodrigues(rotation)[0].ravel()
     return np.concatenate([rotvec, after[:3, 3] - before[:3, 3]]) / dt
 
