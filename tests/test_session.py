@@ -128,7 +128,7 @@ frames = 40
     result = CliRunner().invoke(main, ["run", str(session)])
     assert result.exit_code == 0, result.output
     labelled = float(re.search(r"labelled markers ([\d.]+)%", result.output).group(1))
-    alive, total = re.search(r"cameras (\d+)/(\d+)", result.output).groups()  # the live status line
+    alive, total = re.search(r"cameras alive (\d+)/(\d+)", result.output).groups()
     upper, lower = (float(v) for v in re.search(r"error upper ([\d.]+) mm, lower ([\d.]+) mm", result.output).groups())
     assert int(re.search(r"frame sets solved: (\d+)", result.output).group(1)) >= 40  # before the take ends
     assert alive == total == "5" and labelled > 90 and upper < 0.5 and lower < 0.5, result.output

@@ -156,6 +156,13 @@ class Reconstructor:
     def initial_state(self) -> ReconstructorState:
         return ReconstructorState()
 
+    def warm_up(self) -> None:
+        """Run the compiled per-frame kernels once (numba compiles or loads them on first use)."""
+        n_cams = len(self.cameras)
+        self.matcher([np.zeros((1, 2))] * n_cams, np.zeros((self.n_markers, 3)), np.ones(self.n_markers, bool),
+                     np.ones(self.n_markers))
+        self.triangulator.dlt(np.zeros((n_cams, 1, 2)))
+
     def detect(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
         """Undistorted marker centroids per camera (see :func:`livebridge.reconstruct.detect.detect_markers`)."""
         return detect_markers(images, self.cameras, self.config.detect)

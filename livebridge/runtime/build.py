@@ -54,26 +54,6 @@ def load_face(session: Session, rig=None):
     return basis, markers
 
 
-def warm_up_solver(basis, markers, solver_config=None) -> None:
-    """Build and step a throw-away contraction solver once, before any camera starts.
-
-    The first solver of a process can take seconds to build (compiled kernels); the pipeline builds its
-    own only after the first labelling, and a stall there would leave the tracker seconds behind the
-    live face. Done here, the pipeline's solver is built in about a millisecond.
-    """
-    import numpy as np
-
-    from livebridge.solve.solver import ContractionSolver, SolverConfig
-
-    solver = ContractionSolver(basis, markers, solver_config or SolverConfig())
-    state = solver.initial_state()
-    displacements = np.zeros((len(markers.names), 3))
-    state, _ = solver.step(state, displacements)
-    displacements[0] = np.nan  # a marker not seen, and read-only input (compiled code tells them apart)
-    displacements.setflags(write=False)
-    solver.step(state, displacements)
-
-
 def _load_calibration(path: Path):
     from livebridge.calibration.calibfile import load_calibration
 
@@ -168,7 +148,6 @@ def build_pipeline(session: Session, log=print, on_frame=None):
     reconstruct_config = ReconstructConfig(**options)
     solver_config = SolverConfig(**session.solver)
     period = 1.0 / (rig.config.fps if rig is not None else _fps(sources))
-    warm_up_solver(basis, markers, solver_config)
     opened = []
     try:
         servo = None

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DEMO_SERVO_URL = "simdynamixel://?ids=1-16&model=XL330-M288"
+DEMO_SERVO_URL = "simdynamixel://?ids=1-16&model=XL330-M288&process=1"  # the bus in its own process, as hardware
 
 
 class GroundTruthScore:
@@ -181,10 +181,6 @@ def build_demo(cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 8
     rig = SimRig(basis, markers, n_cameras=cameras, config=RigConfig(size=tuple(size), fps=fps, noise_sigma=noise),
                  seed=seed, performer=performer)
     score = GroundTruthScore(performer, skip=1)
-    from livebridge.runtime.build import warm_up_solver
-
-    warm_up_solver(basis, markers)
-
     servo_output = None
     if servo:
         from livebridge.servo.output import ServoOutput

@@ -3,20 +3,25 @@
 Stages and threads::
 
     camera reader threads (one per source)       read a frame, detect its markers (2D centroids,
-        │                                        undistorted) right there -- OpenCV releases the GIL,
-        │                                        so the cameras' detections run in parallel
+        │                                        undistorted) right there -- detection is compiled
+        │                                        and releases the GIL, so the cameras detect in parallel
     synchroniser (livebridge.capture.sync)       frame sets; bounded queue, keeps the newest
         ▼
-    "reconstruct" thread                         correspondence + triangulation + labelling/tracking
-        │                                        (livebridge.reconstruct), then the contraction solve
-        │                                        (livebridge.solve.solver), then the servos right
-        │                                        after the solve (ServoOutput: safety stage + one
-        │                                        write per bus), on this thread; the servo status
-        │                                        read-back (every few frames) after the set is handed on
+    "reconstruct" thread                         tracking at the predicted projections, correspondence
+        │                                        of the rest, triangulation (livebridge.reconstruct),
+        │                                        the contraction solve (livebridge.solve.solver), then
+        │                                        the servo write right after the solve (ServoOutput:
+        │                                        safety stage + one write per bus), on this thread
     bounded queue, keeps the newest (1)
         ▼
     "outputs" thread                             the render client (publish never blocks), VMC
-                                                 datagrams, the recorder, statistics
+                                                 datagrams, the recorder, statistics, then the servo
+                                                 status read-back (every few frame sets; a serial bus
+                                                 is half duplex, so a write waits for a poll)
+
+Unpaced sources (simulators, replays) are read one frame set at a time: the cameras read the next
+set once the outputs of the previous one are done (``SyncedCapture(in_flight=1)``), so no stage of
+one frame set competes with another's for the CPU, and nothing is dropped.
 
 Every frame set carries a :class:`FrameTiming` (monotonic seconds per stage). "Complete" is the
 moment the last frame of the set reached the host; latencies are measured from there to the servo
@@ -308,6 +313,29 @@ class Pipeline:
         self._next_status = math.inf
         self._cpu_start = 0.0
         self._wall_start = 0.0
+        self._warm_up(detect_config)
+
+    def _warm_up(self, detect_config) -> None:
+        """Run every compiled per-frame kernel once, before any camera starts.
+
+        numba compiles a kernel (seconds, once per installation) or loads it from its cache (a fraction
+        of a second) on its first call; in the middle of a take that stall would leave the tracker
+        behind the live face. The solver is built only after the first labelling, so a throw-away one
+        is stepped here (also with a marker unseen and read-only input: compiled code tells them apart).
+        """
+        from livebridge.reconstruct.detect import detect_blobs
+        from livebridge.solve.solver import ContractionSolver
+
+        image = np.zeros((16, 16), np.uint8)
+        image[6:9, 6:9] = 255
+        detect_blobs(image, detect_config)
+        self.reconstructor.warm_up()
+        solver = ContractionSolver(self.basis, self.markers, self.solver_config)
+        displacements = np.zeros((len(self.markers), 3))
+        state, _ = solver.step(solver.initial_state(), displacements)
+        displacements[0] = np.nan
+        displacements.setflags(write=False)
+        solver.step(state, displacements)
 
     # ------------------------------------------------------------------------------ lifecycle
     def start(self) -> Pipeline:
@@ -428,14 +456,11 @@ class Pipeline:
                 t_servo = time.monotonic()
                 low, span = self._servo_scale
                 servo_targets = (np.asarray(self.servo.last_targets, dtype=np.float64) - low) / span
-            self._frameset_done(frameset.t)
             timing = FrameTiming(frameset.t, complete, detected, dequeued, reconstructed, solved, t_servo)
             self._queue.put((SolvedFrame(
                 seq, frameset.index, timing, result.contractions, labelled.positions, labelled.positions_world,
                 labelled.displacements, (float(result.rms_error_mm[0]), float(result.rms_error_mm[1])),
-                labelled.labelled_fraction, labelled.n_stray, present), servo_targets))
-            if poll_servos:  # the status read-back waits for the servos' replies: after this set is out
-                self.servo.poll()
+                labelled.labelled_fraction, labelled.n_stray, present), servo_targets, poll_servos))
             cpu += time.thread_time() - t0
             self.stats.cpu_reconstruct_s = cpu
         self._ended.set()
@@ -462,7 +487,7 @@ class Pipeline:
                 self._maybe_status()
                 continue
             t0 = time.thread_time()
-            frame, servo_targets = item
+            frame, servo_targets, poll_servos = item
             timing = frame.timing
             t_servo = timing.servo
             if self.render is not None:
@@ -493,6 +518,9 @@ class Pipeline:
             stats.errors.append(frame.region_errors)
             if self.on_frame is not None:
                 self.on_frame(frame)
+            if poll_servos:  # the status read-back waits for the servos' replies: after the outputs
+                self.servo.poll()
+            self._frameset_done(timing.capture)
             cpu += time.thread_time() - t0
             stats.cpu_outputs_s = cpu
             self._maybe_status()
@@ -566,6 +594,7 @@ class Pipeline:
             "labelled_fraction": float(np.mean(tail(stats.labelled))) if stats.labelled else math.nan,
             "error_upper_mm": float(np.nanmean(errors[:, 0])) if len(errors) else math.nan,
             "error_lower_mm": float(np.nanmean(errors[:, 1])) if len(errors) else math.nan,
+            "cameras": len(self.sources),
             "cameras_alive": len(self.sources) - len(dead),
             "dead_cameras": list(dead),
             "cpu_per_frameset_ms": 1e3 * cpu / max(stats.solved, 1),

@@ -18,6 +18,7 @@ left out; the others keep running.
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import replace
 
@@ -58,6 +59,8 @@ class ServoOutput:
         self.frames = 0
         self.last_targets: np.ndarray | None = None
         self._by_bus = {name: [i for i, s in enumerate(rig.servos) if s.bus == name] for name in rig.buses}
+        # a serial bus is half duplex: a write from the frame thread waits for a status poll from another thread
+        self._wire = threading.Lock()
 
     @property
     def servo_names(self) -> tuple[str, ...]:
@@ -115,28 +118,33 @@ class ServoOutput:
         if poll is None:
             poll = self.frames % self.poll_every == 0
         self.frames += 1
-        for name, bus in self.buses.items():
-            if name in self.failed_buses:
-                continue
-            try:
-                bus.write({self.rig.servos[i].address: int(raw[i]) for i in self._by_bus[name]})
-                if poll:
-                    bus.poll()
-            except OSError as error:  # the port went away: report, keep the other buses running
-                self.failed_buses.add(name)
-                self._event(name, f"bus failed ({error}); left out from now on")
+        with self._wire:
+            for name, bus in self.buses.items():
+                if name in self.failed_buses:
+                    continue
+                try:
+                    bus.write({self.rig.servos[i].address: int(raw[i]) for i in self._by_bus[name]})
+                    if poll:
+                        bus.poll()
+                except OSError as error:  # the port went away: report, keep the other buses running
+                    self.failed_buses.add(name)
+                    self._event(name, f"bus failed ({error}); left out from now on")
         return raw
 
     def poll(self) -> None:
-        """Read every bus's servo status now (what ``send`` does every ``poll_every`` frames)."""
-        for name, bus in self.buses.items():
-            if name in self.failed_buses:
-                continue
-            try:
-                bus.poll()
-            except OSError as error:
-                self.failed_buses.add(name)
-                self._event(name, f"bus failed ({error}); left out from now on")
+        """Read every bus's servo status now (what ``send`` does every ``poll_every`` frames).
+
+        May be called from another thread than :meth:`send` (a write then waits for the poll to finish).
+        """
+        with self._wire:
+            for name, bus in self.buses.items():
+                if name in self.failed_buses:
+                    continue
+                try:
+                    bus.poll()
+                except OSError as error:
+                    self.failed_buses.add(name)
+                    self._event(name, f"bus failed ({error}); left out from now on")
 
     def status(self) -> dict[str, ServoStatus | None]:
         """Servo name -> last known status."""
