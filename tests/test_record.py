@@ -109,6 +109,8 @@ def test_raw_frames_use_the_replay_format_and_replay_as_cameras(tmp_path):
     assert manifest["raw_frames"] == "frames" and manifest["frames_written"] == {"dev_CAM_B": 3, "cam1": 3}
     assert sorted(p.name for p in (tmp_path / "t" / "frames").iterdir()) == [
         "cam1", "cam1.csv", "dev_CAM_B", "dev_CAM_B.csv"]
+    assert sorted(p.name for p in (tmp_path / "t" / "frames" / "cam1").iterdir()) == [
+        "000000.pgm", "000001.pgm", "000002.pgm"]  # uncompressed by default: fast enough for live cameras
     sources = open_sources(f"replay://{tmp_path / 't'}?realtime=0")  # the take directory itself
     assert [s.source_id for s in sources] == ["cam1", "dev/CAM_B"]  # original names, for the calibration
     with sources[1] as source:
@@ -118,6 +120,22 @@ def test_raw_frames_use_the_replay_format_and_replay_as_cameras(tmp_path):
     for k, frame in enumerate(got[:3]):
         assert np.array_equal(frame.image, images[k]) and frame.seq == 3 + 2 * k
         assert (frame.t_capture, frame.exposure_us, frame.gain, frame.sync_domain) == (1.5 + k / 30, 900.0, 2.0, "oak")
+
+
+def test_raw_frames_as_png_on_request_and_bad_formats_refused(tmp_path):
+    from livebridge.capture.frame import Frame
+    from livebridge.capture.sources import open_sources
+
+    image = (np.arange(48 * 64) % 251).astype(np.uint8).reshape(48, 64)
+    with TakeRecorder(tmp_path / "t", MUSCLES, MARKERS, record_frames=True, lossless_frames=True,
+                      frame_format=".png") as rec:
+        rec.record_frames([Frame(image, 0.5, 0, "cam0")])
+    assert [p.name for p in (tmp_path / "t" / "frames" / "cam0").iterdir()] == ["000000.png"]
+    (source,) = open_sources(f"replay://{tmp_path / 't'}?realtime=0")
+    with source:
+        assert np.array_equal(source.read().image, image)
+    with pytest.raises(InputError, match="frame_format"):
+        TakeRecorder(tmp_path / "u", MUSCLES, MARKERS, record_frames=True, frame_format=".jpg")
 
 
 def test_a_take_cut_short_replays_up_to_its_last_complete_frame(tmp_path):

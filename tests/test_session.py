@@ -86,6 +86,7 @@ def test_minimal_simulated_session_defaults(tmp_path):
     ('[cameras]\nurls = ["sim://rig"]\n[outputs.vmc]\ncase = "SHOUT"\n', "outputs.vmc.case"),
     ('[cameras]\nurls = ["sim://rig"]\n[outputs.osc]\nport = 1\n', "outputs.osc"),
     ('[cameras]\nurls = ["sim://rig"]\n[recording]\nenabled = true\n', "recording.directory"),
+    ('[cameras]\nurls = ["sim://rig"]\n[recording]\nframe_format = "jpg"\n', "recording.frame_format"),
     ('[cameras]\nurls = ["sim://rig"]\n[runtime]\nframes = -3\n', "runtime.frames"),
     ('[cameras]\nurls = ["sim://rig"]\n[camera]\nurls = []\n', "camera"),
 ])

@@ -35,7 +35,10 @@ Take directory format (``livebridge-take-dir``, version 1)
 ``frames/`` (optional)
     Raw camera images in the replay format of :mod:`livebridge.capture.replay`
     (written by its :class:`~livebridge.capture.replay.TakeWriter`): per camera
-    ``frames/<camera>/000000.png ...`` and the timestamp file
+    ``frames/<camera>/000000.pgm ...`` (uncompressed binary PGM by default: ~1 ms
+    per 1280x800 image, so four cameras at 60 fps keep up on one writer thread,
+    where PNG took 10-40 ms an image and dropped most frame sets live; ``.png``
+    on request, about half the size) and the timestamp file
     ``frames/<camera>.csv`` (``seq,t_capture,exposure_us,gain,sync_domain,
     source_id``). ``replay://TAKE_DIR`` plays them back as cameras, so a
     session with ``urls = ["replay://TAKE_DIR?realtime=0"]`` and
@@ -72,6 +75,7 @@ from livebridge.tomlio import load_toml, save_toml
 TAKE_DIR_FORMAT = "livebridge-take-dir"
 TAKE_DIR_VERSION = 1
 C3D_NAME = "markers.c3d"
+FRAME_FORMATS = (".pgm", ".png")
 
 
 class _CsvStream:
@@ -124,8 +128,10 @@ class TakeRecorder:
     record_displacements : bool
         Also write ``displacements.csv``.
     record_frames : bool
-        Also write raw camera images (PNG, replay format) from :meth:`record_frames` or from the sources
+        Also write raw camera images (replay format) from :meth:`record_frames` or from the sources
         :meth:`wrap_sources` returns.
+    frame_format : {".pgm", ".png"}
+        Image files of the raw frames: uncompressed PGM (default, fast enough for live cameras) or PNG.
     flush_interval : float
         Seconds between flushes to the OS (at most 1).
     cameras : CameraGroup, optional
@@ -139,12 +145,16 @@ class TakeRecorder:
 
     def __init__(self, path: str | Path, muscle_names, marker_names, session_file=None, calibration_file=None,
                  fps: float | None = None, record_displacements: bool = True, record_frames: bool = False,
-                 flush_interval: float = 0.5, cameras=None, lossless_frames: bool = False, frame_queue: int = 64):
+                 flush_interval: float = 0.5, cameras=None, lossless_frames: bool = False, frame_queue: int = 64,
+                 frame_format: str = ".pgm"):
         self.path = Path(path)
         if self.path.exists() and (not self.path.is_dir() or any(self.path.iterdir())):
             raise InputError("the take directory exists and is not empty; choose a new one", self.path)
         if not 0 < flush_interval <= 1.0:
             raise InputError("flush_interval must be in (0, 1] seconds", field="flush_interval")
+        if frame_format not in FRAME_FORMATS:
+            raise InputError(f"frame_format must be one of {FRAME_FORMATS}, got {frame_format!r}",
+                             field="frame_format")
         self.path.mkdir(parents=True, exist_ok=True)
         self.muscle_names = tuple(muscle_names)
         self.marker_names = tuple(marker_names)
@@ -182,7 +192,7 @@ class TakeRecorder:
         if record_frames:
             from livebridge.capture.replay import RECORDED_FRAMES, TakeWriter
 
-            self._frame_writer = TakeWriter(self.path / RECORDED_FRAMES)
+            self._frame_writer = TakeWriter(self.path / RECORDED_FRAMES, frame_format)
             self._frame_soft_limit = max(1, int(frame_queue))  # a new frame set is dropped beyond this
             self._frame_queue = queue.Queue(maxsize=4 * self._frame_soft_limit)  # the rest of a kept set fits
             self._frames_lock = threading.Lock()

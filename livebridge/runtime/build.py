@@ -182,7 +182,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             directory = session.recording.directory / f"take-{stamp}"
             recorder = TakeRecorder(directory, basis.names, markers.names, session.path, session.calibration,
                                     fps=1.0 / period, record_frames=session.recording.raw_frames, cameras=cameras,
-                                    lossless_frames=not realtime)
+                                    lossless_frames=not realtime, frame_format=session.recording.frame_format)
             opened.append(recorder.close)
             sources = recorder.wrap_sources(sources)
             log(f"recording to {directory}" + (" (with raw frames)" if session.recording.raw_frames else ""))

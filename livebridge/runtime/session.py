@@ -44,6 +44,7 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
     enabled = false
     directory = "takes"           # each run writes a new take directory inside
     raw_frames = false            # also the camera images: replay://takes/take-... runs the take again
+    frame_format = "pgm"          # raw images: "pgm" (uncompressed, keeps up live) or "png" (smaller, slow)
 
     [runtime]
     status_interval = 1.0         # seconds between live status lines
@@ -87,6 +88,7 @@ class RecordingOptions:
     enabled: bool = False
     directory: Path | None = None
     raw_frames: bool = False
+    frame_format: str = ".pgm"
 
 
 @dataclass(frozen=True)
@@ -271,9 +273,12 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     rec = top.table("recording")
     recording = RecordingOptions(rec.get("enabled", bool, False),
                                  rec.path_value("directory", must_exist=False, default=None),
-                                 rec.get("raw_frames", bool, False))
+                                 rec.get("raw_frames", bool, False), "." + rec.get("frame_format", str, "pgm"))
     if recording.enabled and recording.directory is None:
         raise InputError("recording is enabled: give the directory for takes", path, "recording.directory")
+    if recording.frame_format not in (".pgm", ".png"):
+        raise InputError(f'must be "pgm" or "png", got {recording.frame_format[1:]!r}', path,
+                         "recording.frame_format")
     rec.check_known()
 
     runtime = top.table("runtime")
