@@ -37,38 +37,63 @@ class SimulatedTake:
 
 
 def face_and_markers(count: int = 64, n_head: int = 5):
-    """The ICT basis and a marker layout of ``count`` face + ``n_head`` head markers (None without the data)."""
+    """The ICT basis and a marker layout of ``count`` face + ``n_head`` head markers (None without the data).
+
+    The layout is designed for :func:`rig_cameras` (:data:`RIG_MIN_VIEWS` views of every marker at the
+    neutral pose, with the layout's margin for head motion), as a face-capture rig's layout is.
+    """
+    from livebridge.face.layout import RigVisibility, design_markers
     from livebridge.face.reference import ict_basis
 
     basis = ict_basis()
     if basis is None:
         return None, None
-    try:
-        from livebridge.face.layout import design_markers
-
-        markers = design_markers(basis, count=count, n_head=n_head)
-    except ImportError:
-        from livebridge.simulators.rig import generate_markers
-
-        markers = generate_markers(basis, n_face=count, n_head=n_head)
-    return basis, markers
+    # the world frame is the model frame at rest (the performer's head2world starts at identity)
+    rig = RigVisibility(rig_cameras(basis), min_views=RIG_MIN_VIEWS, max_view_deg=MAX_VIEW_DEG, model2world=np.eye(4))
+    return basis, design_markers(basis, count=count, n_head=n_head, rig=rig)
 
 
-RIG_SPREAD_DEG = 120.0  # cameras at ±60° around the face: the face's sides are seen by two or more cameras
+# Four cameras on the corners of a square around the face's axis: two heights for a vertical baseline,
+# two sides for a horizontal one. Every marker must be seen by all four (RIG_MIN_VIEWS): with 10% of views
+# occluded, a marker seen by 3 cameras is lost (< 2 views) in 2.8% of frames, one seen by 4 in 0.37%, so
+# labelling 99% of all marker-frames needs the layout on the part of the face all four see. Wider
+# corners see less of it together (markers closer than ~5 mm: label swaps); narrower ones, or one
+# height only, triangulate depth worse.
+RIG_AZIMUTH_DEG = 20.0  # cameras at +-20 deg left and right of the face ...
+RIG_ELEVATION_DEG = 20.0  # ... and +-20 deg above and below it
+RIG_DISTANCE_MM = 700.0
+RIG_MIN_VIEWS = 4
+MAX_VIEW_DEG = 75.0  # a camera finds a marker whose normal is within this angle of it (simulate hides the rest)
 
 
-def rig_cameras(basis, n_cameras: int = 4, seed: int = 0, distortion: float = -0.08):
-    """The simulated rig's cameras (spread over :data:`RIG_SPREAD_DEG`) with a mild radial distortion ``k1``."""
+def rig_cameras(basis, distortion: float = -0.08):
+    """The simulated face-capture rig: 4 cameras at the corners of a square seen from the face, mild radial ``k1``.
+
+    Cameras at azimuth +-:data:`RIG_AZIMUTH_DEG` and elevation +-:data:`RIG_ELEVATION_DEG`,
+    :data:`RIG_DISTANCE_MM` from the face centre and looking at it, the face filling the image height as
+    in :func:`livebridge.simulators.rig.generate_cameras`.
+    """
     from livebridge.calibration.cameras import Camera, CameraGroup
-    from livebridge.simulators.rig import RigConfig, generate_cameras
+    from livebridge.simulators.rig import RigConfig, face_centre, look_at
 
-    cameras = generate_cameras(basis, n_cameras, RigConfig(spread_deg=RIG_SPREAD_DEG), seed=seed)
-    return CameraGroup([Camera(c.name, c.size, c.matrix, np.array([distortion, 0.0, 0.0, 0.0, 0.0]), c.rotation,
-                               c.translation) for c in cameras.cameras])
+    config = RigConfig()
+    width, height = config.size
+    focal = config.fill * height * RIG_DISTANCE_MM / float(np.ptp(basis.neutral[:, 1]))
+    matrix = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])
+    target = face_centre(basis)
+    cameras = []
+    for k, (side, level) in enumerate([(-1, 1), (1, 1), (-1, -1), (1, -1)]):
+        azimuth, elevation = np.deg2rad(side * RIG_AZIMUTH_DEG), np.deg2rad(level * RIG_ELEVATION_DEG)
+        direction = np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation),
+                              np.cos(azimuth) * np.cos(elevation)])
+        rotation, translation = look_at(target + RIG_DISTANCE_MM * direction, target)
+        cameras.append(Camera(f"cam{k}", (width, height), matrix, np.array([distortion, 0.0, 0.0, 0.0, 0.0]),
+                              rotation, translation))
+    return CameraGroup(cameras)
 
 
 def simulate(basis, markers, cameras, n_frames: int, seed: int = 0, noise_px: float = 0.2, occlusion: float = 0.1,
-             spurious: float = 3.0, max_view_deg: float = 75.0, head_turn_deg: float = 0.0,
+             spurious: float = 3.0, max_view_deg: float = MAX_VIEW_DEG, head_turn_deg: float = 0.0,
              turn_axis=(0.0, 1.0, 0.0), fps: float = 60.0) -> SimulatedTake:
     """A performer take seen by ``cameras`` at the 2D level (no images).
 
@@ -354,7 +379,8 @@ def run(quick: bool, log) -> dict:
     if basis is None:
         raise RuntimeError("the reference data (../shared/data) is needed for this benchmark")
     cameras = rig_cameras(basis)
-    log(f"simulating {n_frames} frames: {len(cameras)} cameras, {int(markers.face_mask.sum())} face + "
+    log(f"simulating {n_frames} frames: {len(cameras)} cameras (azimuth +-{RIG_AZIMUTH_DEG:g} deg, elevation "
+        f"+-{RIG_ELEVATION_DEG:g} deg), {int(markers.face_mask.sum())} face + "
         f"{int(markers.head_mask.sum())} head markers, 0.2 px noise, 10% occlusion, spurious highlights")
     take = simulate(basis, markers, cameras, n_frames, seed=1)
     reconstructor = Reconstructor(cameras, markers, basis)
@@ -370,7 +396,7 @@ def run(quick: bool, log) -> dict:
     result |= detection_timing(basis, markers, 5 if quick else 20)
     result["pass"] = bool(result["triangulate_speedup_vs_aniposelib"] >= 20 and result["rmse_mm"] <= 0.2
                           and result["swaps"] == 0
-                          and result["labelled_fraction_reconstructible"] >= 0.99
+                          and result["labelled_fraction"] >= 0.99
                           and result.get("triangulate_max_diff_mm", 0.0) <= 1e-6)
     return result
 

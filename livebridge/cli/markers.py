@@ -5,6 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+import numpy as np
+
+from livebridge.face.layout import MAX_VIEW_DEG, VIEW_MARGIN_DEG
 
 BASIS_HELP = "Basis file (.npz), 'builtin' (the procedural face) or 'ict' (ICT-FaceKit from ../shared/data)."
 
@@ -37,6 +40,63 @@ def load_basis(spec: str):
         raise click.ClickException(str(error)) from None
 
 
+def rig_options(command):
+    """The options that describe the camera rig a layout is for (``--cameras`` and how it must see markers)."""
+    options = [
+        click.option("--cameras", "calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+                     default=None, help="Calibration file (calibration.toml) of the rig the layout is for: markers "
+                     "go only where enough of its cameras see them. The face is placed where the cameras' optical "
+                     "axes meet, facing them."),
+        click.option("--min-views", default=3, show_default=True, type=click.IntRange(1),
+                     help="With --cameras: cameras that must see every marker (2 to triangulate; each one more is a "
+                     "spare view when a marker is occluded in another)."),
+        click.option("--max-view-deg", default=MAX_VIEW_DEG, show_default=True,
+                     type=click.FloatRange(0, 90, min_open=True),
+                     help="With --cameras: largest angle between a marker's normal and a camera that still finds it."),
+        click.option("--view-margin", default=VIEW_MARGIN_DEG, show_default=True, type=click.FloatRange(0),
+                     help="With --cameras: degrees kept spare for head motion (taken off --max-view-deg at neutral)."),
+    ]
+    for option in reversed(options):
+        command = option(command)
+    return command
+
+
+def load_rig(calibration: Path | None, min_views: int, max_view_deg: float, view_margin: float):
+    """The :class:`~livebridge.face.layout.RigVisibility` the rig options ask for (None without ``--cameras``).
+
+    Raises
+    ------
+    click.ClickException
+        Naming the file or the option and what is wrong.
+    """
+    from livebridge.calibration.calibfile import load_calibration
+    from livebridge.errors import InputError
+    from livebridge.face.layout import RigVisibility
+
+    if calibration is None:
+        context = click.get_current_context()
+        given = [f"--{name.replace('_', '-')}" for name in ("min_views", "max_view_deg", "view_margin")
+                 if context.get_parameter_source(name) is click.core.ParameterSource.COMMANDLINE]
+        if given:
+            raise click.UsageError(f"--cameras is needed by {', '.join(given)}")
+        return None
+    try:
+        return RigVisibility(load_calibration(calibration), min_views, max_view_deg, view_margin)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
+
+
+def describe_rig(rig) -> str:
+    """Where the face is assumed to be in the rig, and what counts as a view, for the terminal."""
+    from livebridge.face.layout import optical_axes_meet
+
+    centre = optical_axes_meet(rig.cameras)
+    distances = ", ".join(f"{camera.name} {np.linalg.norm(camera.center - centre):.0f}"
+                          for camera in rig.cameras.cameras)
+    return (f"face centre placed at ({centre[0]:.0f}, {centre[1]:.0f}, {centre[2]:.0f}) mm in the calibration's world "
+            f"frame, facing the cameras (distances in mm: {distances})\nmarkers must be {rig.describe()}")
+
+
 def format_report(report: dict, names) -> str:
     """Human-readable lines of :func:`livebridge.face.layout.layout_report`."""
     lines = [
@@ -54,6 +114,10 @@ def format_report(report: dict, names) -> str:
     if "head_spread_mm" in report:
         lines.append(f"head markers: spread {report['head_spread_mm']:.1f} mm (smallest axis), "
                      f"largest motion with any element {report['head_motion_mm']:.2f} mm")
+    if "views" in report:
+        counts = np.bincount(list(report["views"].values()))
+        histogram = ", ".join(f"{views} cameras: {n}" for views, n in reversed(list(enumerate(counts))) if n)
+        lines.append(f"markers by the number of cameras that see them: {histogram}")
     return "\n".join(lines)
 
 
@@ -74,17 +138,29 @@ def markers() -> None:
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Marker file (.toml).")
 @click.option("--baseline/--no-baseline", default=True, show_default=True,
               help="Also print the farthest-point-sampling layout's figures for comparison.")
+@rig_options
 def design(basis_spec: str, count: int, min_spacing: float | None, n_head: int, min_observers: int, out: Path,
-           baseline: bool) -> None:
-    """Design a marker layout (greedy D-optimal per region, spacing-constrained) and print its figures."""
+           baseline: bool, calibration: Path | None, min_views: int, max_view_deg: float, view_margin: float) -> None:
+    """Design a marker layout (greedy D-optimal per region, spacing-constrained) and print its figures.
+
+    With --cameras, the layout is for that rig: face and head markers only where at least --min-views of its
+    cameras see them well at the neutral pose.
+    """
+    from livebridge.errors import InputError
     from livebridge.face.layout import default_spacing, design_markers, farthest_point_markers, layout_report
 
     basis = load_basis(basis_spec)
-    spacing = default_spacing(basis, count) if min_spacing is None else min_spacing
-    layout = design_markers(basis, count, spacing, n_head=n_head, min_observers=min_observers)
+    rig = load_rig(calibration, min_views, max_view_deg, view_margin)
+    try:
+        if rig is not None:
+            click.echo(describe_rig(rig))
+        spacing = default_spacing(basis, count, rig) if min_spacing is None else min_spacing
+        layout = design_markers(basis, count, spacing, n_head=n_head, min_observers=min_observers, rig=rig)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
     layout.save(out)
     click.echo(f"wrote {out}: {len(layout)} markers on {basis_spec} (min spacing {spacing:.1f} mm)")
-    click.echo(format_report(layout_report(basis, layout), basis.names))
+    click.echo(format_report(layout_report(basis, layout, rig), basis.names))
     if baseline:
         report = layout_report(basis, farthest_point_markers(basis, count, seed=0))
         regions = ", ".join(f"{r} {f['condition']:.1f}" for r, f in report["regions"].items())
@@ -95,16 +171,26 @@ def design(basis_spec: str, count: int, min_spacing: float | None, n_head: int, 
 @markers.command("report")
 @click.argument("layout_file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--basis", "basis_spec", default="builtin", show_default=True, help=BASIS_HELP)
-def report(layout_file: Path, basis_spec: str) -> None:
-    """Print the observability figures of an existing LAYOUT_FILE on a basis."""
+@rig_options
+def report(layout_file: Path, basis_spec: str, calibration: Path | None, min_views: int, max_view_deg: float,
+           view_margin: float) -> None:
+    """Print the observability figures of an existing LAYOUT_FILE on a basis (with --cameras: views per marker)."""
     from livebridge.errors import InputError
     from livebridge.face.layout import layout_report
     from livebridge.face.markers import MarkerSet
 
     basis = load_basis(basis_spec)
+    rig = load_rig(calibration, min_views, max_view_deg, view_margin)
     try:
         layout = MarkerSet.load(layout_file)
         layout.check_mesh(len(basis.triangles))
+        if rig is not None:
+            click.echo(describe_rig(rig))
+        figures = layout_report(basis, layout, rig)
     except InputError as error:
         raise click.ClickException(str(error)) from None
-    click.echo(format_report(layout_report(basis, layout), basis.names))
+    click.echo(format_report(figures, basis.names))
+    if rig is not None:
+        short = [name for name, views in figures["views"].items() if views < rig.min_views]
+        if short:
+            click.echo(f"seen by fewer than {rig.min_views} cameras: {', '.join(short)}")

@@ -22,18 +22,31 @@ horizontal boundary between the upper and lower face, fitted to where upper and 
 the surface. Rigid head markers (role ``head``) go on well-spread front-facing sites of the upper
 face that barely move with any element (upper forehead, temples, nose bridge).
 
+With a camera rig (:class:`RigVisibility`), face and head sites are only those that enough of the rig's
+cameras see well at the neutral pose, with a margin for head motion: a marker a camera sees at a grazing
+angle, or not at all, is a marker that is often seen by fewer than two cameras and then cannot be
+reconstructed. The layout and the rig are designed together, as on a face-capture rig.
+
 :func:`farthest_point_markers` is the baseline (farthest-point sampling of the same candidates), and
 :func:`layout_report` gives the figures: condition numbers of the whole face and of each region, the
-worst of them with any one marker lost, and how many markers observe each muscle.
+worst of them with any one marker lost, how many markers observe each muscle and, for a rig, how many
+cameras see each marker.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
 import numpy as np
 
+from livebridge.errors import InputError
 from livebridge.face.basis import REGIONS, Basis
 from livebridge.face.markers import MarkerSet
 from livebridge.face.meshio import triangle_normals
+
+if TYPE_CHECKING:
+    from livebridge.calibration.cameras import Camera, CameraGroup
 
 OBSERVE_FRACTION = 0.2  # a marker observes a muscle that moves it by >= this share of the muscle's peak ...
 OBSERVE_MIN_MM = 0.5  # ... and by at least this many mm
@@ -43,6 +56,221 @@ FLOOR_WEIGHT = 1.0  # weight of log lambda_min in the design score
 CEILING_WEIGHT = 0.25  # weight of -log lambda_max in the design score
 POOL = 256  # candidates (largest D-optimal gains) scored in full at each step
 EXCHANGE_PASSES = 3  # sweeps of single-marker exchanges after the greedy design
+MAX_VIEW_DEG = 75.0  # a camera finds a marker whose normal is within this angle of it (more oblique: a smear)
+VIEW_MARGIN_DEG = 10.0  # a seated performer turns the head ~6 deg per axis and moves it a few cm: keep this spare
+SURFACE_SLACK_MM = 3.0  # the depth test hides a site only behind surface this much nearer than its own patch
+
+
+@dataclass(frozen=True, eq=False)
+class RigVisibility:
+    """Which face sites a camera rig sees well: the constraint of a rig-aware layout.
+
+    A camera sees a site, at the neutral pose placed in the cameras' world by ``model2world``, when the
+    site is in front of the camera and inside its image, the face surface is not in front of it, and its
+    normal is within ``max_view_deg - margin_deg`` of the direction to the camera. The margin keeps the
+    site seen while the head turns and moves.
+
+    Attributes
+    ----------
+    cameras : CameraGroup
+        The calibrated rig (mm).
+    min_views : int
+        Cameras that must see every marker: 2 to triangulate it, and each one more is a spare for when
+        the marker is occluded in another view.
+    max_view_deg : float
+        Largest angle between a marker's normal and its direction to a camera at which the camera finds it.
+    margin_deg : float
+        Taken off ``max_view_deg`` at the neutral pose, for head motion.
+    model2world : ndarray, shape (4, 4), optional
+        Rigid pose of the neutral face in the cameras' world frame; default :func:`facing_pose`
+        (where the cameras' optical axes meet, facing them).
+    """
+
+    cameras: CameraGroup
+    min_views: int = 3
+    max_view_deg: float = MAX_VIEW_DEG
+    margin_deg: float = VIEW_MARGIN_DEG
+    model2world: np.ndarray | None = None
+
+    def __post_init__(self):
+        n_cams = len(self.cameras)
+        if n_cams == 0:
+            raise InputError("the rig has no cameras", field="cameras")
+        if not 1 <= self.min_views <= n_cams:
+            raise InputError(f"must be between 1 and the rig's {n_cams} cameras, got {self.min_views}",
+                             field="min_views")
+        if not 0 <= self.margin_deg < self.max_view_deg <= 90:
+            raise InputError(f"need 0 <= margin_deg < max_view_deg <= 90, got margin_deg {self.margin_deg} and "
+                             f"max_view_deg {self.max_view_deg}", field="max_view_deg")
+        if self.model2world is not None:
+            pose = np.asarray(self.model2world, dtype=np.float64)
+            rigid = (pose.shape == (4, 4) and np.allclose(pose[3], [0, 0, 0, 1])
+                     and np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-6)
+                     and np.linalg.det(pose[:3, :3]) > 0)
+            if not rigid:
+                raise InputError("must be a rigid transform (rotation and translation), shape (4, 4)",
+                                 field="model2world")
+            object.__setattr__(self, "model2world", pose)
+
+    @property
+    def view_limit_deg(self) -> float:
+        """Largest angle (deg) between a site's normal and a camera that counts as seen at the neutral pose."""
+        return self.max_view_deg - self.margin_deg
+
+    def describe(self) -> str:
+        """The constraint in words, for messages."""
+        return (f"seen by at least {self.min_views} of the {len(self.cameras)} cameras (normal within "
+                f"{self.view_limit_deg:g} deg of the camera: {self.max_view_deg:g} less {self.margin_deg:g} for "
+                f"head motion)")
+
+    def seen(self, basis: Basis, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """Which cameras see each site of the neutral face, shape (n_cams, n_sites) bool.
+
+        Parameters
+        ----------
+        basis : Basis
+            Its neutral mesh is the surface that can hide a site.
+        points : ndarray, shape (n_sites, 3)
+            Sites on the neutral face, model frame, mm.
+        normals : ndarray, shape (n_sites, 3)
+            Their unit surface normals, model frame.
+        """
+        model2world = facing_pose(basis, self.cameras) if self.model2world is None else self.model2world
+        rotation, shift = model2world[:3, :3], model2world[:3, 3]
+        points, normals = points @ rotation.T + shift, normals @ rotation.T
+        vertices = basis.neutral @ rotation.T + shift
+        edges = np.linalg.norm(basis.neutral[basis.triangles] - basis.neutral[np.roll(basis.triangles, 1, axis=1)],
+                               axis=2)
+        # a depth-test cell this size at the face holds a vertex of any surface in front (few holes)
+        cell_mm = float(np.quantile(edges, 0.75))
+        cos_limit = np.cos(np.deg2rad(self.view_limit_deg))
+        return np.stack([_seen_by(camera, points, normals, cos_limit, vertices, cell_mm)
+                         for camera in self.cameras.cameras])
+
+
+def optical_axes_meet(cameras: CameraGroup) -> np.ndarray:
+    """The point nearest every camera's optical axis (least squares): where the rig looks, mm, shape (3,).
+
+    Raises
+    ------
+    InputError
+        When the axes do not meet in front of the cameras (one camera, parallel axes).
+    """
+    world2cam = np.stack([camera.world2cam for camera in cameras.cameras])
+    centers = np.stack([camera.center for camera in cameras.cameras])
+    axes = world2cam[:, 2, :3]  # camera z (forward) in the world
+    projectors = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]  # onto the plane across each axis
+    normal_matrix = projectors.sum(axis=0)
+    if np.linalg.eigvalsh(normal_matrix)[0] < 1e-3 * len(axes):
+        raise InputError("cannot place the face: the cameras' optical axes do not converge (one camera, or "
+                         "parallel axes); give the face pose (model2world)", field="cameras")
+    target = np.linalg.solve(normal_matrix, np.einsum("kij,kj->i", projectors, centers))
+    if (np.einsum("kd,kd->k", target - centers, axes) <= 0).any():
+        raise InputError("cannot place the face: the cameras' optical axes meet behind a camera; give the face "
+                         "pose (model2world)", field="cameras")
+    return target
+
+
+def facing_pose(basis: Basis, cameras: CameraGroup) -> np.ndarray:
+    """``model2world`` of a neutral face that sits where the cameras look, facing them, upright as they stand.
+
+    The face centre (middle of the neutral bounding box) goes to :func:`optical_axes_meet`, the face's +z
+    points at the cameras' mean centre and its +y along the cameras' mean up direction: a performer seated
+    in front of the rig. Calibration files put the world frame on the board, so this is where the rig
+    says the face is.
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+
+    Raises
+    ------
+    InputError
+        When the axes do not meet in front of the cameras, or the cameras have no common front or up.
+    """
+    target = optical_axes_meet(cameras)
+    centers = np.stack([camera.center for camera in cameras.cameras])
+    forward = centers.mean(axis=0) - target
+    up = -np.stack([camera.world2cam[1, :3] for camera in cameras.cameras]).mean(axis=0)  # camera -y: up
+    up -= (up @ forward) / max(forward @ forward, 1e-300) * forward
+    if np.linalg.norm(forward) < 1e-6 or np.linalg.norm(up) < 1e-6:
+        raise InputError("cannot place the face: the cameras surround it (no front or no up); give the face "
+                         "pose (model2world)", field="cameras")
+    forward, up = forward / np.linalg.norm(forward), up / np.linalg.norm(up)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([np.cross(up, forward), up, forward], axis=1)
+    pose[:3, 3] = target - pose[:3, :3] @ (0.5 * (basis.neutral.min(axis=0) + basis.neutral.max(axis=0)))
+    return pose
+
+
+def _seen_by(camera: Camera, points: np.ndarray, normals: np.ndarray, cos_limit: float, vertices: np.ndarray,
+             cell_mm: float) -> np.ndarray:
+    """Sites ``camera`` sees: facing it within the limit, in front of it, inside its image, not behind the surface.
+
+    Parameters
+    ----------
+    points, normals : ndarray, shape (n_sites, 3)
+        World frame.
+    vertices : ndarray, shape (n_vertices, 3)
+        The face surface, world frame.
+    cell_mm : float
+        Cell of the depth test at the face (about a mesh edge).
+
+    Returns
+    -------
+    ndarray of bool, shape (n_sites,)
+    """
+    to_camera = camera.center - points
+    cosine = np.einsum("nd,nd->n", normals, to_camera) / np.linalg.norm(to_camera, axis=1)
+    world2cam = camera.world2cam
+    depth = points @ world2cam[2, :3] + world2cam[2, 3]
+    seen = (cosine >= cos_limit) & (depth > 0)
+    pixels = camera.project(points[seen])
+    width, height = camera.size
+    seen[seen] = ((pixels >= -0.5) & (pixels < np.array([width, height]) - 0.5)).all(axis=1)
+    if seen.any():
+        seen[seen] = ~_behind_surface(world2cam, points[seen], cosine[seen], vertices, cell_mm)
+    return seen
+
+
+def _behind_surface(world2cam: np.ndarray, points: np.ndarray, cosine: np.ndarray, vertices: np.ndarray,
+                    cell_mm: float) -> np.ndarray:
+    """Sites with the face surface in front of them, by a depth splat of the surface's vertices.
+
+    The nearest vertex depth is kept per cell of a grid on the (pinhole) image plane, a cell about ``cell_mm``
+    wide at the face (so a site's answer does not depend on which other sites are asked about). A site is
+    hidden when that depth is nearer than its own surface patch can be: the cell seen at the site's angle
+    (with half again for the patch's curvature), plus :data:`SURFACE_SLACK_MM`.
+
+    Parameters
+    ----------
+    world2cam : ndarray, shape (4, 4)
+    points : ndarray, shape (n_sites, 3)
+        World frame, in front of the camera.
+    cosine : ndarray, shape (n_sites,)
+        Cosine of the angle between each site's normal and its direction to the camera.
+    vertices : ndarray, shape (n_vertices, 3)
+        World frame.
+
+    Returns
+    -------
+    ndarray of bool, shape (n_sites,)
+    """
+    sites = points @ world2cam[:3, :3].T + world2cam[:3, 3]
+    surface = vertices @ world2cam[:3, :3].T + world2cam[:3, 3]
+    surface = surface[surface[:, 2] > 1.0]
+    face_depth = float(np.median(surface[:, 2]))
+    cell = cell_mm / face_depth  # normalised image plane
+    site_cells = np.floor(sites[:, :2] / sites[:, 2:] / cell).astype(np.int64)
+    surface_cells = np.floor(surface[:, :2] / surface[:, 2:] / cell).astype(np.int64)
+    low, high = site_cells.min(axis=0), site_cells.max(axis=0)
+    inside = ((surface_cells >= low) & (surface_cells <= high)).all(axis=1)  # others hide no site
+    nearest = np.full(tuple(high - low + 1), np.inf)
+    np.minimum.at(nearest, tuple((surface_cells[inside] - low).T), surface[inside, 2])
+    facing = np.clip(cosine, 0.17, 1.0)
+    slope = np.sqrt(1.0 - facing**2) / facing
+    own_patch = 1.5 * cell_mm * sites[:, 2] / face_depth * slope
+    return sites[:, 2] > nearest[tuple((site_cells - low).T)] + own_patch + SURFACE_SLACK_MM
 
 
 def region_boundary(basis: Basis) -> float:
@@ -82,8 +310,15 @@ def observer_thresholds(basis: Basis) -> np.ndarray:
     return np.maximum(OBSERVE_FRACTION * peak, OBSERVE_MIN_MM)
 
 
-def face_candidates(basis: Basis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Candidate face-marker sites: front-facing triangle centroids that move with expression.
+def face_candidates(basis: Basis, rig: RigVisibility | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Candidate face-marker sites: triangle centroids that move with expression and face the cameras.
+
+    Parameters
+    ----------
+    basis : Basis
+    rig : RigVisibility, optional
+        Sites must be seen by the rig as it asks; without one, their normals must point towards +z
+        (at least :data:`MIN_FACING`), where cameras usually stand.
 
     Returns
     -------
@@ -96,15 +331,19 @@ def face_candidates(basis: Basis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     normals = triangle_normals(basis.neutral, basis.triangles)
     motion = np.linalg.norm(_triangle_displacements(basis), axis=2)  # (T, M)
     moves = (motion >= observer_thresholds(basis)[None]).any(axis=1)
-    keep = np.flatnonzero((normals[:, 2] >= MIN_FACING) & moves)
+    keep = np.flatnonzero(moves)
+    if rig is None:
+        keep = keep[normals[keep, 2] >= MIN_FACING]
+    else:
+        keep = keep[rig.seen(basis, centroids[keep], normals[keep]).sum(axis=0) >= rig.min_views]
     boundary = region_boundary(basis)
     regions = np.where(centroids[keep, 1] > boundary, "upper", "lower")
     return keep, centroids[keep], regions
 
 
-def default_spacing(basis: Basis, count: int) -> float:
-    """A minimum spacing (mm) that lets ``count`` markers spread over the candidate area."""
-    triangles, _, _ = face_candidates(basis)
+def default_spacing(basis: Basis, count: int, rig: RigVisibility | None = None) -> float:
+    """A minimum spacing (mm) that lets ``count`` markers spread over the candidate area (the one ``rig`` sees)."""
+    triangles, _, _ = face_candidates(basis, rig)
     corners = basis.neutral[basis.triangles[triangles]]
     area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
     return float(0.55 * np.sqrt(area / max(count, 1)))
@@ -306,12 +545,18 @@ def _face_names(regions) -> list[str]:
     return names
 
 
-def head_markers(basis: Basis, n_head: int = 5) -> MarkerSet:
+def head_markers(basis: Basis, n_head: int = 5, rig: RigVisibility | None = None) -> MarkerSet:
     """Rigid head-rig markers: well spread, front-facing sites of the upper face that barely move.
 
-    Sites are triangle centroids above the region boundary whose largest displacement over all
+    Sites are triangle centroids above the region boundary (anywhere, when there are too few) that face
+    the cameras (normal towards +z, or seen as ``rig`` asks) and whose largest displacement over all
     elements is in the lowest fifth; among them, farthest-point sampling (from the stillest) spreads
     ``n_head`` markers, which are therefore not coplanar on a curved head.
+
+    Raises
+    ------
+    InputError
+        When ``rig`` sees fewer than ``n_head`` sites.
     """
     if n_head < 0:
         raise ValueError("n_head must be >= 0")
@@ -320,9 +565,16 @@ def head_markers(basis: Basis, n_head: int = 5) -> MarkerSet:
     centroids = basis.neutral[basis.triangles].mean(axis=1)
     normals = triangle_normals(basis.neutral, basis.triangles)
     motion = np.linalg.norm(_triangle_displacements(basis), axis=2).max(axis=1)
-    front = np.flatnonzero((normals[:, 2] >= 0.2) & (centroids[:, 1] > region_boundary(basis)))
+    if rig is None:
+        facing = normals[:, 2] >= 0.2
+    else:
+        facing = rig.seen(basis, centroids, normals).sum(axis=0) >= rig.min_views
+        if facing.sum() < n_head:
+            raise InputError(f"{n_head} head markers asked for, but only {int(facing.sum())} sites of the face are "
+                             f"{rig.describe()}", field="n_head")
+    front = np.flatnonzero(facing & (centroids[:, 1] > region_boundary(basis)))
     if len(front) < n_head:
-        front = np.flatnonzero(normals[:, 2] >= 0.2)
+        front = np.flatnonzero(facing)
     still = front[motion[front] <= np.quantile(motion[front], 0.2)]
     if len(still) < n_head:
         still = front[np.argsort(motion[front])[: max(n_head, 1)]]
@@ -342,7 +594,7 @@ def _join(face: MarkerSet, head: MarkerSet) -> MarkerSet:
 
 
 def design_markers(basis: Basis, count: int = 64, min_spacing_mm: float | None = None, n_head: int = 5,
-                   seed: int = 0, min_observers: int = 3) -> MarkerSet:
+                   seed: int = 0, min_observers: int = 3, rig: RigVisibility | None = None) -> MarkerSet:
     """Design a marker layout: ``count`` face markers (robust greedy D-optimal per region) plus head markers.
 
     Parameters
@@ -359,18 +611,29 @@ def design_markers(basis: Basis, count: int = 64, min_spacing_mm: float | None =
         Breaks ties only; the design is deterministic for a given basis.
     min_observers : int
         Every muscle should be observed by at least this many markers of its region.
+    rig : RigVisibility, optional
+        The camera rig the layout is for: face and head markers go only where it sees them as it asks.
 
     Returns
     -------
     MarkerSet
         Face markers named ``upper_01``..., ``lower_01``..., then ``head_01``...
+
+    Raises
+    ------
+    InputError
+        When the candidate sites (those the rig sees) cannot hold the markers asked for; the message gives
+        the figures.
     """
     del seed  # the greedy design is deterministic; the argument keeps the interface of the baseline
     if count < 1:
         raise ValueError("count must be >= 1")
-    spacing = default_spacing(basis, count) if min_spacing_mm is None else float(min_spacing_mm)
-    head = head_markers(basis, n_head)
-    triangles, centroids, regions = face_candidates(basis)
+    triangles, centroids, regions = face_candidates(basis, rig)
+    if rig is not None and not len(triangles):
+        raise InputError(f"no site of the face that moves with expression is {rig.describe()}; is the face in "
+                         f"front of the cameras?", field="cameras")
+    spacing = default_spacing(basis, count, rig) if min_spacing_mm is None else float(min_spacing_mm)
+    head = head_markers(basis, n_head, rig)
     # face markers keep the spacing from the head markers too
     head_sites = head.neutral_positions(basis)
     apart = np.all(np.linalg.norm(centroids[:, None] - head_sites[None], axis=2) >= spacing, axis=1)
@@ -382,13 +645,15 @@ def design_markers(basis: Basis, count: int = 64, min_spacing_mm: float | None =
     for region in REGIONS:
         n_region = alloc.get(region, 0)
         in_region = np.flatnonzero(regions == region)
-        if n_region == 0 or not in_region.size:
+        if n_region == 0:
             continue
         muscles = basis.region_mask(region)
         rows = np.transpose(displacement[in_region][:, muscles], (0, 2, 1))  # (n, 3, m)
         observes = np.linalg.norm(displacement[in_region][:, muscles], axis=2) >= thresholds[muscles]
-        ridge = 1e-6 * np.einsum("kdm,kdm->", rows, rows) / len(rows)
+        ridge = 1e-6 * np.einsum("kdm,kdm->", rows, rows) / max(len(rows), 1)
         chosen = _greedy_design(rows, centroids[in_region], n_region, spacing, ridge)
+        if len(chosen) < n_region:
+            raise InputError(_shortfall(region, len(chosen), n_region, len(in_region), spacing, rig), field="count")
         chosen = _ensure_observers(rows, observes, centroids[in_region], chosen, spacing, min_observers, ridge)
         chosen = _exchange(rows, observes, centroids[in_region], chosen, spacing, min_observers, ridge)
         order = sorted(chosen, key=lambda c: (-centroids[in_region][c, 1], centroids[in_region][c, 0]))
@@ -396,6 +661,15 @@ def design_markers(basis: Basis, count: int = 64, min_spacing_mm: float | None =
         picked_regions += [region] * len(order)
     face = _marker_set(picked_triangles, picked_regions, _face_names(picked_regions), ["face"] * len(picked_regions))
     return _join(face, head)
+
+
+def _shortfall(region: str, fitted: int, wanted: int, sites: int, spacing: float, rig: RigVisibility | None) -> str:
+    """Why a region's markers do not fit, with the figures and what to change."""
+    where = f"{sites} candidate sites" + (f" {rig.describe()}" if rig is not None else "")
+    change = "fewer markers, a smaller spacing" + (", fewer views, or cameras that see more of the face"
+                                                   if rig is not None else "")
+    return (f"only {fitted} of the {wanted} {region}-face markers fit {spacing:.1f} mm apart on its {where} "
+            f"(and clear of the head markers); ask for {change}")
 
 
 def farthest_point_markers(basis: Basis, count: int = 64, seed: int = 0, n_head: int = 0) -> MarkerSet:
@@ -445,8 +719,8 @@ def _worst_without_one(displacement: np.ndarray) -> float:
     return max(condition_number(np.delete(displacement, k, axis=0)) for k in range(n))
 
 
-def layout_report(basis: Basis, markers: MarkerSet) -> dict:
-    """Observability figures of a layout.
+def layout_report(basis: Basis, markers: MarkerSet, rig: RigVisibility | None = None) -> dict:
+    """Observability figures of a layout (and, given a rig, how many of its cameras see each marker).
 
     Returns
     -------
@@ -457,7 +731,9 @@ def layout_report(basis: Basis, markers: MarkerSet) -> dict:
         its muscles), ``observers``: per muscle the number of its region's markers it moves by at
         least ``max(0.2 x its peak, 0.5 mm)``, ``min_observers``, ``head_spread_mm`` (smallest singular
         value of the centred head-marker positions: > 0 means not coplanar, larger is better spread),
-        ``head_motion_mm`` (largest displacement of any head-marker site by any element).
+        ``head_motion_mm`` (largest displacement of any head-marker site by any element). With ``rig``:
+        ``views``, per marker the number of cameras that see it at the neutral pose as ``rig`` counts (margin
+        for head motion included), and ``fewest_views``.
     """
     displacement = markers.displacement_matrix(basis)  # (n, M, 3)
     face = markers.face_mask
@@ -489,4 +765,9 @@ def layout_report(basis: Basis, markers: MarkerSet) -> dict:
         report["head_spread_mm"] = float(np.linalg.svd(positions - positions.mean(axis=0), compute_uv=False)[-1])
         moved = np.linalg.norm(head.positions(basis.elements, basis.triangles), axis=2)  # element displacements
         report["head_motion_mm"] = float(moved.max())
+    if rig is not None:
+        normals = triangle_normals(basis.neutral, basis.triangles[markers.triangles])
+        views = rig.seen(basis, markers.neutral_positions(basis), normals).sum(axis=0)
+        report["views"] = {name: int(v) for name, v in zip(markers.names, views)}
+        report["fewest_views"] = int(views.min()) if len(views) else 0
     return report
