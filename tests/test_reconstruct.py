@@ -1,7 +1,9 @@
 """End-to-end marker reconstruction on the simulated rig with ground truth.
 
-4 cameras, 64 face + 5 head markers, 0.2 px centroid noise (per axis), 10% of marker views occluded
-at random on top of the markers facing away, spurious highlights, a moving head.
+4 cameras (two heights, two sides), 64 face + 5 head markers laid out for that rig, 0.2 px centroid
+noise (per axis), 10% of marker views occluded at random on top of the markers facing away, spurious
+highlights, a moving head. The labelled fraction is over all marker-frames: a marker seen by fewer than
+two cameras is never invented, so it counts as lost.
 """
 
 from __future__ import annotations
@@ -21,6 +23,13 @@ def setup(ict):
     return basis, markers, rig_cameras(basis)
 
 
+def test_every_marker_is_seen_by_all_four_cameras_at_neutral(setup):
+    """The layout was designed for the rig: at the neutral pose every marker is seen by all four cameras."""
+    basis, markers, cameras = setup
+    take = simulate(basis, markers, cameras, 1, occlusion=0.0)
+    assert len(cameras) == 4 and np.isfinite(take.labelled_2d[0, ..., 0]).all()
+
+
 def test_take_accuracy_labelling_and_no_swaps(setup):
     basis, markers, cameras = setup
     take = simulate(basis, markers, cameras, 400, seed=5)
@@ -29,7 +38,8 @@ def test_take_accuracy_labelling_and_no_swaps(setup):
     result = evaluate(frames, take)
     assert result["swaps"] == 0
     assert result["rmse_mm"] <= 0.2
-    assert result["labelled_fraction_reconstructible"] >= 0.99
+    assert result["labelled_fraction"] >= 0.99  # all marker-frames, the unreconstructible ones too
+    assert result["labelled_fraction_reconstructible"] >= 0.995
     assert result["stray_per_frame"] > 0  # the spurious highlights were seen and left unlabelled
     # head pose and model-frame displacements follow the truth
     head = np.stack([f.head2world for f in frames])
@@ -74,6 +84,24 @@ def test_labels_come_back_after_every_camera_lost_the_face(setup):
     result = evaluate(frames[after], simulate_slice(take, after))
     assert result["swaps"] == 0 and result["labelled_fraction_reconstructible"] >= 0.98
     assert result["rmse_mm"] <= 0.2
+
+
+def test_face_model_check_stops_neighbours_swapping_after_lost_views(setup):
+    """30 fps, each camera's frame lost 15% of the time, a fast performance: after a frame set with few
+    cameras, predictions can be off by a marker spacing and the assignment hands markers their
+    neighbours' points. The face-model check (``TrackConfig.consistency_mm``) drops such labels."""
+    from livebridge.reconstruct.pipeline import ReconstructConfig
+    from livebridge.reconstruct.track import TrackConfig
+
+    basis, markers, cameras = setup
+    take = simulate(basis, markers, cameras, 300, seed=2, fps=30.0)
+    rng = np.random.default_rng(2)
+    frames_2d = [[np.zeros((0, 2)) if f and rng.random() < 0.15 else points for points in frame]
+                 for f, frame in enumerate(take.frames_2d)]
+    checked = evaluate(Reconstructor(cameras, markers, basis).run(frames_2d, take.t), take)
+    assert checked["swaps"] == 0 and checked["labelled_fraction"] > 0.93 and checked["rmse_mm"] <= 0.2
+    unchecked = Reconstructor(cameras, markers, basis, ReconstructConfig(track=TrackConfig(consistency_mm=None)))
+    assert evaluate(unchecked.run(frames_2d, take.t), take)["swaps"] > 50  # the take does provoke swaps
 
 
 def simulate_slice(take, frames: slice):
@@ -132,7 +160,7 @@ def test_soak_10000_frames_no_swaps(setup):
     result = evaluate(frames, take)
     assert result["swaps"] == 0
     assert result["rmse_mm"] <= 0.2
-    assert result["labelled_fraction_reconstructible"] >= 0.99
+    assert result["labelled_fraction"] >= 0.99
 
 
 def test_greedy_disjoint_equals_the_sequential_walk(rng):

@@ -12,7 +12,9 @@ it had from the model when last seen - neighbouring markers can move in opposite
 (upper and lower lip), so plain neighbour interpolation would not do. An assignment is refused when
 the detection is not clearly nearer its own marker's prediction than any other marker's
 (``ratio``) - the situation in which two labels could swap - and the refusals are counted.
-Detections that take no label are strays (reflections), ignored and counted.
+Detections that take no label are strays (reflections), ignored and counted. With a face model, a
+labelled marker that sits far from where the model puts it (contractions fitted to the frame's other
+markers) loses its label: that is how a swap between neighbours after a gap in fast motion shows.
 After the assignment the head pose is solved from the rigid head markers (Kabsch, scale fixed),
 or, when fewer than three are seen, from all labelled markers.
 """
@@ -50,6 +52,11 @@ class TrackConfig:
         After this many frames in a row with fewer than 3 markers labelled (no head pose), the tracker
         is lost: its predictions are no longer trusted and the markers are labelled from scratch
         (:meth:`Tracker.lost`).
+    consistency_mm : float or None
+        With a face model (``displacement_matrix``): a labelled face marker farther than this (model mm)
+        from where the model puts it -- contractions fitted to the frame's labelled markers, plus the
+        marker's offset from the model when last seen -- loses its label (see :meth:`Tracker.step`).
+        None: no check.
     """
 
     gate_mm: float = 4.0
@@ -58,6 +65,7 @@ class TrackConfig:
     velocity_frames: int = 3
     ratio: float = 0.6
     lost_frames: int = 6
+    consistency_mm: float | None = 3.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -110,7 +118,7 @@ class TrackFrame:
     n_stray : int
         Input points that took no label.
     n_refused : int
-        Assignments refused as possible swaps.
+        Assignments refused as possible swaps (swap guard) or dropped by the face-model check.
     """
 
     labels: np.ndarray
@@ -273,6 +281,14 @@ class Tracker:
         world2head = np.linalg.inv(head2world)
         model = apply(world2head, world)
         seen = np.isfinite(model).all(axis=1)
+        if self.displacement is not None and config.consistency_mm is not None:
+            kept, contractions = self._consistent(model, seen, state.model_offsets, contractions)
+            dropped = np.flatnonzero(seen & ~kept)
+            if len(dropped):
+                labels[np.isin(labels, dropped)] = -1
+                world[dropped] = model[dropped] = np.nan
+                n_refused += len(dropped)
+                seen = kept
         continuing = seen & (state.unseen == 0)
         velocities = state.velocities_model.copy()
         velocities[continuing] = (model[continuing] - state.positions_model[continuing]) / dt
@@ -291,16 +307,48 @@ class Tracker:
         new_state = replace(state, t=float(t), positions_model=positions, velocities_model=velocities, unseen=unseen,
                             head2world=head2world, head_motion=_pose_motion(state.head2world, head2world, dt),
                             model_offsets=offsets, starved=0 if seen.sum() >= 3 else state.starved + 1)
-        frame = TrackFrame(labels, world, model, head2world, int(len(points_3d) - len(rows)), n_refused)
+        frame = TrackFrame(labels, world, model, head2world, int((labels < 0).sum()), n_refused)
         return new_state, frame
 
     def _contractions(self, model: np.ndarray, use: np.ndarray) -> np.ndarray | None:
-        """Non-negative contractions ``(n_muscles,)`` fitting the model-frame positions of the markers in ``use``."""
+        """Non-negative contractions ``(n_muscles,)`` fitting the model-frame positions of the markers in ``use``.
+
+        The markers' offsets are not subtracted: an offset is the misfit left by this fit, and fitting
+        to positions less their offsets would add each frame's misfit to the next (a random walk)."""
         if use.sum() < 3:
             return None
         a = self.displacement[use].transpose(0, 2, 1).reshape(-1, self.displacement.shape[1])
         b = (model[use] - self.reference[use]).reshape(-1)
         return nnls(a, b)[0]
+
+    def _consistent(self, model, seen, offsets, contractions) -> tuple[np.ndarray, np.ndarray | None]:
+        """The labels the face model explains, shape (n_markers,) bool, and the contractions fitted to them.
+
+        Why: after a gap in fast motion (a lip opening while a frame set was lost) every marker's
+        prediction can be off by about the spacing of its neighbours, and the assignment then gives
+        each the next one's point -- a shifted comb that no distance test tells from the truth. The
+        face model does: those markers sit ``~spacing`` from where contractions fitted to the rest of
+        the face put them. Labels farther than ``consistency_mm`` are dropped (the fit is repeated
+        without them once); the markers come back in a later frame, predicted by the model.
+        """
+        face = seen & ~self.head_mask
+        if contractions is None:
+            contractions = self._contractions(model, face)
+        if contractions is None:
+            return seen, None
+        limit = self.config.consistency_mm
+
+        def off(x):
+            expected = self.reference + np.einsum("nmd,m->nd", self.displacement, x) + offsets
+            return face & (np.linalg.norm(model - expected, axis=1) > limit)
+
+        bad = off(contractions)
+        if bad.any():
+            refit = self._contractions(model, face & ~bad)
+            if refit is not None:
+                contractions = refit
+                bad |= off(contractions)
+        return seen & ~bad, contractions
 
     def _model_prediction(self, state, points_3d, cost, gate, predicted_pose, predicted, found_world):
         """Predictions of markers returning from a gap from the face model, fitted to the continuing markers."""
