@@ -191,15 +191,17 @@ class PtyDevice:
         return bytes(data)
 
 
-def _serve_in_child(factory, options: dict, connection) -> None:
-    """Child process of :class:`DeviceProcess`: serve the device until told to stop or the parent goes."""
+def serve_from_stdin() -> None:
+    """Child process of :class:`DeviceProcess`: a pickled ``(factory, options)`` on stdin, the pseudo-terminal's
+    path written to stdout, then serve until stdin closes (the parent stopped it, or the parent is gone)."""
+    import pickle
+    import sys
+
+    factory, options = pickle.load(sys.stdin.buffer)
     device = factory(**options)
     try:
-        connection.send(device.start())
-        try:
-            connection.recv()  # a stop message, or EOF when the parent process is gone
-        except EOFError:
-            pass
+        print(device.start(), flush=True)
+        sys.stdin.buffer.read()  # returns at EOF
     finally:
         device.close()
 
@@ -210,12 +212,14 @@ class DeviceProcess:
     Like real hardware, it then takes no CPU time or interpreter lock from the process that drives it:
     a simulator thread in the pipeline's process competes with the pipeline for Python's GIL. Same
     lifecycle as :class:`PtyDevice` (:meth:`start` returns the pseudo-terminal's path, :meth:`close`);
-    the device's state lives in the child, so tests that inspect it use an in-process simulator.
+    the device's state lives in the child, so tests that inspect it use an in-process simulator. The
+    child is a fresh interpreter (not a fork, and not ``multiprocessing``, which would re-run the
+    parent's main script); it ends when its stdin closes, also when the parent dies.
 
     Parameters
     ----------
     factory : type
-        A :class:`PtyDevice` subclass (picklable: the child is spawned, not forked).
+        A :class:`PtyDevice` subclass (picklable).
     options : dict
         Its constructor's keyword arguments.
     """
@@ -223,34 +227,36 @@ class DeviceProcess:
     def __init__(self, factory, options: dict):
         self.factory, self.options = factory, dict(options)
         self._process = None
-        self._connection = None
 
     def start(self, timeout: float = 60.0) -> str:
-        import multiprocessing
+        import pickle
+        import subprocess
+        import sys
 
-        context = multiprocessing.get_context("spawn")
-        self._connection, child = context.Pipe()
-        self._process = context.Process(target=_serve_in_child, args=(self.factory, self.options, child),
-                                        name=f"simulated {self.factory.__name__}", daemon=True)
-        self._process.start()
-        child.close()
-        if not self._connection.poll(timeout):
+        code = "from livebridge.simulators.pty_bus import serve_from_stdin; serve_from_stdin()"
+        self._process = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        self._process.stdin.write(pickle.dumps((self.factory, self.options)))
+        self._process.stdin.flush()
+        ready, _, _ = select.select([self._process.stdout], [], [], timeout)
+        path = self._process.stdout.readline().decode().strip() if ready else ""
+        if not path:
             self.close()
             raise RuntimeError(f"the simulated {self.factory.__name__} did not start within {timeout} s")
-        return self._connection.recv()
+        return path
 
     def close(self) -> None:
         if self._process is None:
             return
         try:
-            self._connection.send("stop")
+            self._process.stdin.close()
         except OSError:
             pass
-        self._process.join(timeout=5.0)
-        if self._process.is_alive():
-            self._process.terminate()
-            self._process.join(timeout=5.0)
-        self._connection.close()
+        try:
+            self._process.wait(timeout=5.0)
+        except Exception:  # noqa: BLE001 - subprocess.TimeoutExpired: it would not stop, so it is killed
+            self._process.kill()
+            self._process.wait(timeout=5.0)
+        self._process.stdout.close()
         self._process = None
 
     def __enter__(self):

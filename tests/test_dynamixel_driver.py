@@ -236,7 +236,7 @@ def test_simulated_bus_in_its_own_process():
     bus = open_bus("simdynamixel://?ids=1-3&model=XL330-M288&delay=0&process=1", timeout_margin_ms=REPLY_MS)
     try:
         process = bus.simulator._process
-        assert process.is_alive() and not any(t.name.startswith("pty-bus") for t in threading.enumerate())
+        assert process.poll() is None and not any(t.name.startswith("pty-bus") for t in threading.enumerate())
         assert [i.address for i in bus.scan()] == [1, 2, 3]
         bus.configure(_setups([1, 2, 3]), frame_period=0.02)
         assert bus.activate() == {i: 2048.0 for i in (1, 2, 3)}
@@ -250,7 +250,7 @@ def test_simulated_bus_in_its_own_process():
         assert abs(bus.status[1].position - 2300) < 2 and abs(bus.status[2].position - 1800) < 2
     finally:
         bus.close()
-    assert not process.is_alive()
+    assert process.poll() is not None
 
 
 def test_bad_simulator_options_are_reported_before_a_process_starts():
