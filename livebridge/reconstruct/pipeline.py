@@ -94,6 +94,8 @@ class LabelledFrame:
     labelled_fraction: float
 
     def __post_init__(self):
+        # made read-only, so they must not be the tracker's own arrays (compiled code is specialised, and
+        # warmed up, for writable ones)
         for name in ("positions", "displacements", "positions_world", "head2world"):
             getattr(self, name).setflags(write=False)
 
@@ -157,11 +159,15 @@ class Reconstructor:
         return ReconstructorState()
 
     def warm_up(self) -> None:
-        """Run the compiled per-frame kernels once (numba compiles or loads them on first use)."""
-        n_cams = len(self.cameras)
-        self.matcher([np.zeros((1, 2))] * n_cams, np.zeros((self.n_markers, 3)), np.ones(self.n_markers, bool),
-                     np.ones(self.n_markers))
+        """Run the compiled per-frame kernels once (numba compiles or loads them on first use): the matcher,
+        the triangulation and a tracker step on the neutral markers."""
+        n_cams, n = len(self.cameras), self.n_markers
+        self.matcher([np.zeros((1, 2))] * n_cams, np.zeros((n, 3)), np.ones(n, bool), np.ones(n))
         self.triangulator.dlt(np.zeros((n_cams, 1, 2)))
+        tracker = Tracker(self.markers.head_mask, self.model_points, 1.0, self.config.track,
+                          self.markers.displacement_matrix(self.basis))
+        state = tracker.start(0.0, self.model_points, np.ones(n, bool), np.eye(4))
+        tracker.step(state, self.model_points, 1.0 / 60.0)
 
     def detect(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
         """Undistorted marker centroids per camera (see :func:`livebridge.reconstruct.detect.detect_markers`)."""
@@ -210,7 +216,7 @@ class Reconstructor:
         track, out = tracker.step(state.track, points, t, found.positions_world, prediction)
         seen = np.isfinite(out.positions_model).all(axis=1)
         frame = LabelledFrame(float(t), out.positions_model, out.positions_model - state.neutral, out.positions_world,
-                              out.head2world, out.n_stray, float(seen.mean()))
+                              out.head2world.copy(), out.n_stray, float(seen.mean()))
         return ReconstructorState(track, state.tracker, state.alignment, state.neutral, state.frames + 1), frame
 
     def _first(self, state: ReconstructorState, points_2d: Sequence[np.ndarray], t: float):
@@ -262,14 +268,14 @@ class Reconstructor:
         if labelling.n_matched < max(4, self.n_markers // 2) or head_seen < 3:
             track = state.tracker.coast(track, t)
             nothing = np.full((self.n_markers, 3), np.nan)
-            frame = LabelledFrame(float(t), nothing, nothing.copy(), nothing.copy(), track.head2world,
+            frame = LabelledFrame(float(t), nothing, nothing.copy(), nothing.copy(), track.head2world.copy(),
                                   int(np.isfinite(points).all(axis=1).sum()), 0.0)
             return replace(state, track=track, frames=state.frames + 1), frame
         track, out = state.tracker.restart(track, t, world)
         seen = np.isfinite(out.positions_model).all(axis=1)
+        strays = out.n_stray + int(np.isfinite(points).all(axis=1).sum() - seen.sum())
         frame = LabelledFrame(float(t), out.positions_model, out.positions_model - state.neutral, out.positions_world,
-                              out.head2world, out.n_stray + int(np.isfinite(points).all(axis=1).sum() - seen.sum()),
-                              float(seen.mean()))
+                              out.head2world.copy(), strays, float(seen.mean()))
         return replace(state, track=track, frames=state.frames + 1), frame
 
     def run(self, frames_2d: Sequence[Sequence[np.ndarray]], t: np.ndarray) -> list[LabelledFrame]:

@@ -33,6 +33,29 @@ INVERSE_ITERATIONS = 2
 
 
 @njit(cache=True, nogil=True)
+def _project(predicted: np.ndarray, gate_mm: np.ndarray, projections: np.ndarray,
+             focal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted pixels ``(n_cams, n_markers, 2)`` and pixel gates ``(n_cams, n_markers)`` at the markers' depths.
+
+    ``predicted (n_markers, 3)`` world mm, ``gate_mm (n_markers,)``, ``projections (n_cams, 3, 4)``,
+    ``focal (n_cams,)`` pixels per unit of x/z. NaN where a marker is behind a camera or unknown.
+    """
+    n_cams, n_markers = projections.shape[0], predicted.shape[0]
+    projected = np.full((n_cams, n_markers, 2), np.nan)
+    gate_px = np.full((n_cams, n_markers), np.nan)
+    for c in range(n_cams):
+        q = projections[c]
+        for m in range(n_markers):
+            x, y, z = predicted[m, 0], predicted[m, 1], predicted[m, 2]
+            depth = q[2, 0] * x + q[2, 1] * y + q[2, 2] * z + q[2, 3]
+            if depth > 0:  # False for NaN
+                projected[c, m, 0] = (q[0, 0] * x + q[0, 1] * y + q[0, 2] * z + q[0, 3]) / depth
+                projected[c, m, 1] = (q[1, 0] * x + q[1, 1] * y + q[1, 2] * z + q[1, 3]) / depth
+                gate_px[c, m] = gate_mm[m] * focal[c] / depth
+    return projected, gate_px
+
+
+@njit(cache=True, nogil=True)
 def _claim(projected: np.ndarray, look: np.ndarray, gate_px: np.ndarray, detections: np.ndarray,
            offsets: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """Each looked-for marker's nearest detection within its gate in every camera, if unambiguous.
@@ -90,15 +113,17 @@ def _claim(projected: np.ndarray, look: np.ndarray, gate_px: np.ndarray, detecti
 
 
 @njit(cache=True, nogil=True)
-def _fit_claims(observed: np.ndarray, distance: np.ndarray, inverse_matrices: np.ndarray, extrinsics: np.ndarray,
-                projections: np.ndarray, tolerance_px: float) -> tuple[np.ndarray, np.ndarray]:
+def _fit_claims(claims: np.ndarray, detections: np.ndarray, distance: np.ndarray, inverse_matrices: np.ndarray,
+                extrinsics: np.ndarray, projections: np.ndarray, tolerance_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Triangulate each marker from its claimed views, dropping the view farthest from the prediction
     while a used view's residual exceeds ``tolerance_px``.
 
     Parameters
     ----------
-    observed : ndarray, shape (n_cams, n_points, 2)
-        Claimed undistorted pixels, NaN where none.
+    claims : ndarray of int, shape (n_cams, n_points)
+        Row of ``detections`` each marker claimed in each camera, -1 for none.
+    detections : ndarray, shape (n_detections, 2)
+        Undistorted pixels.
     distance : ndarray, shape (n_cams, n_points)
         Each claim's distance from the predicted projection.
     inverse_matrices : ndarray, shape (n_cams, 3, 3)
@@ -113,14 +138,14 @@ def _fit_claims(observed: np.ndarray, distance: np.ndarray, inverse_matrices: np
         NaN where fewer than 2 consistent views.
     used : ndarray of bool, shape (n_cams, n_points)
     """
-    n_cams, n_points = observed.shape[0], observed.shape[1]
+    n_cams, n_points = claims.shape[0], claims.shape[1]
     points = np.full((n_points, 3), np.nan)
     used = np.zeros((n_cams, n_points), dtype=np.bool_)
     normal = np.zeros((1, 4, 4))
     row = np.empty(4)
     for p in range(n_points):
         for c in range(n_cams):
-            used[c, p] = not np.isnan(observed[c, p, 0])
+            used[c, p] = claims[c, p] >= 0
         while True:
             views = 0
             for c in range(n_cams):
@@ -134,7 +159,7 @@ def _fit_claims(observed: np.ndarray, distance: np.ndarray, inverse_matrices: np
                 if not used[c, p]:
                     continue
                 k = inverse_matrices[c]
-                u, v = observed[c, p, 0], observed[c, p, 1]
+                u, v = detections[claims[c, p], 0], detections[claims[c, p], 1]
                 xy = (k[0, 0] * u + k[0, 1] * v + k[0, 2], k[1, 0] * u + k[1, 1] * v + k[1, 2])
                 for axis in range(2):
                     for j in range(4):
@@ -154,8 +179,8 @@ def _fit_claims(observed: np.ndarray, distance: np.ndarray, inverse_matrices: np
                     continue
                 q = projections[c]
                 h = q[2, 0] * x + q[2, 1] * y + q[2, 2] * z + q[2, 3]
-                du = (q[0, 0] * x + q[0, 1] * y + q[0, 2] * z + q[0, 3]) / h - observed[c, p, 0]
-                dv = (q[1, 0] * x + q[1, 1] * y + q[1, 2] * z + q[1, 3]) / h - observed[c, p, 1]
+                du = (q[0, 0] * x + q[0, 1] * y + q[0, 2] * z + q[0, 3]) / h - detections[claims[c, p], 0]
+                dv = (q[1, 0] * x + q[1, 1] * y + q[1, 2] * z + q[1, 3]) / h - detections[claims[c, p], 1]
                 worst = max(worst, np.sqrt(du * du + dv * dv)) if h > 0 else np.inf
                 if drop < 0 or distance[c, p] > distance[drop, p]:
                     drop = c
@@ -164,6 +189,39 @@ def _fit_claims(observed: np.ndarray, distance: np.ndarray, inverse_matrices: np
                 break
             used[drop, p] = False
     return points, used
+
+
+@njit(cache=True, nogil=True)
+def _clear(points_3d: np.ndarray, predicted: np.ndarray, look: np.ndarray, gate_mm: np.ndarray,
+           ratio: float) -> np.ndarray:
+    """Looked-for points within their marker's 3D gate and clearly nearer it than any other prediction.
+
+    ``points_3d`` and ``predicted`` are ``(n_markers, 3)`` (row ``m``: marker ``m``'s point, NaN for none),
+    ``gate_mm (n_markers,)``; returns ``(n_markers,)`` bool. Another prediction must be farther than
+    ``own / ratio``.
+    """
+    n = len(points_3d)
+    accepted = np.zeros(n, dtype=np.bool_)
+    for m in range(n):
+        if not look[m]:
+            continue
+        own = 0.0
+        for k in range(3):
+            own += (points_3d[m, k] - predicted[m, k]) ** 2
+        if not own <= gate_mm[m] * gate_mm[m]:  # also NaN
+            continue
+        clear = True
+        for other in range(n):
+            if other == m:
+                continue
+            d2 = 0.0
+            for k in range(3):
+                d2 += (points_3d[m, k] - predicted[other, k]) ** 2
+            if ratio * ratio * d2 <= own:
+                clear = False
+                break
+        accepted[m] = clear
+    return accepted
 
 
 @dataclass(frozen=True, eq=False)
@@ -232,36 +290,15 @@ class PredictedMatcher:
         if not look.any() or not len(detections):
             return PredictedMatch(found, points_2d, n_views)
         offsets = np.cumsum([0] + [len(p) for p in points_2d]).astype(np.int64)
-        projected, gate_px = self._project(predicted, gate_mm)
-        claims, distance = _claim(projected, look, gate_px, detections, offsets, self.ratio)
-        observed = np.where(claims[..., None] >= 0, detections[np.maximum(claims, 0)], np.nan)  # (c, n, 2)
         t = self.triangulator
-        points_3d, used = _fit_claims(observed, distance, t.inverse_matrices, t.extrinsics, t.projections,
+        projected, gate_px = _project(predicted, gate_mm, t.projections, self._focal)
+        claims, distance = _claim(projected, look, gate_px, detections, offsets, self.ratio)
+        points_3d, used = _fit_claims(claims, detections, distance, t.inverse_matrices, t.extrinsics, t.projections,
                                       self.tolerance_px)
-        accepted = look & self._clear(points_3d, predicted, gate_mm)
+        accepted = _clear(points_3d, predicted, look, gate_mm, self.ratio)
         found[accepted] = points_3d[accepted]
         used &= accepted[None]
         n_views[accepted] = used[:, accepted].sum(axis=0)
         remaining = detections.copy()
         remaining[claims[used]] = np.nan
         return PredictedMatch(found, [remaining[a:b] for a, b in zip(offsets[:-1], offsets[1:])], n_views)
-
-    def _project(self, predicted, gate_mm) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted pixels ``(n_cams, n_markers, 2)`` and pixel gates ``(n_cams, n_markers)`` at their depths."""
-        projections = self.triangulator.projections
-        homogeneous = np.einsum("cij,nj->cni", projections[:, :, :3], predicted) + projections[:, None, :, 3]
-        depth = homogeneous[..., 2]
-        with np.errstate(all="ignore"):
-            projected = homogeneous[..., :2] / depth[..., None]
-            gate_px = np.where(depth > 0, gate_mm[None] * self._focal[:, None] / depth, np.nan)
-        return projected, gate_px
-
-    def _clear(self, points_3d, predicted, gate_mm) -> np.ndarray:
-        """Points within their marker's 3D gate and clearly nearer it than any other prediction, shape (n,)."""
-        n = len(points_3d)
-        squared = ((points_3d**2).sum(axis=1)[:, None] + (predicted**2).sum(axis=1)[None]
-                   - 2.0 * points_3d @ predicted.T)  # (n, n_markers)
-        own = ((points_3d - predicted) ** 2).sum(axis=1)
-        squared[np.arange(n), np.arange(n)] = np.inf
-        with np.errstate(invalid="ignore"):
-            return (own <= gate_mm**2) & (own < self.ratio**2 * np.nanmin(squared, axis=1, initial=np.inf))

@@ -102,5 +102,8 @@ def head_pose(reference_model: np.ndarray, points_world: np.ndarray, model_scale
     -------
     ndarray, shape (4, 4); all NaN with fewer than 3 markers seen.
     """
-    rigid = umeyama(np.asarray(reference_model) * model_scale, points_world, with_scale=False)
-    return rigid @ np.diag([model_scale, model_scale, model_scale, 1.0])
+    reference = np.asarray(reference_model, dtype=np.float64) * model_scale
+    world = np.asarray(points_world, dtype=np.float64)
+    rigid = _umeyama(reference, np.ascontiguousarray(world), np.ones(len(world)), False)
+    rigid[:3, :3] *= model_scale  # R diag(s, s, s): the model's scale on the rotation's columns
+    return rigid

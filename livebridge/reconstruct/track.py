@@ -23,8 +23,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
+from numba import njit
 from scipy.optimize import nnls
 
 from livebridge.reconstruct.label import gated_assignment
@@ -129,22 +129,47 @@ class TrackFrame:
     n_refused: int
 
 
+@njit(cache=True, nogil=True)
+def _rotation(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``(3, 3)`` of a rotation vector ``(3,)`` (Rodrigues' formula)."""
+    angle = np.sqrt(rotvec[0] ** 2 + rotvec[1] ** 2 + rotvec[2] ** 2)
+    if angle < 1e-12:
+        return np.eye(3)
+    kx, ky, kz = rotvec[0] / angle, rotvec[1] / angle, rotvec[2] / angle
+    cross = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
+    return np.eye(3) + np.sin(angle) * cross + (1.0 - np.cos(angle)) * (cross @ cross)
+
+
+@njit(cache=True, nogil=True)
+def _rotation_vector(rotation: np.ndarray) -> np.ndarray:
+    """Rotation vector ``(3,)`` of a rotation matrix ``(3, 3)`` (angle below pi, as between two frames)."""
+    cosine = min(1.0, max(-1.0, (rotation[0, 0] + rotation[1, 1] + rotation[2, 2] - 1.0) / 2.0))
+    angle = np.arccos(cosine)
+    axis = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]])
+    if angle < 1e-7:
+        return axis / 2.0  # first order: R ~ I + [w]x
+    return axis * (angle / (2.0 * np.sin(angle)))
+
+
+@njit(cache=True, nogil=True)
 def _pose_step(head2world: np.ndarray, motion: np.ndarray, dt: float) -> np.ndarray:
     """``head2world`` advanced by ``dt`` seconds of constant motion (rotation about the pose's origin)."""
-    delta = np.eye(4)
-    delta[:3, :3] = cv2.Rodrigues(motion[:3] * dt)[0]
     out = head2world.copy()
-    out[:3, :3] = delta[:3, :3] @ head2world[:3, :3]
+    out[:3, :3] = _rotation(motion[:3] * dt) @ np.ascontiguousarray(head2world[:3, :3])
     out[:3, 3] = head2world[:3, 3] + motion[3:] * dt
     return out
 
 
+@njit(cache=True, nogil=True)
 def _pose_motion(before: np.ndarray, after: np.ndarray, dt: float) -> np.ndarray:
     """Constant motion (6,) taking ``before`` to ``after`` in ``dt`` seconds (inverse of :func:`_pose_step`)."""
     # both carry the same scale s (the alignment's): A B^-1 = (s R_a)(R_b^T / s) = A B^T / s^2
-    rotation = after[:3, :3] @ before[:3, :3].T / np.cbrt(np.linalg.det(before[:3, :3])) ** 2
-    rotvec = cv2.Rodrigues(rotation)[0].ravel()
-    return np.concatenate([rotvec, after[:3, 3] - before[:3, 3]]) / dt
+    scale_squared = np.cbrt(np.linalg.det(before[:3, :3])) ** 2
+    out = np.empty(6)
+    relative = np.ascontiguousarray(after[:3, :3]) @ np.ascontiguousarray(before[:3, :3].T)
+    out[:3] = _rotation_vector(relative / scale_squared) / dt
+    out[3:] = (after[:3, 3] - before[:3, 3]) / dt
+    return out
 
 
 class Tracker:
@@ -171,6 +196,12 @@ class Tracker:
         self.model_scale = float(model_scale)
         self.config = config
         self.displacement = None if displacement_matrix is None else np.asarray(displacement_matrix, dtype=np.float64)
+        self._head_reference = np.ascontiguousarray(self.reference[self.head_mask])
+
+    def head_pose(self, world: np.ndarray) -> np.ndarray:
+        """``head2world`` ``(4, 4)`` from the head markers' world positions in ``world (n_markers, 3)`` (NaN: unseen);
+        all NaN with fewer than 3 of them (:func:`~livebridge.reconstruct.stabilize.head_pose`)."""
+        return head_pose(self._head_reference, np.ascontiguousarray(world[self.head_mask]), self.model_scale)
 
     def start(self, t: float, positions_model: np.ndarray, seen: np.ndarray, head2world: np.ndarray) -> TrackState:
         """Initial state from a labelled first frame.
@@ -201,7 +232,7 @@ class Tracker:
 
         The head pose comes from the labelled head markers (at least 3 needed); velocities start at zero.
         """
-        pose = head_pose(self.reference[self.head_mask], found_world[self.head_mask], self.model_scale)
+        pose = self.head_pose(found_world)
         if not np.isfinite(pose).all():
             raise ValueError("restart needs at least 3 labelled head markers")
         fresh = replace(state, head2world=pose, head_motion=np.zeros(6),
@@ -273,7 +304,7 @@ class Tracker:
         labels = np.full(len(points_3d), -1, dtype=np.int64)
         labels[cols] = rows
         world[rows] = points_3d[cols]
-        head2world = head_pose(self.reference[self.head_mask], world[self.head_mask], self.model_scale)
+        head2world = self.head_pose(world)
         if not np.isfinite(head2world).all():
             # too few head markers: rigid fit of every labelled marker's last model-frame position
             fallback = head_pose(state.positions_model, world, self.model_scale)
@@ -359,7 +390,7 @@ class Tracker:
         world[rows] = points_3d[cols]
         if np.isfinite(world).all(axis=1).sum() < 3:
             return None, predicted
-        pose = head_pose(self.reference[self.head_mask], world[self.head_mask], self.model_scale)
+        pose = self.head_pose(world)
         if not np.isfinite(pose).all():
             pose = predicted_pose
         model = apply(np.linalg.inv(pose), world)
