@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import queue
 import threading
@@ -10,7 +11,8 @@ import time
 FRAME_PERIOD_30FPS_MS = 1000.0 / 30.0
 
 
-def _client(url: str, stop: threading.Event, counts: list) -> None:
+def _client(url: str, stop, count) -> None:
+    """A render client in its own process (as a browser is): receives every message until ``stop``."""
     from websockets.exceptions import ConnectionClosed
     from websockets.sync.client import connect
 
@@ -18,7 +20,8 @@ def _client(url: str, stop: threading.Event, counts: list) -> None:
         while not stop.is_set():
             try:
                 ws.recv(timeout=0.2)
-                counts[0] += 1
+                with count.get_lock():
+                    count.value += 1
             except TimeoutError:
                 continue
             except ConnectionClosed:
@@ -38,6 +41,8 @@ def _render_frames(shm_name: str, options: dict, slots: int, free, ready, stop) 
     from livebridge.simulators.rig import RigConfig, SimRig, default_face
 
     os.nice(options["nice"])  # the cameras' stand-in yields the CPU to the pipeline (see ProcessRig)
+    if options.get("cpus"):
+        os.sched_setaffinity(0, options["cpus"])
     basis, markers = default_face()
     performer = Performer(basis, markers, fps=options["fps"], seed=options["seed"], script=options["script"],
                           realtime=False)
@@ -79,21 +84,21 @@ class ProcessRig:
     Real cameras form their images outside the host's Python interpreter; the simulator stands in for
     them, so here it runs in its own process (same seed, so the same rig and performer as the demo's)
     and hands frames over through shared memory, a few frame sets ahead at most: the rig waits for the
-    pipeline (not paced, no frame lost). It still shares the machine's CPU with the pipeline; its CPU
-    time is reported (``simulator_cpu_s``). It runs at a lower scheduling priority (``nice``), so that
-    like camera hardware it does not delay the pipeline's threads; it renders with the CPU they leave.
+    pipeline (not paced, no frame lost). Its CPU time is reported (``simulator_cpu_s``). It runs at a
+    lower scheduling priority (``nice``), and with ``cpus`` only on those CPUs: camera hardware forms
+    its images with its own silicon, not with the CPU the pipeline runs on.
     :meth:`sources` are ordinary camera sources.
     """
 
     def __init__(self, cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 800), noise: float = 2.0,
-                 script: str = "mixed", slots: int = 3, nice: int = 10):
+                 script: str = "mixed", slots: int = 3, nice: int = 10, cpus: set[int] | None = None):
         import multiprocessing
         from multiprocessing import shared_memory
 
         import numpy as np
 
         self.options = {"cameras": cameras, "seed": seed, "fps": fps, "size": tuple(size), "noise": noise,
-                        "script": script, "nice": nice}
+                        "script": script, "nice": nice, "cpus": cpus}
         self.n_cameras, self.slots = cameras, slots
         width, height = size
         context = multiprocessing.get_context("spawn")
@@ -187,8 +192,21 @@ class _ProcessRigSource:
         return self.rig.take(self.camera, timeout)
 
 
-def run_once(frames: int, rig_process: bool, log) -> dict:
-    """One run of the demo pipeline (unpaced 4-camera sim rig, servos, one render client); figures and score."""
+def cpu_split() -> tuple[set[int], set[int]] | None:
+    """``(pipeline CPUs, rig CPUs)``: the last CPU for the simulated cameras, the others for the pipeline;
+    None on a one-CPU machine or where affinity cannot be set."""
+    if not hasattr(os, "sched_getaffinity"):
+        return None
+    cpus = sorted(os.sched_getaffinity(0))
+    return (set(cpus[:-1]), {cpus[-1]}) if len(cpus) >= 2 else None
+
+
+def run_once(frames: int, rig_process: bool, log, split: tuple[set[int], set[int]] | None = None) -> dict:
+    """One run of the demo pipeline (unpaced 4-camera sim rig, servos, one render client); figures and score.
+
+    ``split``: ``(pipeline CPUs, rig CPUs)`` -- the pipeline's process and the rig's process are kept on
+    their own CPUs for the run (with ``rig_process``).
+    """
     import numpy as np
 
     from livebridge.runtime.demo import build_demo
@@ -196,17 +214,21 @@ def run_once(frames: int, rig_process: bool, log) -> dict:
 
     parts = build_demo(realtime=False, port=0, log=lambda message: None)
     rig, process = parts.rig, None
+    affinity = os.sched_getaffinity(0) if split else None
     if rig_process:
         process = ProcessRig(cameras=rig.n_cameras, seed=1, fps=rig.config.fps, size=rig.config.size,
-                             noise=rig.config.noise_sigma)
+                             noise=rig.config.noise_sigma, cpus=split[1] if split else None)
         sources = process.sources(rig.names)
+        if split:
+            os.sched_setaffinity(0, split[0])
     else:
         sources = rig.sources(realtime=False)
     solved = []  # scored against the ground truth after the run: the scoring is not pipeline work
     pipeline = Pipeline(sources, rig.cameras, rig.basis, rig.markers, rig.period, servo=parts.pipeline.servo,
                         render=parts.pipeline.render, realtime=False, log=lambda message: None,
                         on_frame=solved.append)
-    stop, counts = threading.Event(), [0]
+    context = multiprocessing.get_context("spawn")
+    stop, count, clients = context.Event(), context.Value("q", 0), []
 
     def started(pipeline):
         if process is not None:  # the child rig must be the demo's rig
@@ -214,24 +236,45 @@ def run_once(frames: int, rig_process: bool, log) -> dict:
             if not np.allclose(process.projections, expected, rtol=1e-9, atol=1e-9):
                 raise RuntimeError("the rig process built other cameras than the demo's rig")
         url = f"ws://127.0.0.1:{pipeline.render.port}/ws"
-        threading.Thread(target=_client, args=(url, stop, counts), daemon=True).start()
+        clients.append(context.Process(target=_client, args=(url, stop, count), name="render client", daemon=True))
+        clients[0].start()
 
     cpu_start, wall_start = time.process_time(), time.monotonic()
     try:
         summary = run_until_stopped(pipeline, frames=frames, log=lambda message: None, on_start=started)
     finally:
         stop.set()
+        for client in clients:
+            client.join(timeout=5)
         if process is not None:
             process.stop()
+        if affinity is not None:
+            os.sched_setaffinity(0, affinity)
     summary["process_cpu_s"] = time.process_time() - cpu_start
     summary["run_wall_s"] = time.monotonic() - wall_start
     if process is not None:
         summary["simulator_ms_per_frameset"] = 1e3 * process.simulator_cpu_s / max(process.framesets, 1)
-    summary["render_messages_received"] = counts[0]
+    summary["render_messages_received"] = count.value
     for frame in solved:
         parts.score(frame)
     summary["rmse"], summary["label_swaps"] = parts.score.rmse, parts.score.swaps
     return summary
+
+
+HEADLINE_KEYS = ("latency_p50_ms", "latency_p99_ms", "render_latency_p50_ms", "render_latency_p99_ms", "rmse",
+                 "label_swaps", "labelled_fraction", "cpu_per_frameset_ms", "pipeline_cpu_per_frameset_ms",
+                 "detect_cpu_per_frameset_ms", "reconstruct_solve_cpu_per_frameset_ms",
+                 "outputs_cpu_per_frameset_ms", "simulator_ms_per_frameset")
+VARIANT_KEYS = ("latency_p50_ms", "latency_p99_ms", "cpu_per_frameset_ms", "rmse", "label_swaps")
+
+
+def _figures(summary: dict, keys) -> dict:
+    """``framesets_per_s`` and the named figures of a run, rounded (3 decimals; 5 for the RMSE)."""
+    figures = {"framesets_per_s": round(summary["fps"], 2)}
+    for key in keys:
+        value = summary[key]
+        figures[key] = value if isinstance(value, int) else round(value, 5 if key == "rmse" else 3)
+    return figures
 
 
 def run(quick: bool, log) -> dict:
@@ -239,49 +282,38 @@ def run(quick: bool, log) -> dict:
 
     The simulated rig films 4 cameras at 1280x800 as fast as it can (not paced); frame sets go through
     detection, correspondence, labelling, the solve, to 16 Dynamixel servos simulated on a
-    pseudo-terminal (real driver) and to one connected WebSocket render client.
+    pseudo-terminal by a process of their own (real driver) and to one connected WebSocket render
+    client (a process of its own, as a browser is).
 
-    The headline figures run the rig in its own process (:class:`ProcessRig`): on a real rig the images
-    are formed by the cameras, not by the host's Python interpreter. The rig still shares this
-    machine's CPU with the pipeline; its CPU per frame set is ``simulator_ms_per_frameset``. The
-    ``in_process`` figures run the same pipeline with the rig rendering on the camera reader threads of
-    this process (the simulator then also competes for the interpreter lock).
+    The headline figures run the rig in its own process (:class:`ProcessRig`) on a CPU of its own (the
+    last one; the pipeline gets the others): on a real rig the images are formed by the cameras'
+    silicon, not by the host's CPU. The rig's CPU per frame set is ``simulator_ms_per_frameset``.
+    ``rig_sharing_cpus`` is the same run with the rig free to use every CPU (on a 2-CPU machine it then
+    takes a third of the pipeline's time), and ``in_process`` runs the rig on the camera reader threads
+    of this process (each frame set is rendered before the cameras return it, so the rendering costs
+    throughput, not latency).
 
     Latency is from the moment the last frame of a set reached the host (its camera reader returned
     it, before detection) to the servo bytes written for that set.
     """
     n = 150 if quick else 600
-    log(f"running {n} frame sets through the pipeline, rig in its own process ...")
-    summary = run_once(n, True, log)
+    split = cpu_split()
+    where = f"on CPU {sorted(split[1])}, the pipeline on {sorted(split[0])}" if split else "(one CPU: shared)"
+    log(f"running {n} frame sets through the pipeline, rig in its own process {where} ...")
+    summary = run_once(n, True, log, split)
+    log(f"running {n} frame sets, rig in its own process sharing every CPU ...")
+    shared = run_once(n, True, log)
     log(f"running {n} frame sets through the pipeline, rig in this process ...")
     inline = run_once(n, False, log)
     quarter = FRAME_PERIOD_30FPS_MS / 4
-    result = {
-        "framesets_per_s": round(summary["fps"], 2),
-        "latency_p50_ms": round(summary["latency_p50_ms"], 3),
-        "latency_p99_ms": round(summary["latency_p99_ms"], 3),
-        "render_latency_p50_ms": round(summary["render_latency_p50_ms"], 3),
-        "render_latency_p99_ms": round(summary["render_latency_p99_ms"], 3),
-        "rmse": round(summary["rmse"], 5),
-        "label_swaps": summary["label_swaps"],
-        "labelled_fraction": round(summary["labelled_fraction"], 4),
-        "cpu_per_frameset_ms": round(summary["cpu_per_frameset_ms"], 2),
-        "pipeline_cpu_per_frameset_ms": round(summary["pipeline_cpu_per_frameset_ms"], 2),
-        "detect_cpu_per_frameset_ms": round(summary["detect_cpu_per_frameset_ms"], 2),
-        "reconstruct_solve_cpu_per_frameset_ms": round(summary["reconstruct_solve_cpu_per_frameset_ms"], 2),
-        "outputs_cpu_per_frameset_ms": round(summary["outputs_cpu_per_frameset_ms"], 2),
-        "simulator_ms_per_frameset": round(summary["simulator_ms_per_frameset"], 2),
+    result = _figures(summary, HEADLINE_KEYS) | {
         "framesets": summary["solved"],
         "dropped_framesets": summary["drops"],
         "render_messages_received": summary["render_messages_received"],
-        "in_process": {
-            "framesets_per_s": round(inline["fps"], 2),
-            "latency_p50_ms": round(inline["latency_p50_ms"], 3),
-            "latency_p99_ms": round(inline["latency_p99_ms"], 3),
-            "cpu_per_frameset_ms": round(inline["cpu_per_frameset_ms"], 2),
-            "rmse": round(inline["rmse"], 5),
-            "label_swaps": inline["label_swaps"],
-        },
+        "pipeline_cpus": sorted(split[0]) if split else None,
+        "rig_cpus": sorted(split[1]) if split else None,
+        "rig_sharing_cpus": _figures(shared, VARIANT_KEYS),
+        "in_process": _figures(inline, VARIANT_KEYS),
         "cpu_count": os.cpu_count(),
         "load_average_1min": round(os.getloadavg()[0], 2),
         "required": {"framesets_per_s": ">= 60", "latency_p99_ms": f"<= {quarter:.2f} (a quarter of 1/30 s)",
