@@ -1,9 +1,13 @@
 """The marker reconstructor: 2D centroids of a frame set in, labelled markers in the model frame out.
 
 ``Reconstructor.step(state, points_2d, t) -> (state, LabelledFrame)`` is the per-frame call the
-runtime makes: multi-view correspondence and triangulation, then - on the first frame, which must
-be the neutral face - first labelling and coordinate alignment, and on every later frame tracking
-and head stabilisation. ``Reconstructor.run`` is the batch form for a whole take.
+runtime makes. On the first frame, which must be the neutral face: multi-view correspondence and
+triangulation, first labelling and coordinate alignment. On every later frame: the markers followed
+into the last frame are found at their predicted projections
+(:class:`~livebridge.reconstruct.predicted.PredictedMatcher`), the detections left over go through the
+multi-view correspondence, the tracker assigns those points and stabilises the head. When the tracker
+is lost (nothing labelled for several frames: the face left every camera) the markers are labelled
+from scratch against their last known positions. ``Reconstructor.run`` is the batch form for a take.
 
 Frames: *world* is the capture frame of the calibrated rig; the *model* frame is the face model's
 (mm, +y up, +z out of the face), which is also the head frame: ``head2world`` maps model
