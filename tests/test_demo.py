@@ -81,3 +81,15 @@ def test_demo_record_frames_needs_a_record_folder():
 
     result = CliRunner().invoke(main, ["demo", "--record-frames", "--frames", "1"])
     assert result.exit_code != 0 and "--record" in result.output
+
+
+def test_three_cameras_label_on_the_first_frame_and_follow_the_face():
+    """With 3 cameras only 2 head markers are seen twice on the neutral frame: the first labelling is still
+    taken there (three quarters of the markers matched), and the head pose comes from the markers that
+    stay put on the skull, so the contractions follow the performer."""
+    first = []
+    parts = build_demo(cameras=3, size=(640, 400), realtime=False, servo=False, render=False, log=lambda m: None,
+                       on_frame=lambda frame: first.append(frame.seq) if not first else None)
+    summary = run_until_stopped(parts.pipeline, frames=200, log=lambda m: None)
+    assert first == [0]  # labelled on the neutral frame, not on a later one with an expression
+    assert summary["solved"] >= 200 and parts.score.swaps == 0 and parts.score.rmse <= 0.02, parts.score.rmse

@@ -230,9 +230,8 @@ class Reconstructor:
                                                    self.model_points, gate_mm=config.label_gate_mm,
                                                    max_angle_deg=config.max_head_turn_deg)
         n = self.n_markers
-        enough = labelling.n_matched >= max(4, n // 2) and (labelling.labels[labelling.labels >= 0] >= 0).any()
-        head_seen = np.isin(np.flatnonzero(self.markers.head_mask), labelling.labels).sum()
-        if not enough or head_seen < 3:
+        if not self._labelled_enough(labelling.n_matched, np.isin(np.flatnonzero(self.markers.head_mask),
+                                                                   labelling.labels).sum()):
             nothing = np.full((n, 3), np.nan)
             frame = LabelledFrame(float(t), nothing, nothing.copy(), nothing.copy(), np.full((4, 4), np.nan),
                                   int(np.isfinite(points).all(axis=1).sum()), 0.0)
@@ -256,6 +255,12 @@ class Reconstructor:
                               int(np.isfinite(points).all(axis=1).sum() - seen.sum()), float(seen.mean()))
         return ReconstructorState(track, tracker, alignment, neutral, state.frames + 1), frame
 
+    def _labelled_enough(self, n_matched: int, head_seen: int) -> bool:
+        """A labelling from scratch is trusted with half the markers and 3 head markers, or with three quarters
+        of the markers (a rig whose cameras see few head markers twice: the head pose then comes from all)."""
+        n = self.n_markers
+        return n_matched >= max(4, n // 2) and (head_seen >= 3 or n_matched >= 3 * n // 4)
+
     def _reacquire(self, state: ReconstructorState, points_2d: Sequence[np.ndarray], t: float):
         """Label a frame from scratch after the tracker lost every marker (a dropout longer than it coasts).
 
@@ -268,8 +273,7 @@ class Reconstructor:
                                                    track.positions_model, gate_mm=config.label_gate_mm,
                                                    max_angle_deg=config.max_head_turn_deg)
         world = labelling.marker_points(points, self.n_markers)
-        head_seen = np.isfinite(world[self.markers.head_mask]).all(axis=1).sum()
-        if labelling.n_matched < max(4, self.n_markers // 2) or head_seen < 3:
+        if not self._labelled_enough(labelling.n_matched, np.isfinite(world[self.markers.head_mask]).all(axis=1).sum()):
             track = state.tracker.coast(track, t)
             nothing = np.full((self.n_markers, 3), np.nan)
             frame = LabelledFrame(float(t), nothing, nothing.copy(), nothing.copy(), track.head2world.copy(),

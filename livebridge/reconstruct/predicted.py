@@ -27,9 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from livebridge.reconstruct.triangulate import Triangulator, _null_vectors
-
-INVERSE_ITERATIONS = 2
+from livebridge.reconstruct.triangulate import INVERSE_ITERATIONS, Triangulator, null_vectors
 
 
 @njit(cache=True, nogil=True)
@@ -167,7 +165,7 @@ def _fit_claims(claims: np.ndarray, detections: np.ndarray, distance: np.ndarray
                     for i in range(4):
                         for j in range(4):
                             normal[0, i, j] += row[i] * row[j]
-            vector = _null_vectors(normal, INVERSE_ITERATIONS)[0]
+            vector = null_vectors(normal, INVERSE_ITERATIONS)[0]
             if np.isnan(vector[0]) or vector[3] == 0.0:
                 for c in range(n_cams):
                     used[c, p] = False

@@ -28,7 +28,7 @@ from numba import njit
 from scipy.optimize import nnls
 
 from livebridge.reconstruct.label import gated_assignment
-from livebridge.reconstruct.stabilize import apply, head_pose
+from livebridge.reconstruct.stabilize import apply, head_pose, umeyama
 
 
 @dataclass(frozen=True)
@@ -197,6 +197,23 @@ class Tracker:
         self.config = config
         self.displacement = None if displacement_matrix is None else np.asarray(displacement_matrix, dtype=np.float64)
         self._head_reference = np.ascontiguousarray(self.reference[self.head_mask])
+        # how much each marker stays put on the skull (head markers and those no element moves far), for the
+        # pose when fewer than 3 head markers are seen: weight 1 / (1 + (largest element motion / 1 mm)^2)
+        reach = np.zeros(len(self.reference)) if self.displacement is None else \
+            np.linalg.norm(self.displacement, axis=2).max(axis=1, initial=0.0)
+        self._steadiness = np.where(self.head_mask, 1.0, 1.0 / (1.0 + reach**2))
+
+    def pose(self, state: TrackState, world: np.ndarray) -> np.ndarray:
+        """``head2world`` from the head markers in ``world (n_markers, 3)``, or with fewer than 3 of them from a
+        rigid fit of every labelled marker to its last model-frame position, weighted by how little the face
+        model moves it; all NaN with fewer than 3."""
+        pose = self.head_pose(world)
+        if np.isfinite(pose).all():
+            return pose
+        # the face moves with the expression: the markers that stay put carry the fit
+        rigid = umeyama(state.positions_model * self.model_scale, world, with_scale=False, weights=self._steadiness)
+        rigid[:3, :3] *= self.model_scale
+        return rigid
 
     def head_pose(self, world: np.ndarray) -> np.ndarray:
         """``head2world`` ``(4, 4)`` from the head markers' world positions in ``world (n_markers, 3)`` (NaN: unseen);
@@ -230,11 +247,12 @@ class Tracker:
     def restart(self, state: TrackState, t: float, found_world: np.ndarray) -> tuple[TrackState, TrackFrame]:
         """Continue from markers labelled from scratch (after :meth:`lost`), ``found_world (n_markers, 3)``.
 
-        The head pose comes from the labelled head markers (at least 3 needed); velocities start at zero.
+        The head pose comes from the labelled markers (:meth:`pose`, at least 3 needed); velocities start at
+        zero.
         """
-        pose = self.head_pose(found_world)
+        pose = self.pose(state, found_world)
         if not np.isfinite(pose).all():
-            raise ValueError("restart needs at least 3 labelled head markers")
+            raise ValueError("restart needs at least 3 labelled markers")
         fresh = replace(state, head2world=pose, head_motion=np.zeros(6),
                         velocities_model=np.zeros_like(state.velocities_model))
         return self.step(fresh, np.zeros((0, 3)), t, found_world)
@@ -304,11 +322,9 @@ class Tracker:
         labels = np.full(len(points_3d), -1, dtype=np.int64)
         labels[cols] = rows
         world[rows] = points_3d[cols]
-        head2world = self.head_pose(world)
+        head2world = self.pose(state, world)
         if not np.isfinite(head2world).all():
-            # too few head markers: rigid fit of every labelled marker's last model-frame position
-            fallback = head_pose(state.positions_model, world, self.model_scale)
-            head2world = fallback if np.isfinite(fallback).all() else predicted_pose
+            head2world = predicted_pose
         world2head = np.linalg.inv(head2world)
         model = apply(world2head, world)
         seen = np.isfinite(model).all(axis=1)

@@ -25,7 +25,7 @@ INVERSE_ITERATIONS = 2
 
 
 @njit(cache=True, nogil=True)
-def _null_vectors(normal: np.ndarray, iterations: int) -> np.ndarray:
+def null_vectors(normal: np.ndarray, iterations: int) -> np.ndarray:
     """Null vector of each ``(4, 4)`` normal matrix by inverse iteration, shape (n, 4).
 
     Starts from the last column of the inverse (``N^-1 e_4``) and applies ``N^-1`` ``iterations``
@@ -173,7 +173,7 @@ class Triangulator:
         all_enough = bool(enough.all())
         if not all_enough:
             normal[~enough] = np.eye(4)
-        vector = _null_vectors(normal, INVERSE_ITERATIONS)
+        vector = null_vectors(normal, INVERSE_ITERATIONS)
         singular = np.isnan(vector[:, 0])
         if singular.any():  # an exactly singular system (noise-free data): eigen-solve those
             vector[singular] = np.linalg.eigh(normal[singular])[1][:, :, 0]
