@@ -27,7 +27,7 @@ def _goals(sim) -> int:
 
 
 def run(quick: bool, log) -> dict:
-    from dynamixel_sdk import GroupSyncRead, GroupSyncWrite
+    from dynamixel_sdk import GroupSyncRead, GroupSyncWrite, PortHandler
 
     from livebridge.drivers import dynamixel_protocol as dxl
     from livebridge.servo.bus import ServoSetup, open_bus
@@ -60,7 +60,12 @@ def run(quick: bool, log) -> dict:
         exact = len(dxl.sync_write(116, 4, {i: dxl.u32(2048) for i in ids}))
         assert bytes_per_frame == exact, (bytes_per_frame, exact)
 
-        writer = GroupSyncWrite(bus.port, bus.ph, 116, 4)
+        # the peer: the vendor SDK as shipped, on its own PortHandler of the same pseudo-terminal (our port
+        # waits for replies in select; the SDK's spins on non-blocking reads)
+        sdk_port = PortHandler(bus.port.getPortName())
+        if not (sdk_port.openPort() and sdk_port.setBaudRate(BAUD)):
+            raise RuntimeError(f"the SDK could not open {bus.port.getPortName()}")
+        writer = GroupSyncWrite(sdk_port, bus.ph, 116, 4)
         for i in ids:
             writer.addParam(i, list(dxl.u32(2048)))
         base = _goals(sim)
@@ -83,7 +88,7 @@ def run(quick: bool, log) -> dict:
         ours_read_plain = reads / (time.perf_counter() - t0)
         bus._use_fast = fast
 
-        reader = GroupSyncRead(bus.port, bus.ph, 132, 4)
+        reader = GroupSyncRead(sdk_port, bus.ph, 132, 4)
         for i in ids:
             reader.addParam(i)
         t0 = time.perf_counter()
@@ -92,6 +97,7 @@ def run(quick: bool, log) -> dict:
         t0 = time.perf_counter()
         sdk_fast_ok = sum(reader.fastSyncRead() == 0 for _ in range(reads))
         sdk_read_fast = reads / (time.perf_counter() - t0)
+        sdk_port.closePort()
         # positions read back agree with the simulator's truth
         truth = {i: sim.servo(i).get("present_position") for i in ids}
         got = {i: dxl.to_int(d, signed=True) for i, (d, _) in bus.sync_read(132, 4, ids).items()}
