@@ -25,10 +25,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
-from scipy.optimize import nnls
 
 from livebridge.reconstruct.label import gated_assignment
 from livebridge.reconstruct.stabilize import apply, head_pose, umeyama
+from livebridge.solve.qp import nonnegative_least_squares
 
 
 @dataclass(frozen=True)
@@ -197,6 +197,8 @@ class Tracker:
         self.config = config
         self.displacement = None if displacement_matrix is None else np.asarray(displacement_matrix, dtype=np.float64)
         self._head_reference = np.ascontiguousarray(self.reference[self.head_mask])
+        if self.displacement is not None:  # each marker's share of D^T D, for the contraction fits
+            self._marker_gram = np.einsum("nmk,nlk->nml", self.displacement, self.displacement)
         # how much each marker stays put on the skull (head markers and those no element moves far), for the
         # pose when fewer than 3 head markers are seen: weight 1 / (1 + (largest element motion / 1 mm)^2)
         reach = np.zeros(len(self.reference)) if self.displacement is None else \
@@ -364,9 +366,9 @@ class Tracker:
         to positions less their offsets would add each frame's misfit to the next (a random walk)."""
         if use.sum() < 3:
             return None
-        a = self.displacement[use].transpose(0, 2, 1).reshape(-1, self.displacement.shape[1])
-        b = (model[use] - self.reference[use]).reshape(-1)
-        return nnls(a, b)[0]
+        gram = self._marker_gram[use].sum(axis=0)  # (M, M): D^T D of the markers used
+        rhs = np.einsum("nmk,nk->m", self.displacement[use], model[use] - self.reference[use])
+        return nonnegative_least_squares(gram, rhs)
 
     def _consistent(self, model, seen, offsets, contractions) -> tuple[np.ndarray, np.ndarray | None]:
         """The labels the face model explains, shape (n_markers,) bool, and the contractions fitted to them.

@@ -247,6 +247,27 @@ def box_qp_kernel(gram, c, lower, upper, working, x, tolerance, pivot_floor, ref
     return max_iterations, ITERATION_LIMIT
 
 
+def nonnegative_least_squares(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``argmin |D x - d|^2`` subject to ``x >= 0``, from ``gram = D^T D (n, n)`` and ``rhs = D^T d (n,)``.
+
+    The compiled active-set kernel, cold-started; a rank-deficient ``gram`` gets the ridge of
+    :class:`BoxQP` (the smallest-norm minimiser, to first order), as scipy's ``nnls`` would not.
+    """
+    gram = np.ascontiguousarray(gram, dtype=np.float64)
+    rhs = np.ascontiguousarray(rhs, dtype=np.float64)
+    n = len(rhs)
+    scale = max(float(np.trace(gram)), 1e-300)
+    lower, upper = np.zeros(n), np.full(n, np.inf)
+    x, working = np.empty(n), np.zeros(n, np.int8)
+    _, status = box_qp_kernel(gram, rhs, lower, upper, working, x, KKT_TOLERANCE * scale * max(n, 1),
+                              RANK_TOLERANCE * scale, False, 10 * n + 20)
+    if status == SINGULAR:
+        working[:] = 0
+        box_qp_kernel(gram + RANK_TOLERANCE * scale * np.eye(n), rhs, lower, upper, working, x,
+                      KKT_TOLERANCE * scale * max(n, 1), 0.0, True, 10 * n + 20)
+    return x
+
+
 # ----------------------------------------------------------------------------------------- Python interface
 class BoxQP:
     """``min 1/2 x^T Q x - c^T x`` s.t. ``lower <= x <= upper`` for one fixed ``Q`` and box.
