@@ -202,6 +202,7 @@ class RenderServer:
         self._lock = threading.Lock()
         self._latencies = deque(maxlen=100_000)
         self._last_timed_seq = -1
+        self._sent = threading.Condition()  # notified when a frame first reaches a client socket
         self.frames_published = 0
         self.messages_sent = 0
         self.connections_total = 0
@@ -266,6 +267,15 @@ class RenderServer:
             self._wake_scheduled = True
         if schedule:
             self._call_soon(self._distribute)
+
+    def wait_sent(self, seq: int, timeout: float) -> bool:
+        """Wait until frame ``seq`` (or a later one) reached a client socket, or no client is connected.
+
+        For unpaced runs, whose cameras wait for the pipeline anyway: the next frame set then does not
+        compete with this one's send for the CPU. Live, never call it (publish does not wait for clients).
+        """
+        with self._sent:
+            return self._sent.wait_for(lambda: self._last_timed_seq >= seq or not self._clients, timeout)
 
     def sent_latencies(self) -> np.ndarray:
         """Seconds from each frame's ``t_ref`` to its first hand-over to a client socket, shape (n,)."""
@@ -394,8 +404,10 @@ class RenderServer:
                 await connection.send(data)
                 self.messages_sent += 1
                 if seq != self._last_timed_seq:
-                    self._last_timed_seq = seq
                     self._latencies.append(time.monotonic() - t_ref)
+                    with self._sent:
+                        self._last_timed_seq = seq
+                        self._sent.notify_all()
             if status is not None:
                 await connection.send(status)
 

@@ -542,6 +542,8 @@ class Pipeline:
 
                 self.render.publish(RenderFrame(frame.seq, timing.complete, frame.contractions,
                                                 frame.positions_model, frame.region_errors, servo_targets))
+                if not self.realtime:  # one frame set at a time, its render message included
+                    self.render.wait_sent(frame.seq, timeout=0.05)
             if self.vmc is not None:
                 self.vmc.send(frame.contractions)
             if self.recorder is not None:
