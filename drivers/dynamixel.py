@@ -198,7 +198,8 @@ class DynamixelBus(SerialServoBus):
 
     def _sync_write(self, name: str, values: Mapping[int, int]) -> None:
         """One SYNC WRITE of field ``name``, encoded by :mod:`dynamixel_protocol` (spec byte stuffing, table
-        CRC: a third of the SDK's per-frame cost) and sent as the SDK's ``txPacket`` sends (input cleared)."""
+        CRC: a third of the SDK's per-frame cost) and written to the port. A broadcast write has no reply, so
+        unlike the SDK's ``txPacket`` it leaves the input alone (every read clears it before it asks)."""
         if not values:
             return
         field = dxl.X_TABLE[name]
@@ -206,7 +207,6 @@ class DynamixelBus(SerialServoBus):
         packet = dxl.sync_write(field.address, field.size,
                                 {servo_id: (int(value) & mask).to_bytes(field.size, "little")
                                  for servo_id, value in values.items()})
-        self.port.clearPort()
         self.port.writePort(packet)
         self.stats["tx_bytes"] += len(packet)
 
