@@ -244,6 +244,11 @@ class DeviceProcess:
             raise RuntimeError(f"the simulated {self.factory.__name__} did not start within {timeout} s")
         return path
 
+    @property
+    def pid(self) -> int | None:
+        """The serving process's id while it runs (None before :meth:`start` and after :meth:`close`)."""
+        return None if self._process is None else self._process.pid
+
     def close(self) -> None:
         if self._process is None:
             return

@@ -85,3 +85,43 @@ def test_noise_free_single_point_and_empty_cameras(rng):
     assert len(correspond([np.zeros((0, 2))] * 4).points_3d) == 0
     only_one = [detections[0]] + [np.zeros((0, 2))] * 3
     assert len(correspond(only_one).points_3d) == 0
+
+
+def test_compiled_kernels_match_their_library_references(rng):
+    """The compiled gating, nearest-neighbour and greedy kernels give what numpy, cKDTree and a plain walk give."""
+    from scipy.spatial import cKDTree
+
+    from livebridge.reconstruct.correspond import epipolar_pairs, greedy_disjoint, nearest_distance, nearest_within
+
+    cameras = ring_cameras()
+    triangulator = Triangulator(cameras)
+    undistorted = triangulator.reproject(rng.normal(scale=50.0, size=(40, 3)))
+    xa, xb = undistorted[0] + rng.normal(scale=1.0, size=(40, 2)), undistorted[1][rng.permutation(40)]
+    f = fundamental(triangulator.projections[0], triangulator.projections[1])
+    ha, hb = np.column_stack([xa, np.ones(40)]), np.column_stack([xb, np.ones(40)])
+    algebraic = np.abs(ha @ f.T @ hb.T)
+    lines_b, lines_a = ha @ f.T, hb @ f
+    distance = np.maximum(algebraic / np.hypot(lines_b[:, 0], lines_b[:, 1])[:, None],
+                          algebraic / np.hypot(lines_a[:, 0], lines_a[:, 1])[None, :])
+    ia, ib = epipolar_pairs(xa, xb, f, 1.5)
+    assert 20 <= len(ia) and np.array_equal(np.stack([ia, ib]), np.stack(np.nonzero(distance < 1.5)))
+
+    points, queries = rng.uniform(0, 100, (60, 2)), rng.uniform(0, 100, (200, 2))
+    queries[:5] = np.nan
+    reference_distance, reference = cKDTree(points).query(np.nan_to_num(queries, nan=1e12), distance_upper_bound=4.0)
+    nearest = nearest_within(queries, points, 4.0)
+    assert 50 < (nearest >= 0).sum() < 195
+    assert np.array_equal(nearest, np.where(np.isfinite(reference_distance), reference, -1))
+    points_3d = rng.normal(size=(30, 3))
+    known = points_3d[::3] + 0.1
+    assert np.allclose(nearest_distance(points_3d, known), cKDTree(known).query(points_3d)[0])
+
+    group = rng.integers(-1, 6, size=(4, 80))
+    order = rng.permutation(80)
+    accepted, used = [], set()
+    for g in order:  # the definition: walk the order, accept what shares no detection with an accepted group
+        views = {(c, int(group[c, g])) for c in range(4) if group[c, g] >= 0}
+        if not views & used:
+            accepted.append(g)
+            used |= views
+    assert len(accepted) > 3 and greedy_disjoint(group, order).tolist() == accepted

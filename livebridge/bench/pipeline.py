@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-import queue
 import threading
 import time
 
@@ -30,8 +29,9 @@ def _client(url: str, stop, count) -> None:
 
 # ------------------------------------------------------------------------------- the rig in its own process
 
-def _render_frames(shm_name: str, options: dict, slots: int, free, ready, stop) -> None:
-    """Child process: render frame sets of the simulated rig into shared-memory slots, in order, until ``stop``."""
+def _render_frames(shm_name: str, options: dict, slots: int, free, setup, pipes, stop) -> None:
+    """Child process: render frame sets of the simulated rig into shared-memory slots, in order, until ``stop``;
+    each camera's frame description goes down that camera's pipe."""
     import time as _time
     from multiprocessing import shared_memory
 
@@ -54,7 +54,7 @@ def _render_frames(shm_name: str, options: dict, slots: int, free, ready, stop) 
     shm = shared_memory.SharedMemory(name=shm_name)
     try:
         images = np.ndarray((slots, rig.n_cameras, height, width), dtype=np.uint8, buffer=shm.buf)
-        ready.put(("cameras", np.stack([c.projection for c in rig.cameras.cameras])))
+        setup.send(np.stack([c.projection for c in rig.cameras.cameras]))
         seq, cpu = 0, 0.0
         while not stop.is_set():
             if not free.acquire(timeout=0.1):
@@ -62,16 +62,14 @@ def _render_frames(shm_name: str, options: dict, slots: int, free, ready, stop) 
             start = _time.process_time()
             frames, _ = rig.render(seq)
             slot = seq % slots
-            meta = []
             for c, frame in enumerate(frames):
-                if frame is None:
-                    meta.append(None)
-                    continue
-                images[slot, c] = frame.image
-                meta.append((frame.t_capture, frame.seq, frame.source_id, frame.exposure_us, frame.gain,
-                             frame.sync_domain))
+                if frame is not None:
+                    images[slot, c] = frame.image
             cpu += _time.process_time() - start
-            ready.put(("frameset", seq, slot, meta, cpu))
+            for pipe, frame in zip(pipes, frames):
+                meta = None if frame is None else (frame.t_capture, frame.seq, frame.source_id, frame.exposure_us,
+                                                   frame.gain, frame.sync_domain)
+                pipe.send((seq, slot, meta, cpu))
             seq += 1
     finally:
         del images
@@ -86,7 +84,9 @@ class ProcessRig:
     and hands frames over through shared memory, a few frame sets ahead at most: the rig waits for the
     pipeline (not paced, no frame lost). Its CPU time is reported (``simulator_cpu_s``). It runs at a
     lower scheduling priority (``nice``), and with ``cpus`` only on those CPUs: camera hardware forms
-    its images with its own silicon, not with the CPU the pipeline runs on.
+    its images with its own silicon, not with the CPU the pipeline runs on. Each camera's frames come
+    down a pipe of their own, read by that camera's reader when it asks for a frame (as a driver's
+    queued buffers are): no thread of the pipeline's process wakes up when the rig finishes a frame set.
     :meth:`sources` are ordinary camera sources.
     """
 
@@ -104,65 +104,64 @@ class ProcessRig:
         context = multiprocessing.get_context("spawn")
         self._shm = shared_memory.SharedMemory(create=True, size=slots * cameras * height * width)
         self._images = np.ndarray((slots, cameras, height, width), dtype=np.uint8, buffer=self._shm.buf)
-        self._free, self._ready, self._stop = context.Semaphore(slots), context.Queue(), context.Event()
+        self._free, self._stop = context.Semaphore(slots), context.Event()
+        self._setup, setup_child = context.Pipe(duplex=False)
+        pipes = [context.Pipe(duplex=False) for _ in range(cameras)]
+        self._pipes = [receive for receive, _ in pipes]
         self._process = context.Process(target=_render_frames, name="livebridge sim rig", daemon=True,
-                                        args=(self._shm.name, self.options, slots, self._free, self._ready,
-                                              self._stop))
-        self._queues = [queue.Queue() for _ in range(cameras)]
-        self._pending: dict[int, int] = {}  # slot -> cameras still to copy it
+                                        args=(self._shm.name, self.options, slots, self._free, setup_child,
+                                              [send for _, send in pipes], self._stop))
+        self._pending = [cameras] * slots  # cameras still to take each slot
         self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
+        self._started = False
         self.projections = None
         self.simulator_cpu_s = 0.0
         self.framesets = 0
 
     def start(self) -> None:
-        if self._thread is not None:
+        if self._started:
             return
+        self._started = True
         self._process.start()
-        kind, self.projections = self._ready.get(timeout=120)
-        self._thread = threading.Thread(target=self._dispatch, name="sim rig frames", daemon=True)
-        self._thread.start()
+        if not self._setup.poll(120):
+            raise RuntimeError("the simulated rig's process did not start within 120 s")
+        self.projections = self._setup.recv()
 
-    def _dispatch(self) -> None:
-        while not self._stop.is_set():
-            try:
-                message = self._ready.get(timeout=0.1)
-            except queue.Empty:
-                continue
-            _, seq, slot, meta, cpu = message
-            self.simulator_cpu_s, self.framesets = cpu, seq + 1
-            with self._lock:
-                self._pending[slot] = sum(m is not None for m in meta)
-            if not self._pending[slot]:
-                self._free.release()
-            for c, m in enumerate(meta):
-                if m is not None:
-                    self._queues[c].put((slot, m))
+    def _taken(self, slot: int) -> None:
+        """One camera is done with ``slot``; the last one hands it back to the rig."""
+        with self._lock:
+            self._pending[slot] -= 1
+            done = self._pending[slot] == 0
+            if done:
+                self._pending[slot] = self.n_cameras
+        if done:
+            self._free.release()
 
     def take(self, camera: int, timeout: float | None):
         """The next frame of ``camera`` (a copy out of shared memory), or None on timeout."""
         from livebridge.capture.frame import Frame
 
-        try:
-            slot, (t_capture, seq, source_id, exposure_us, gain, domain) = self._queues[camera].get(timeout=timeout)
-        except queue.Empty:
-            return None
+        pipe = self._pipes[camera]
+        while True:
+            if not pipe.poll(timeout):
+                return None
+            seq, slot, meta, cpu = pipe.recv()
+            if camera == 0:
+                self.simulator_cpu_s, self.framesets = cpu, seq + 1
+            if meta is not None:
+                break
+            self._taken(slot)  # this camera has no frame in this set
+        t_capture, frame_seq, source_id, exposure_us, gain, domain = meta
         image = self._images[slot, camera].copy()
         image.setflags(write=False)
-        with self._lock:
-            self._pending[slot] -= 1
-            done = self._pending[slot] == 0
-        if done:
-            self._free.release()
-        return Frame(image, t_capture, seq, source_id, exposure_us, gain, domain)
+        self._taken(slot)
+        return Frame(image, t_capture, frame_seq, source_id, exposure_us, gain, domain)
 
     def stop(self) -> None:
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2)
-        self._process.join(timeout=5)
-        if self._process.is_alive():
+        if self._process.pid is not None:  # it may have failed to start
+            self._process.join(timeout=5)
+        if self._process.pid is not None and self._process.is_alive():
             self._process.terminate()
             self._process.join(timeout=5)
         del self._images
@@ -201,11 +200,20 @@ def cpu_split() -> tuple[set[int], set[int]] | None:
     return (set(cpus[:-1]), {cpus[-1]}) if len(cpus) >= 2 else None
 
 
+def _pin_servo_simulators(servo, cpus: set[int]) -> None:
+    """Keep the simulated servo buses' processes on ``cpus`` (the servos' own silicon on a real rig): a
+    simulator woken on the pipeline's CPU by a write would run before the writing thread goes on."""
+    for bus in servo.buses.values():
+        pid = getattr(bus.simulator, "pid", None)
+        if pid is not None:
+            os.sched_setaffinity(pid, cpus)
+
+
 def run_once(frames: int, rig_process: bool, log, split: tuple[set[int], set[int]] | None = None) -> dict:
     """One run of the demo pipeline (unpaced 4-camera sim rig, servos, one render client); figures and score.
 
     ``split``: ``(pipeline CPUs, rig CPUs)`` -- the pipeline's process and the rig's process are kept on
-    their own CPUs for the run (with ``rig_process``).
+    their own CPUs for the run (with ``rig_process``); the simulated servo bus runs on the rig's CPUs.
     """
     import numpy as np
 
@@ -215,6 +223,8 @@ def run_once(frames: int, rig_process: bool, log, split: tuple[set[int], set[int
     parts = build_demo(realtime=False, port=0, log=lambda message: None)
     rig, process = parts.rig, None
     affinity = os.sched_getaffinity(0) if split else None
+    if split:
+        _pin_servo_simulators(parts.pipeline.servo, split[1])
     if rig_process:
         process = ProcessRig(cameras=rig.n_cameras, seed=1, fps=rig.config.fps, size=rig.config.size,
                              noise=rig.config.noise_sigma, cpus=split[1] if split else None)
@@ -286,8 +296,9 @@ def run(quick: bool, log) -> dict:
     client (a process of its own, as a browser is).
 
     The headline figures run the rig in its own process (:class:`ProcessRig`) on a CPU of its own (the
-    last one; the pipeline gets the others): on a real rig the images are formed by the cameras'
-    silicon, not by the host's CPU. The rig's CPU per frame set is ``simulator_ms_per_frameset``.
+    last one; the pipeline gets the others), with the simulated servo bus's process: on a real rig the
+    images are formed by the cameras' silicon and the servos parse their packets on their own
+    controllers, not on the host's CPU. The rig's CPU per frame set is ``simulator_ms_per_frameset``.
     ``rig_sharing_cpus`` is the same run with the rig free to use every CPU (on a 2-CPU machine it then
     takes a third of the pipeline's time), and ``in_process`` runs the rig on the camera reader threads
     of this process (each frame set is rendered before the cameras return it, so the rendering costs

@@ -164,7 +164,10 @@ class Reconstructor:
 
     def warm_up(self) -> None:
         """Run the compiled per-frame kernels once (numba compiles or loads them on first use): the matcher,
-        the triangulation and a tracker step on the neutral markers."""
+        the correspondence, the triangulation and a tracker step on the neutral markers."""
+        from livebridge.reconstruct import correspond
+
+        correspond.warm_up()
         n_cams, n = len(self.cameras), self.n_markers
         self.matcher([np.zeros((1, 2))] * n_cams, np.zeros((n, 3)), np.ones(n, bool), np.ones(n))
         self.triangulator.dlt(np.zeros((n_cams, 1, 2)))

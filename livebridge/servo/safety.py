@@ -31,8 +31,9 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numba import njit
 
-from livebridge.servo.mapping import Mapping
+from livebridge.servo.mapping import Mapping, raw_kernel
 
 _KINDS = ("none", "exponential", "one_euro")
 
@@ -123,6 +124,8 @@ class SafetyMapper:
         self._min_cutoff = np.array([f.min_cutoff for f in self.filters], dtype=float)
         self._beta = np.array([f.beta for f in self.filters], dtype=float)
         self._d_cutoff = np.array([f.d_cutoff for f in self.filters], dtype=float)
+        self._limits = (self.low, self.high, self.span, self.neutral, self.slew, self.ease_rate, self._exp,
+                        self._euro, self._tau, self._min_cutoff, self._beta, self._d_cutoff, self.watchdog_s)
 
     @property
     def n_servos(self) -> int:
@@ -166,64 +169,84 @@ class SafetyMapper:
         dt = t - state.t
         if not (math.isfinite(dt) and dt > 0):
             dt, t = 0.0, state.t
-        desired, t_input = state.desired, state.t_input
+        x = _NO_INPUT
         if contractions is not None:
-            x = np.asarray(contractions, dtype=float).reshape(-1)
-            if x.shape[0] == self.mapping.weights.shape[1]:
-                with np.errstate(all="ignore"):
-                    raw = self.mapping.raw(x)
-                valid = np.isfinite(raw)
-                desired = np.where(valid, np.clip(raw, self.low, self.high), state.desired)
-                if valid.any():
-                    t_input = t
-        tripped = t - t_input > self.watchdog_s
-        filtered, speed = self._filter(state, desired, dt, tripped)
+            x = np.array(contractions, dtype=np.float64).reshape(-1)
+            if x.shape[0] != self.mapping.weights.shape[1]:
+                x = _NO_INPUT
         ramp = 1.0 if self.soft_start_s <= 0 else min(1.0, max(0.0, (t - state.t_start) / self.soft_start_s))
-        rate = self.slew * ramp
-        if tripped:
-            goal = self.neutral
-            rate = np.minimum(rate, self.ease_rate)
-        else:
-            goal = self.low + filtered * self.span
-        goal = np.where(np.isfinite(goal), goal, state.target)
-        limit = rate * dt
-        with np.errstate(invalid="ignore"):
-            move = np.clip(goal - state.target, -limit, limit)
-        move = np.where(np.isfinite(move), move, 0.0)
-        target = np.clip(state.target + move, self.low, self.high)
-        state = replace(state, target=target, desired=desired, filtered=filtered, speed=speed, t=t,
-                        t_input=t_input, watchdog=bool(tripped))
+        target, desired, filtered, speed, t_input, tripped = _step_kernel(
+            x, len(x) > 0, self.mapping.compiled, state.target, state.desired, state.filtered, state.speed, t, dt,
+            state.t_input, ramp, self._limits)
+        state = SafetyState(target=target, desired=desired, filtered=filtered, speed=speed, t=t, t_input=t_input,
+                            t_start=state.t_start, watchdog=bool(tripped))
         return state, target.copy()
 
-    def _filter(self, state: SafetyState, desired: np.ndarray, dt: float, tripped: bool):
-        x = self._norm(desired)
+
+_NO_INPUT = np.zeros(0)
+
+
+@njit(cache=True, nogil=True)
+def _step_kernel(x, has_input, mapping, target, desired, filtered, speed, t, dt, t_input, ramp, limits):
+    """One frame of :meth:`SafetyMapper.step` on arrays (compiled: the step runs on the servo write's
+    critical path). ``mapping``: :attr:`Mapping.compiled`; ``limits``: ``SafetyMapper._limits``.
+
+    Returns ``target, desired, filtered, speed, t_input, tripped``.
+    """
+    low, high, span, neutral, slew, ease_rate, exp, euro, tau, min_cutoff, beta, d_cutoff, watchdog_s = limits
+    n = len(low)
+    desired = desired.copy()
+    if has_input:
+        raw = raw_kernel(x, *mapping)
+        for s in range(n):
+            if np.isfinite(raw[s]):
+                desired[s] = min(high[s], max(low[s], raw[s]))
+                t_input = t
+    tripped = t - t_input > watchdog_s
+    new_target, new_filtered, new_speed = np.empty(n), np.empty(n), np.empty(n)
+    for s in range(n):
+        x_s = (desired[s] - low[s]) / span[s]
         if tripped:  # follow the eased target, so returning input continues from there without a jump
-            return self._norm(state.target), np.zeros_like(x)
-        if dt <= 0:
-            return state.filtered, state.speed
-        prev = state.filtered
-        out = x.copy()
-        speed = state.speed
-        with np.errstate(all="ignore"):
-            if self._exp.any():
-                tau = self._tau
-                alpha = np.where(tau > 0, -np.expm1(-dt / np.where(tau > 0, tau, 1.0)), 1.0)
-                out = np.where(self._exp, prev + alpha * (x - prev), out)
-            if self._euro.any():
-                raw_speed = np.clip((x - prev) / dt, -1e6, 1e6)
-                a_d = _alpha(self._d_cutoff, dt)
-                new_speed = speed + a_d * (raw_speed - speed)
-                cutoff = self._min_cutoff + self._beta * np.abs(new_speed)
-                a = _alpha(cutoff, dt)
-                out = np.where(self._euro, prev + a * (x - prev), out)
-                speed = np.where(self._euro, new_speed, speed)
-        bad = ~np.isfinite(out)
-        out = np.clip(np.where(bad, x, out), 0.0, 1.0)
-        speed = np.where(np.isfinite(speed), speed, 0.0)
-        return out, speed
+            f, v = (target[s] - low[s]) / span[s], 0.0
+        elif dt <= 0:
+            f, v = filtered[s], speed[s]
+        else:
+            f, v = _smooth(x_s, filtered[s], speed[s], dt, exp[s], euro[s], tau[s], min_cutoff[s], beta[s],
+                           d_cutoff[s])
+        new_filtered[s], new_speed[s] = f, v
+        rate = slew[s] * ramp
+        if tripped:
+            goal, rate = neutral[s], min(rate, ease_rate[s])
+        else:
+            goal = low[s] + f * span[s]
+        if not np.isfinite(goal):
+            goal = target[s]
+        limit = rate * dt
+        move = min(limit, max(-limit, goal - target[s]))
+        if not np.isfinite(move):
+            move = 0.0
+        new_target[s] = min(high[s], max(low[s], target[s] + move))
+    return new_target, desired, new_filtered, new_speed, t_input, tripped
 
 
-def _alpha(cutoff: np.ndarray, dt: float) -> np.ndarray:
+@njit(cache=True, nogil=True)
+def _smooth(x, prev, speed, dt, exp, euro, tau, min_cutoff, beta, d_cutoff):
+    """One servo's smoothing filter (normalised units, ``dt > 0``): ``(filtered, speed)``."""
+    out = x
+    if exp:
+        alpha = -np.expm1(-dt / tau) if tau > 0 else 1.0
+        out = prev + alpha * (x - prev)
+    elif euro:
+        raw_speed = min(1e6, max(-1e6, (x - prev) / dt))
+        speed = speed + _alpha(d_cutoff, dt) * (raw_speed - speed)
+        out = prev + _alpha(min_cutoff + beta * abs(speed), dt) * (x - prev)
+    if not np.isfinite(out):
+        out = x
+    return min(1.0, max(0.0, out)), (speed if np.isfinite(speed) else 0.0)
+
+
+@njit(cache=True, nogil=True)
+def _alpha(cutoff: float, dt: float) -> float:
     """Smoothing factor of a first-order low-pass with ``cutoff`` Hz at step ``dt`` s."""
     tau = 1.0 / (2 * np.pi * cutoff)
     return dt / (dt + tau)
