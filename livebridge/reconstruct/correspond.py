@@ -11,7 +11,7 @@ invented.
 
 The gating, the growth and the nearest-prediction test are compiled brute-force loops: with at
 most a few hundred detections per frame set they cost a few microseconds, where building k-d
-trees and a dozen small numpy operations per camera pair cost ~1.5 ms per round (measured on the
+trees and a dozen small numpy operations per camera pair cost ~1 ms more per round (measured on the
 demo take: a round over 5 leftover detections, 2.2 -> 1.2 ms). That time lands on the frames where
 a marker returns from a gap, which set the live pipeline's p99 latency.
 
