@@ -234,7 +234,10 @@ class DeviceProcess:
         import sys
 
         code = "from livebridge.simulators.pty_bus import serve_from_stdin; serve_from_stdin()"
-        self._process = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        # a session of its own: Ctrl-C in a terminal signals the whole foreground process group, and the
+        # device must outlive that signal while its driver eases the servos to neutral and turns torque off
+        self._process = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                         start_new_session=True)
         self._process.stdin.write(pickle.dumps((self.factory, self.options)))
         self._process.stdin.flush()
         ready, _, _ = select.select([self._process.stdout], [], [], timeout)

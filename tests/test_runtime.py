@@ -195,3 +195,24 @@ def test_demo_process_signals_with_recording(tmp_path, sig):
         assert "frame sets solved" in out and loaded.complete
     else:
         assert process.returncode == -signal.SIGKILL and not loaded.complete
+
+
+def test_demo_ctrl_c_to_the_process_group_eases_the_servos(tmp_path):
+    """Ctrl-C in a terminal signals the whole foreground process group: the simulated servo bus (a process
+    of its own) must survive it while the driver eases the servos to neutral and turns torque off."""
+    process = subprocess.Popen(
+        [sys.executable, "-c", "from livebridge.cli import main; main()", "demo", "--port", "0", "--unpaced",
+         "--size", f"{SMALL[0]}x{SMALL[1]}"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert "open http://127.0.0.1:" in process.stdout.readline()
+        time.sleep(3.0)
+        os.killpg(process.pid, signal.SIGINT)
+        out, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    assert process.returncode == 0, err
+    assert "SIGINT: stopping" in out + err and "frame sets solved" in out
+    assert "failed" not in out + err and "Traceback" not in err
