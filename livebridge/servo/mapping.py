@@ -113,7 +113,7 @@ class Mapping:
         return raw_kernel(np.array(contractions, dtype=np.float64), *self.compiled)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def drive_kernel(x, weights, kinds, gammas, curve_u, curve_y, n_points):
     """Compiled :meth:`Mapping.drive`: ``x`` (n_muscles,) -> ``y`` (n_servos,), NaN where a used input is not
     finite. ``kinds``: index into ``linear, gamma, piecewise``."""
@@ -142,7 +142,7 @@ def drive_kernel(x, weights, kinds, gammas, curve_u, curve_y, n_points):
     return y
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def raw_kernel(x, weights, kinds, gammas, curve_u, curve_y, n_points, neutral, minimum, maximum):
     """Compiled :meth:`Mapping.raw`: ``x`` (n_muscles,) -> raw targets (n_servos,), NaN where not finite."""
     y = drive_kernel(x, weights, kinds, gammas, curve_u, curve_y, n_points)

@@ -186,7 +186,7 @@ class SafetyMapper:
 _NO_INPUT = np.zeros(0)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _step_kernel(x, has_input, mapping, target, desired, filtered, speed, t, dt, t_input, ramp, limits):
     """One frame of :meth:`SafetyMapper.step` on arrays (compiled: the step runs on the servo write's
     critical path). ``mapping``: :attr:`Mapping.compiled`; ``limits``: ``SafetyMapper._limits``.
@@ -229,7 +229,7 @@ def _step_kernel(x, has_input, mapping, target, desired, filtered, speed, t, dt,
     return new_target, desired, new_filtered, new_speed, t_input, tripped
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _smooth(x, prev, speed, dt, exp, euro, tau, min_cutoff, beta, d_cutoff):
     """One servo's smoothing filter (normalised units, ``dt > 0``): ``(filtered, speed)``."""
     out = x
@@ -245,7 +245,7 @@ def _smooth(x, prev, speed, dt, exp, euro, tau, min_cutoff, beta, d_cutoff):
     return min(1.0, max(0.0, out)), (speed if np.isfinite(speed) else 0.0)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _alpha(cutoff: float, dt: float) -> float:
     """Smoothing factor of a first-order low-pass with ``cutoff`` Hz at step ``dt`` s."""
     tau = 1.0 / (2 * np.pi * cutoff)
