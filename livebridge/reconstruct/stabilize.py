@@ -82,7 +82,8 @@ def transform_scale(transform: np.ndarray) -> float:
     return float(np.cbrt(np.linalg.det(transform[:3, :3])))
 
 
-def head_pose(reference_model: np.ndarray, points_world: np.ndarray, model_scale: float = 1.0) -> np.ndarray:
+def head_pose(reference_model: np.ndarray, points_world: np.ndarray, model_scale: float = 1.0,
+              weights: np.ndarray | None = None) -> np.ndarray:
     """Head pose ``head2world`` from rigid head markers (Kabsch, scale fixed).
 
     The head frame is the face model's frame. ``head2world`` maps model coordinates into the
@@ -97,13 +98,16 @@ def head_pose(reference_model: np.ndarray, points_world: np.ndarray, model_scale
         Their positions this frame in the world frame; NaN where not seen.
     model_scale : float
         World millimetres per model millimetre.
+    weights : ndarray, shape (n_head,), optional
+        Non-negative weight per marker (default: all 1).
 
     Returns
     -------
     ndarray, shape (4, 4); all NaN with fewer than 3 markers seen.
     """
     reference = np.asarray(reference_model, dtype=np.float64) * model_scale
-    world = np.asarray(points_world, dtype=np.float64)
-    rigid = _umeyama(reference, np.ascontiguousarray(world), np.ones(len(world)), False)
+    world = np.ascontiguousarray(points_world, dtype=np.float64)
+    w = np.ones(len(world)) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
+    rigid = _umeyama(reference, world, w, False)
     rigid[:3, :3] *= model_scale  # R diag(s, s, s): the model's scale on the rotation's columns
     return rigid

@@ -27,7 +27,7 @@ import numpy as np
 from numba import njit
 
 from livebridge.reconstruct.label import gated_assignment
-from livebridge.reconstruct.stabilize import apply, head_pose, umeyama
+from livebridge.reconstruct.stabilize import apply, head_pose
 from livebridge.solve.qp import nonnegative_least_squares
 
 
@@ -213,9 +213,7 @@ class Tracker:
         if np.isfinite(pose).all():
             return pose
         # the face moves with the expression: the markers that stay put carry the fit
-        rigid = umeyama(state.positions_model * self.model_scale, world, with_scale=False, weights=self._steadiness)
-        rigid[:3, :3] *= self.model_scale
-        return rigid
+        return head_pose(state.positions_model, world, self.model_scale, weights=self._steadiness)
 
     def head_pose(self, world: np.ndarray) -> np.ndarray:
         """``head2world`` ``(4, 4)`` from the head markers' world positions in ``world (n_markers, 3)`` (NaN: unseen);
