@@ -219,22 +219,31 @@ def generate_cameras(basis: Basis, n_cameras: int = 4, config: RigConfig | None 
     if n_cameras < 1:
         raise InputError(f"need at least one camera, got {n_cameras}", field="cameras")
     rng = np.random.default_rng([int(seed), 5])
-    target = face_centre(basis)
-    extent = float(np.ptp(basis.neutral[:, 1]))
-    width, height = config.size
     azimuths = np.deg2rad(np.linspace(-0.5, 0.5, n_cameras) * config.spread_deg) if n_cameras > 1 else [0.0]
     cameras = []
     for k, azimuth in enumerate(azimuths):
         elevation = np.deg2rad(8.0 if k % 2 == 0 else -6.0) if n_cameras > 1 else 0.0
-        distance = rng.uniform(*config.distance_mm)
-        direction = np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation),
-                              np.cos(azimuth) * np.cos(elevation)])
-        centre = target + distance * direction
-        rotation, translation = look_at(centre, target)
-        focal = config.fill * height * distance / extent
-        matrix = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])
-        cameras.append(Camera(f"cam{k}", (width, height), matrix, np.zeros(5), rotation, translation))
+        cameras.append(face_camera(basis, f"cam{k}", azimuth, elevation, rng.uniform(*config.distance_mm), config))
     return CameraGroup(cameras)
+
+
+def face_camera(basis: Basis, name: str, azimuth: float, elevation: float, distance: float,
+                config: RigConfig | None = None, distortion: np.ndarray | None = None) -> Camera:
+    """A camera ``distance`` mm from the face centre, at ``azimuth`` / ``elevation`` (radians) from the face's
+    +z, looking at the centre, its focal length making the face fill ``config.fill`` of the image height.
+
+    ``distortion``: OpenCV coefficients ``(5,)`` (default none).
+    """
+    config = config or RigConfig()
+    target = face_centre(basis)
+    width, height = config.size
+    direction = np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation),
+                          np.cos(azimuth) * np.cos(elevation)])
+    rotation, translation = look_at(target + distance * direction, target)
+    focal = config.fill * height * distance / float(np.ptp(basis.neutral[:, 1]))
+    matrix = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])
+    return Camera(name, (width, height), matrix, np.zeros(5) if distortion is None else np.asarray(distortion),
+                  rotation, translation)
 
 
 def generate_markers(basis: Basis, n_face: int = 40, n_head: int = 4, seed: int = 0) -> MarkerSet:

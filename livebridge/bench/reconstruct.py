@@ -73,22 +73,13 @@ def rig_cameras(basis, distortion: float = -0.08):
     :data:`RIG_DISTANCE_MM` from the face centre and looking at it, the face filling the image height as
     in :func:`livebridge.simulators.rig.generate_cameras`.
     """
-    from livebridge.calibration.cameras import Camera, CameraGroup
-    from livebridge.simulators.rig import RigConfig, face_centre, look_at
+    from livebridge.calibration.cameras import CameraGroup
+    from livebridge.simulators.rig import face_camera
 
-    config = RigConfig()
-    width, height = config.size
-    focal = config.fill * height * RIG_DISTANCE_MM / float(np.ptp(basis.neutral[:, 1]))
-    matrix = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])
-    target = face_centre(basis)
-    cameras = []
-    for k, (side, level) in enumerate([(-1, 1), (1, 1), (-1, -1), (1, -1)]):
-        azimuth, elevation = np.deg2rad(side * RIG_AZIMUTH_DEG), np.deg2rad(level * RIG_ELEVATION_DEG)
-        direction = np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation),
-                              np.cos(azimuth) * np.cos(elevation)])
-        rotation, translation = look_at(target + RIG_DISTANCE_MM * direction, target)
-        cameras.append(Camera(f"cam{k}", (width, height), matrix, np.array([distortion, 0.0, 0.0, 0.0, 0.0]),
-                              rotation, translation))
+    corners = [(-1, 1), (1, 1), (-1, -1), (1, -1)]
+    cameras = [face_camera(basis, f"cam{k}", np.deg2rad(side * RIG_AZIMUTH_DEG), np.deg2rad(level * RIG_ELEVATION_DEG),
+                           RIG_DISTANCE_MM, distortion=np.array([distortion, 0.0, 0.0, 0.0, 0.0]))
+               for k, (side, level) in enumerate(corners)]
     return CameraGroup(cameras)
 
 
