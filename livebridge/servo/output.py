@@ -118,17 +118,12 @@ class ServoOutput:
         if poll is None:
             poll = self.frames % self.poll_every == 0
         self.frames += 1
-        with self._wire:
-            for name, bus in self.buses.items():
-                if name in self.failed_buses:
-                    continue
-                try:
-                    bus.write({self.rig.servos[i].address: int(raw[i]) for i in self._by_bus[name]})
-                    if poll:
-                        bus.poll()
-                except OSError as error:  # the port went away: report, keep the other buses running
-                    self.failed_buses.add(name)
-                    self._event(name, f"bus failed ({error}); left out from now on")
+        def write(name, bus):
+            bus.write({self.rig.servos[i].address: int(raw[i]) for i in self._by_bus[name]})
+            if poll:
+                bus.poll()
+
+        self._on_every_bus(write)
         return raw
 
     def poll(self) -> None:
@@ -136,13 +131,17 @@ class ServoOutput:
 
         May be called from another thread than :meth:`send` (a write then waits for the poll to finish).
         """
+        self._on_every_bus(lambda name, bus: bus.poll())
+
+    def _on_every_bus(self, action) -> None:
+        """``action(name, bus)`` on every working bus, holding the wire; a bus whose port fails is left out."""
         with self._wire:
             for name, bus in self.buses.items():
                 if name in self.failed_buses:
                     continue
                 try:
-                    bus.poll()
-                except OSError as error:
+                    action(name, bus)
+                except OSError as error:  # the port went away: report, keep the other buses running
                     self.failed_buses.add(name)
                     self._event(name, f"bus failed ({error}); left out from now on")
 
