@@ -276,9 +276,11 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
                                  rec.get("raw_frames", bool, False), "." + rec.get("frame_format", str, "pgm"))
     if recording.enabled and recording.directory is None:
         raise InputError("recording is enabled: give the directory for takes", path, "recording.directory")
-    if recording.frame_format not in (".pgm", ".png"):
-        raise InputError(f'must be "pgm" or "png", got {recording.frame_format[1:]!r}', path,
-                         "recording.frame_format")
+    from livebridge.output.record import FRAME_FORMATS
+
+    if recording.frame_format not in FRAME_FORMATS:
+        raise InputError(f"must be {' or '.join(repr(f[1:]) for f in FRAME_FORMATS)}, "
+                         f"got {recording.frame_format[1:]!r}", path, "recording.frame_format")
     rec.check_known()
 
     runtime = top.table("runtime")
