@@ -164,7 +164,7 @@ class GarbageCollection:
     While the pipeline runs, everything allocated before it started is frozen (:func:`gc.freeze`: never
     scanned again), automatic collection is off, and :meth:`collect` -- called by the outputs thread once
     a frame set is done -- collects the youngest generation every call, the middle one every
-    ``every[1]`` calls and the oldest every ``every[2]`` calls, so cyclic garbage is still freed on a
+    ``every[0]`` calls and the oldest every ``every[1]`` calls, so cyclic garbage is still freed on a
     long take. :meth:`stop` gives the collector back as it was. One collector per process: with two
     pipelines running at once, the first to stop turns automatic collection back on.
     """
