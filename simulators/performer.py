@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
-from livebridge.take import Take
+from livebridge.take.npz import Take
 
 SCRIPTS = ("training", "everyday", "mixed")
 TRAINING_BLOCK_S = 2.0  # per muscle: 0.25 s rest, 1.5 s sweep, 0.25 s rest
@@ -317,7 +317,7 @@ class Performance:
         return len(self.t)
 
     def to_take(self) -> Take:
-        """The performance as a :class:`livebridge.take.Take` with its ground truth."""
+        """The performance as a :class:`livebridge.take.npz.Take` with its ground truth."""
         return Take(t=self.t, marker_names=self.marker_names, displacements=self.marker_displacements,
                     positions=self.marker_positions, contractions=self.contractions,
                     muscle_names=self.muscle_names, head2world=self.head2world, fps=self.fps)

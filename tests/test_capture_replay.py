@@ -16,7 +16,7 @@ from livebridge.errors import InputError
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
-    from livebridge.capture.replay import TakeWriter
+    from livebridge.take.replay import TakeWriter
 
     folder = tmp_path_factory.mktemp("take")
     sources = open_sources("sim://rig?cameras=2&seed=3&size=320x200&fps=50&drop=0.1&jitter_ms=1&realtime=0")
@@ -137,11 +137,11 @@ def _unpaced_capture(pipeline):
 def test_recorded_demo_replays_through_the_pipeline(tmp_path):
     """Record a simulated demo with raw frames; `replay://TAKE` through the same pipeline gives the same
     contractions (and the recorded take is close to the performer's ground truth)."""
-    from livebridge.output.record import load_take_dir
     from livebridge.runtime.build import build_pipeline
     from livebridge.runtime.demo import build_demo
     from livebridge.runtime.pipeline import run_until_stopped
     from livebridge.runtime.session import load_session
+    from livebridge.take.recorder import load_take_dir
 
     take = tmp_path / "takes" / "demo"
     parts = build_demo(size=(640, 400), realtime=False, servo=False, render=False, record=take, record_frames=True,

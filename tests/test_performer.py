@@ -8,7 +8,7 @@ from factories import random_basis
 from livebridge.face.basis import CHOE_KO_MUSCLES, Basis
 from livebridge.face.markers import MarkerSet
 from livebridge.simulators.performer import EXPRESSIONS, Performer, perform
-from livebridge.take import Take
+from livebridge.take.npz import Take
 
 
 def choe_ko_basis(rng) -> Basis:

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from livebridge.errors import InputError
-from livebridge.output.record import TakeRecorder, export_c3d, load_take_dir
+from livebridge.take.recorder import TakeRecorder, export_c3d, load_take_dir
 from livebridge.tomlio import load_toml
 
 MUSCLES = ("a", "b", "c")
@@ -141,8 +141,8 @@ def test_raw_frames_as_png_on_request_and_bad_formats_refused(tmp_path):
 def test_a_take_cut_short_replays_up_to_its_last_complete_frame(tmp_path):
     """An image without its timestamp row (killed in between) and a half-written image are ignored."""
     from livebridge.capture.frame import Frame
-    from livebridge.capture.replay import TakeWriter
     from livebridge.capture.sources import open_sources
+    from livebridge.take.replay import TakeWriter
 
     writer = TakeWriter(tmp_path)
     for k in range(4):
@@ -172,7 +172,7 @@ def test_recorder_writes_the_cameras_calibration_when_there_is_no_file(tmp_path)
 _CHILD = textwrap.dedent("""
     import sys, time
     import numpy as np
-    from livebridge.output.record import TakeRecorder
+    from livebridge.take.recorder import TakeRecorder
     rec = TakeRecorder(sys.argv[1], ("a", "b", "c"), ("m0", "m1"), flush_interval=0.5)
     k = 0
     while True:

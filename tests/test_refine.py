@@ -11,7 +11,7 @@ from livebridge.bench.refine import perturbed_basis
 from livebridge.cli import main
 from livebridge.face.basis import Basis
 from livebridge.solve.refine import densify, refine_basis
-from livebridge.take import Take
+from livebridge.take.npz import Take
 
 
 @pytest.fixture(scope="module")

@@ -14,9 +14,9 @@ import time
 import numpy as np
 import pytest
 
-from livebridge.output.record import load_take_dir
 from livebridge.runtime.demo import build_demo
 from livebridge.runtime.pipeline import NewestQueue, run_until_stopped
+from livebridge.take.recorder import load_take_dir
 
 _HANDSHAKE = (
     "GET /ws HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"

@@ -10,7 +10,7 @@ from solver_factories import noisy_training
 
 from livebridge.cli import main
 from livebridge.solve.validate import check_basis
-from livebridge.take import Take
+from livebridge.take.npz import Take
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ equal implementations, chosen by URL in configuration:
 ``v4l2:///dev/video0?width=1280&height=720&fps=60&fourcc=MJPG&exposure_us=2000&gain=0``  a V4L2 camera
 ``depthai://DEVICE_ID/CAM_B?fps=60&exposure_us=2000&iso=400``  one mono camera of an OAK (``DEVICE_ID`` may be
                                                            ``any``; no socket: both mono cameras)
-``replay://PATH?realtime=0``                               a recorded take (see :mod:`livebridge.capture.replay`)
+``replay://PATH?realtime=0``                               a recorded take (see :mod:`livebridge.take.replay`)
 ``sim://rig?cameras=4&seed=1&fps=60&noise=2``              the simulated rig (one source per camera)
 =========================================================  ==================================================
 
@@ -238,7 +238,7 @@ def _open_depthai(url: SourceURL) -> list:
 
 
 def _open_replay(url: SourceURL) -> list:
-    from livebridge.capture.replay import open_url
+    from livebridge.take.replay import open_url
 
     return open_url(url)
 

@@ -47,7 +47,7 @@ def _read(basis_path: Path, markers_path: Path, take_path: Path):
     from livebridge.errors import InputError
     from livebridge.face.basis import Basis
     from livebridge.face.markers import MarkerSet
-    from livebridge.take import Take
+    from livebridge.take.npz import Take
 
     basis = Basis.load(basis_path)
     markers = MarkerSet.load(markers_path)

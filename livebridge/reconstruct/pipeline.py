@@ -34,7 +34,7 @@ from livebridge.reconstruct.predicted import PredictedMatcher
 from livebridge.reconstruct.stabilize import apply, transform_scale
 from livebridge.reconstruct.track import TrackConfig, Tracker, TrackState
 from livebridge.reconstruct.triangulate import Triangulator
-from livebridge.take import Take
+from livebridge.take.npz import Take
 
 
 @dataclass(frozen=True)
@@ -310,7 +310,7 @@ class Reconstructor:
         return frames
 
     def to_take(self, frames: Sequence[LabelledFrame], fps: float | None = None) -> Take:
-        """Frames as a :class:`livebridge.take.Take` (displacements, world positions, head poses)."""
+        """Frames as a :class:`livebridge.take.npz.Take` (displacements, world positions, head poses)."""
         return Take(t=np.array([f.t for f in frames]), marker_names=self.markers.names,
                     displacements=np.stack([f.displacements for f in frames]),
                     positions=np.stack([f.positions_world for f in frames]),

@@ -80,7 +80,7 @@ def _session_url(url: str, session: Session) -> str:
 
 def _recorded_calibration(sources) -> Path | None:
     """The calibration a recorded take was made with, when every source replays the same take directory."""
-    from livebridge.capture.replay import ReplaySource
+    from livebridge.take.replay import ReplaySource
 
     folders = {getattr(s, "folder", None) for s in sources}
     if not sources or not all(isinstance(s, ReplaySource) for s in sources) or len(folders) != 1:
@@ -176,7 +176,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             opened.append(vmc.close)
         recorder = None
         if session.recording.enabled:
-            from livebridge.output.record import TakeRecorder
+            from livebridge.take.recorder import TakeRecorder
 
             stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
             directory = session.recording.directory / f"take-{stamp}"

@@ -202,7 +202,7 @@ def build_demo(cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 8
             vmc_output = VMCOutput(basis.names, host=vmc[0], port=vmc[1])
         recorder = None
         if record is not None:
-            from livebridge.output.record import TakeRecorder
+            from livebridge.take.recorder import TakeRecorder
 
             recorder = TakeRecorder(record, basis.names, markers.names, fps=fps, cameras=rig.cameras,
                                     record_frames=record_frames, lossless_frames=not realtime)

@@ -33,8 +33,8 @@ Take directory format (``livebridge-take-dir``, version 1)
     written from the cameras themselves when there is no file, e.g. for a
     simulated rig).
 ``frames/`` (optional)
-    Raw camera images in the replay format of :mod:`livebridge.capture.replay`
-    (written by its :class:`~livebridge.capture.replay.TakeWriter`): per camera
+    Raw camera images in the replay format of :mod:`livebridge.take.replay`
+    (written by its :class:`~livebridge.take.replay.TakeWriter`): per camera
     ``frames/<camera>/000000.pgm ...`` (uncompressed binary PGM by default: ~1 ms
     per 1280x800 image, so four cameras at 60 fps keep up on one writer thread,
     where PNG took 10-40 ms an image and dropped most frame sets live; ``.png``
@@ -190,7 +190,7 @@ class TakeRecorder:
         self._frame_queue: queue.Queue | None = None
         self.lossless_frames = bool(lossless_frames)
         if record_frames:
-            from livebridge.capture.replay import RECORDED_FRAMES, TakeWriter
+            from livebridge.take.replay import RECORDED_FRAMES, TakeWriter
 
             self._frame_writer = TakeWriter(self.path / RECORDED_FRAMES, frame_format)
             self._frame_soft_limit = max(1, int(frame_queue))  # a new frame set is dropped beyond this
@@ -399,8 +399,8 @@ class RecordedTake:
         return len(self.t)
 
     def to_take(self):
-        """As a :class:`livebridge.take.Take` (positions, displacements, solved contractions)."""
-        from livebridge.take import Take
+        """As a :class:`livebridge.take.npz.Take` (positions, displacements, solved contractions)."""
+        from livebridge.take.npz import Take
 
         return Take(self.t, self.marker_names, displacements=self.displacements, positions=self.markers,
                     contractions=self.contractions, muscle_names=self.muscle_names, fps=self.manifest.get("fps"))

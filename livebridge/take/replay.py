@@ -13,7 +13,7 @@ A recorded take is a folder with, per camera ``NAME``:
 
 :class:`TakeWriter` writes this format incrementally and crash-safely (each image is written under a
 temporary name and renamed; each timestamp row is flushed once its image is in place). A take directory
-of :class:`livebridge.output.record.TakeRecorder` (``take.toml`` with raw frames) keeps the camera take
+of :class:`livebridge.take.recorder.TakeRecorder` (``take.toml`` with raw frames) keeps the camera take
 in its ``frames/`` folder; ``replay://`` opens that folder when given the take directory.
 
 ``replay://PATH?realtime=1&cameras=cam0,cam1&fps=30&loop=0`` opens one source per camera (all cameras
