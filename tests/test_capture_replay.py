@@ -1,4 +1,4 @@
-"""Replay: a simulated take recorded with TakeWriter plays back identically, timed or as fast as possible."""
+"""Replay: a simulated take recorded with RawFrameWriter plays back identically, timed or as fast as possible."""
 
 from __future__ import annotations
 
@@ -16,12 +16,12 @@ from livebridge.errors import InputError
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
-    from livebridge.take.replay import TakeWriter
+    from livebridge.take.raw_frames import RawFrameWriter
 
     folder = tmp_path_factory.mktemp("take")
     sources = open_sources("sim://rig?cameras=2&seed=3&size=320x200&fps=50&drop=0.1&jitter_ms=1&realtime=0")
     frames = {s.source_id: [] for s in sources}
-    with TakeWriter(folder) as writer:
+    with RawFrameWriter(folder) as writer:
         for source in sources:
             with source:
                 for _ in range(12):
@@ -141,7 +141,7 @@ def test_recorded_demo_replays_through_the_pipeline(tmp_path):
     from livebridge.runtime.demo import build_demo
     from livebridge.runtime.pipeline import run_until_stopped
     from livebridge.runtime.session import load_session
-    from livebridge.take.recorder import load_take_dir
+    from livebridge.take.directory import load_take_dir
 
     take = tmp_path / "takes" / "demo"
     parts = build_demo(size=(640, 400), realtime=False, servo=False, render=False, record=take, record_frames=True,

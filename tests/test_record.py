@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 
 from livebridge.errors import InputError
-from livebridge.take.recorder import TakeRecorder, export_c3d, load_take_dir
+from livebridge.take.c3d import export_c3d
+from livebridge.take.directory import load_take_dir
+from livebridge.take.recorder import TakeRecorder
 from livebridge.tomlio import load_toml
 
 MUSCLES = ("a", "b", "c")
@@ -142,9 +144,9 @@ def test_a_take_cut_short_replays_up_to_its_last_complete_frame(tmp_path):
     """An image without its timestamp row (killed in between) and a half-written image are ignored."""
     from livebridge.capture.frame import Frame
     from livebridge.capture.sources import open_sources
-    from livebridge.take.replay import TakeWriter
+    from livebridge.take.raw_frames import RawFrameWriter
 
-    writer = TakeWriter(tmp_path)
+    writer = RawFrameWriter(tmp_path)
     for k in range(4):
         writer.write(Frame(np.full((8, 8), k, np.uint8), k / 60, k, "cam0"))
     writer.close()  # no close needed for the rows to be on disk: simulate the crash on top

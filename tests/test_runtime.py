@@ -16,7 +16,7 @@ import pytest
 
 from livebridge.runtime.demo import build_demo
 from livebridge.runtime.pipeline import NewestQueue, run_until_stopped
-from livebridge.take.recorder import load_take_dir
+from livebridge.take.directory import load_take_dir
 
 _HANDSHAKE = (
     "GET /ws HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"

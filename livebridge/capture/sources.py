@@ -20,11 +20,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 from urllib.parse import parse_qs, urlsplit
 
 from livebridge.capture.frame import Frame
 from livebridge.errors import InputError
+
+if TYPE_CHECKING:
+    from livebridge.calibration.cameras import Camera
 
 
 @dataclass(frozen=True)
@@ -108,6 +111,11 @@ class CameraSource(Protocol):
     @property
     def error(self) -> str | None: ...
 
+    @property
+    def calibration(self) -> Camera | None:
+        """This camera as the source knows it (simulated, recorded with a take, factory-calibrated);
+        None when unknown."""
+
 
 class SourceWrapper:
     """A camera source that wraps another and adds to ``read``; everything else is the inner source's.
@@ -161,6 +169,11 @@ class SourceBase:
     @property
     def error(self) -> str | None:
         return self._error
+
+    @property
+    def calibration(self) -> Camera | None:
+        """None: a source that knows its camera's calibration overrides this."""
+        return None
 
     def _end(self, error: str | None) -> None:
         self._ended = True

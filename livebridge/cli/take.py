@@ -25,7 +25,7 @@ def export_c3d(take_dir: Path, out: Path | None, rate: float | None) -> None:
     up to its last flushed frame, or writes it again elsewhere.
     """
     from livebridge.errors import InputError
-    from livebridge.take.recorder import export_c3d as export
+    from livebridge.take.c3d import export_c3d as export
 
     try:
         written = export(take_dir, out, rate)

@@ -276,7 +276,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
                                  rec.get("raw_frames", bool, False), "." + rec.get("frame_format", str, "pgm"))
     if recording.enabled and recording.directory is None:
         raise InputError("recording is enabled: give the directory for takes", path, "recording.directory")
-    from livebridge.take.recorder import FRAME_FORMATS
+    from livebridge.take.directory import FRAME_FORMATS
 
     if recording.frame_format not in FRAME_FORMATS:
         raise InputError(f"must be {' or '.join(repr(f[1:]) for f in FRAME_FORMATS)}, "

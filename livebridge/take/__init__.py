@@ -1,10 +1,13 @@
-"""Takes: everything that reads or writes a recorded or simulated performance.
+"""Takes: everything that reads or writes a recorded or simulated performance, one module per format.
 
-One module per format or concept:
-
-- :mod:`~livebridge.take.npz`: the ``.npz`` take (:class:`~livebridge.take.npz.Take`), per-frame marker
-  data and ground truth, for offline tools;
+- :mod:`~livebridge.take.npz`: the ``.npz`` take (:class:`~livebridge.take.npz.Take`): per-frame marker
+  data and ground truth, for the offline tools;
+- :mod:`~livebridge.take.directory`: the take directory a live run records (layout, ``take.toml``,
+  :func:`~livebridge.take.directory.load_take_dir`);
 - :mod:`~livebridge.take.recorder`: :class:`~livebridge.take.recorder.TakeRecorder`, which writes a take
   directory while the pipeline runs;
-- :mod:`~livebridge.take.replay`: raw camera frames played back as camera sources (``replay://``).
+- :mod:`~livebridge.take.raw_frames`: raw camera frames on disk (image folders or videos and timestamp
+  files) and their writer;
+- :mod:`~livebridge.take.replay`: raw frames played back as camera sources (``replay://``);
+- :mod:`~livebridge.take.c3d`: labelled markers as C3D (``markers.c3d``, ``livebridge take export-c3d``).
 """

@@ -1,102 +1,40 @@
-"""Replay of recorded camera takes, and the writer that records them.
+"""Raw camera frames played back as camera sources (``replay://``).
 
-A recorded take is a folder with, per camera ``NAME``:
-
-- either a folder ``NAME/`` of image files (PNG, JPEG, BMP, TIFF, PGM; played in file-name order),
-  or a video ``NAME.avi`` / ``NAME.mkv`` / ``NAME.mp4`` (frames converted to grayscale);
-- a timestamp file ``NAME.csv`` with a header row and one row per frame, in order: columns
-  ``seq`` (int), ``t_capture`` (seconds, any monotonic clock), and optionally ``exposure_us``, ``gain``,
-  ``sync_domain``, ``source_id`` (the camera's original name, e.g. ``DEVICE/CAM_B``, which the
-  replayed frames carry so that a calibration matches them; default ``NAME``). Without the file,
-  frames are numbered from 0 at ``fps`` (URL parameter, default 30).
-  Images beyond the last row (a recording cut short between an image and its row) are ignored.
-
-:class:`TakeWriter` writes this format incrementally and crash-safely (each image is written under a
-temporary name and renamed; each timestamp row is flushed once its image is in place). A take directory
-of :class:`livebridge.take.recorder.TakeRecorder` (``take.toml`` with raw frames) keeps the camera take
-in its ``frames/`` folder; ``replay://`` opens that folder when given the take directory.
-
-``replay://PATH?realtime=1&cameras=cam0,cam1&fps=30&loop=0`` opens one source per camera (all cameras
-found, in name order, unless ``cameras`` picks some). ``realtime=1`` (default) plays with the original
-timing: all cameras of the take share one clock, recorded times are shifted onto the host monotonic
-clock at start; ``realtime=0`` plays as fast as the reader asks and keeps the recorded times.
-"""
+``replay://PATH?realtime=1&cameras=cam0,cam1&fps=30&loop=0`` opens one source per camera of the raw-frame
+take at ``PATH`` (format: :mod:`livebridge.take.raw_frames`), or of a take directory's raw frames when
+``PATH`` is a take directory (:mod:`livebridge.take.directory`): all cameras found, in name order, unless
+``cameras`` picks some. ``fps`` numbers the frames of a camera without a timestamp file. ``realtime=1``
+(default) plays with the original timing: all cameras of the take share one clock, recorded times are
+shifted onto the host monotonic clock at start; ``realtime=0`` plays as fast as the reader asks and
+keeps the recorded times. A source replaying a take directory knows its camera's calibration as recorded
+with the take (:attr:`ReplaySource.calibration`)."""
 
 from __future__ import annotations
 
-import csv
+import functools
 import math
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from livebridge.capture.frame import Frame, FrameSet
+from livebridge.capture.frame import Frame
 from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase, SourceURL
 from livebridge.errors import InputError
+from livebridge.take.directory import RAW_FRAMES, calibration_file, is_take_dir
+from livebridge.take.raw_frames import (
+    IMAGE_SUFFIXES,
+    VIDEO_SUFFIXES,
+    TimestampRow,
+    camera_names,
+    frames_folder,
+    read_timestamps,
+)
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
-VIDEO_SUFFIXES = (".avi", ".mkv", ".mp4")
-COLUMNS = ("seq", "t_capture", "exposure_us", "gain", "sync_domain", "source_id")
-
-
-@dataclass(frozen=True)
-class _Row:
-    seq: int
-    t_capture: float
-    exposure_us: float
-    gain: float
-    sync_domain: str
-    source_id: str = ""
-
-
-def read_timestamps(path: Path) -> list[_Row]:
-    """Rows of a camera's timestamp file; errors name the file, the line and the column."""
-    rows = []
-    with Path(path).open(newline="") as stream:
-        reader = csv.DictReader(stream)
-        missing = [c for c in ("seq", "t_capture") if c not in (reader.fieldnames or [])]
-        if missing:
-            raise InputError(f"missing column(s) {', '.join(missing)}", path, "header")
-        for line, row in enumerate(reader, start=2):
-            try:
-                rows.append(_Row(int(row["seq"]), float(row["t_capture"]),
-                                 float(row.get("exposure_us") or "nan"), float(row.get("gain") or "nan"),
-                                 row.get("sync_domain") or "", row.get("source_id") or ""))
-            except (TypeError, ValueError) as error:
-                raise InputError(f"bad value ({error})", path, f"line {line}") from None
-    return rows
-
-
-RECORDED_FRAMES = "frames"  # the camera take inside a recorder's take directory
-
-
-def camera_take_folder(folder) -> Path:
-    """The folder holding the camera take: ``folder`` itself, or its ``frames/`` when ``folder`` is a
-    recorder's take directory (``take.toml``)."""
-    folder = Path(folder)
-    if (folder / "take.toml").is_file():
-        frames = folder / RECORDED_FRAMES
-        if not frames.is_dir():
-            raise InputError("this take was recorded without raw frames (recording.raw_frames = false); "
-                             "it cannot be replayed through the cameras", folder)
-        return frames
-    return folder
-
-
-def take_cameras(folder: Path) -> list[str]:
-    """Camera names in a take folder, in name order."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise InputError("no such take folder", folder)
-    folder = camera_take_folder(folder)
-    names = {p.name for p in folder.iterdir() if p.is_dir()}
-    names |= {p.stem for p in folder.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES}
-    if not names:
-        raise InputError("no camera folders or videos in the take", folder)
-    return sorted(names)
+if TYPE_CHECKING:
+    from livebridge.calibration.cameras import Camera
 
 
 class _Clock:
@@ -114,7 +52,7 @@ class _Clock:
             return recorded + self.offset
 
 
-def _frame_period(rows: list[_Row], fps: float) -> float:
+def _frame_period(rows: list[TimestampRow], fps: float) -> float:
     """The camera's frame period: median time step per ``seq`` step (frames skipped while recording, e.g. by a
     busy host, leave gaps in ``seq`` and do not lengthen it)."""
     seq = np.array([r.seq for r in rows], dtype=np.float64)
@@ -125,6 +63,16 @@ def _frame_period(rows: list[_Row], fps: float) -> float:
         return 1.0 / fps
     period = float(np.median(np.diff(t)[ok] / steps[ok]))
     return period if period > 0 else 1.0 / fps
+
+
+def _take_dir(folder: Path, frames: Path) -> Path | None:
+    """The take directory a replay of ``folder`` (raw frames in ``frames``) reads: ``folder`` itself, or the
+    take whose ``frames/`` it is; None for a bare raw-frame take."""
+    if is_take_dir(folder):
+        return folder
+    if frames.name == RAW_FRAMES and is_take_dir(frames.parent):
+        return frames.parent
+    return None
 
 
 class ReplaySource(SourceBase):
@@ -145,7 +93,8 @@ class ReplaySource(SourceBase):
 
     def __init__(self, folder, camera: str, realtime: bool = True, fps: float = 30.0, loop: bool = False,
                  clock: _Clock | None = None):
-        self.folder, self.source_id = camera_take_folder(folder), camera
+        self.folder, self.source_id = frames_folder(folder), camera
+        self._take_dir = _take_dir(Path(folder), self.folder)
         self.realtime, self.fps, self.loop = realtime, float(fps), loop
         self._clock = clock or _Clock()
         image_dir = self.folder / camera
@@ -169,7 +118,7 @@ class ReplaySource(SourceBase):
                 self._files = self._files[:len(self._rows)]  # images past the last row: cut short
         else:
             count = n_frames if n_frames is not None else self._video_length()
-            self._rows = [_Row(k, k / self.fps, math.nan, math.nan, "") for k in range(count)]
+            self._rows = [TimestampRow(k, k / self.fps, math.nan, math.nan, "") for k in range(count)]
         if self._rows and self._rows[0].source_id:
             self.source_id = self._rows[0].source_id
         if self._rows:
@@ -187,9 +136,6 @@ class ReplaySource(SourceBase):
         count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
         capture.release()
         return max(count, 0)
-
-    def __len__(self) -> int:
-        return len(self._rows)
 
     def start(self) -> None:
         self._ended, self._error = False, None
@@ -262,6 +208,16 @@ class ReplaySource(SourceBase):
         row = self._rows[min(self._index, len(self._rows) - 1)] if self._rows else None
         return ExposureSetting(True, row.exposure_us if row else math.nan, row.gain if row else math.nan)
 
+    @functools.cached_property
+    def calibration(self) -> Camera | None:
+        """This camera as calibrated when the take was recorded: the camera named ``source_id`` in the
+        calibration file of the take directory; None for a take without one, or without this camera."""
+        if self._take_dir is None or (path := calibration_file(self._take_dir)) is None:
+            return None
+        from livebridge.calibration.calibfile import load_calibration
+
+        return {camera.name: camera for camera in load_calibration(path).cameras}.get(self.source_id)
+
     @property
     def capabilities(self) -> Capabilities:
         return Capabilities(size=self._size or (0, 0), fps=1.0 / self._period if self._period > 0 else math.nan,
@@ -270,7 +226,7 @@ class ReplaySource(SourceBase):
 
 def open_take(folder, cameras=None, realtime: bool = True, fps: float = 30.0, loop: bool = False) -> list:
     """One :class:`ReplaySource` per camera of a take, sharing one clock."""
-    names = take_cameras(folder) if cameras is None else list(cameras)
+    names = camera_names(folder) if cameras is None else list(cameras)
     clock = _Clock()
     return [ReplaySource(folder, name, realtime, fps, loop, clock) for name in names]
 
@@ -284,78 +240,3 @@ def open_url(url: SourceURL) -> list[ReplaySource]:
     cameras = url.query["cameras"].split(",") if url.query.get("cameras") else None
     return open_take(path, cameras, url.take("realtime", bool, True), url.take("fps", float, 30.0),
                      url.take("loop", bool, False))
-
-
-class TakeWriter:
-    """Records frames (or frame sets) as a take that :class:`ReplaySource` plays back.
-
-    Crash-safe and incremental: each image is written under a temporary name (``.NAME.part``, ignored by
-    the reader) and renamed, then its timestamp row is written and flushed, so a take cut short by a crash
-    replays up to its last complete frame.
-
-    Parameters
-    ----------
-    folder : str or Path
-        Created if missing.
-    image_format : str
-        ``.png`` (lossless, default) or another OpenCV image suffix.
-    """
-
-    def __init__(self, folder, image_format: str = ".png"):
-        self.folder = Path(folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
-        self.image_format = image_format
-        self._streams: dict[str, tuple] = {}
-        self._counts: dict[str, int] = {}
-
-    @staticmethod
-    def camera_name(source_id: str) -> str:
-        """The file-system name of a camera (``/`` and other unsafe characters become ``_``)."""
-        return "".join(c if c.isalnum() or c in "-_." else "_" for c in str(source_id)).lstrip(".") or "camera"
-
-    def write(self, frame: Frame) -> None:
-        import os
-
-        import cv2
-
-        name = self.camera_name(frame.source_id)
-        if name not in self._streams:
-            (self.folder / name).mkdir(exist_ok=True)
-            stream = (self.folder / f"{name}.csv").open("w", newline="", buffering=1)
-            writer = csv.writer(stream, lineterminator="\n")
-            writer.writerow(COLUMNS)
-            self._streams[name] = (stream, writer)
-            self._counts[name] = 0
-        stream, writer = self._streams[name]
-        index = self._counts[name]
-        ok, data = cv2.imencode(self.image_format, np.asarray(frame.image))
-        if not ok:
-            raise InputError(f"OpenCV cannot encode {self.image_format} images", self.folder)
-        target = self.folder / name / f"{index:06d}{self.image_format}"
-        partial = target.with_name(f".{target.name}.part")
-        partial.write_bytes(data.tobytes())
-        os.replace(partial, target)
-        writer.writerow([frame.seq, repr(frame.t_capture), repr(frame.exposure_us), repr(frame.gain),
-                         frame.sync_domain, frame.source_id])  # line-buffered: on disk once written
-        self._counts[name] = index + 1
-
-    def write_set(self, frameset: FrameSet) -> None:
-        for frame in frameset.frames:
-            if frame is not None:
-                self.write(frame)
-
-    @property
-    def counts(self) -> dict[str, int]:
-        """Frames written per camera (file-system names)."""
-        return dict(self._counts)
-
-    def close(self) -> None:
-        for stream, _ in self._streams.values():
-            stream.close()
-        self._streams.clear()
-
-    def __enter__(self) -> TakeWriter:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

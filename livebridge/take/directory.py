@@ -1,0 +1,256 @@
+"""The take directory (``livebridge-take-dir``, version 1): its layout, its manifest, and reading it back.
+
+:class:`~livebridge.take.recorder.TakeRecorder` writes it while the pipeline runs;
+:func:`load_take_dir` reads it, :mod:`livebridge.take.replay` plays its raw frames as cameras and
+:mod:`livebridge.take.c3d` exports its markers. This module is the one place that knows the layout.
+
+``take.toml``
+    Manifest: ``format``, ``version``, ``created`` (local wall-clock ISO time),
+    ``t0`` (the monotonic time, s, of the first frame), ``muscle_names``,
+    ``marker_names``, ``fps`` (nominal, or absent), ``units = "mm"``, and the
+    names of the copied ``session`` and ``calibration`` files. With raw frames also
+    ``raw_frames`` (the folder), and at close ``frames_written`` (per camera) and ``frames_dropped``.
+``contractions.csv``
+    Header ``frame,seq,t,<muscle>...,error_upper_mm,error_lower_mm``; one row
+    per solved frame set. ``t`` is seconds on the runtime's monotonic clock
+    (the frame set's capture time); ``frame`` counts rows from 0; ``seq`` is
+    the frame-set number (gaps = frame sets the pipeline dropped).
+``markers.csv``
+    Header ``frame,seq,t,<marker>_x,<marker>_y,<marker>_z,...``: the labelled
+    marker positions in the capture (world) frame, mm. An empty field means
+    the marker was not seen in that frame set.
+``displacements.csv`` (when recorded)
+    Same layout: each labelled marker's displacement from neutral in the face
+    model frame, mm (what the solver consumed).
+``markers.c3d`` (written when the take is closed)
+    The labelled markers as C3D (see :mod:`livebridge.take.c3d`). C3D needs the
+    frame count up front, so it is an export written from ``markers.csv`` at
+    close; ``markers.csv`` stays the crash-safe record. A take whose close never
+    ran (a crash) is exported with :func:`livebridge.take.c3d.export_c3d`
+    (``livebridge take export-c3d TAKE_DIR``).
+``session.toml``, ``calibration.*``
+    Copies of the files the take was recorded with (``calibration.toml`` is
+    written from the cameras themselves when there is no file, e.g. for a
+    simulated rig).
+``frames/`` (optional)
+    Raw camera images in the format of :mod:`livebridge.take.raw_frames`: per camera
+    ``frames/<camera>/000000.pgm ...`` (uncompressed binary PGM by default: ~1 ms
+    per 1280x800 image, so four cameras at 60 fps keep up on one writer thread,
+    where PNG took 10-40 ms an image and dropped most frame sets live; ``.png``
+    on request, about half the size) and the timestamp file ``frames/<camera>.csv``.
+    ``replay://TAKE_DIR`` plays them back as cameras, so a session with
+    ``urls = ["replay://TAKE_DIR?realtime=0"]`` runs the take through the pipeline
+    again, with the calibration recorded with the take.
+
+All CSV files are plain RFC-4180 text with a header row, ``.`` as decimal
+separator. The recorder writes them in whole lines, at least every
+``flush_interval`` seconds, so a crash -- even SIGKILL -- loses at most the last
+second, and a reader never sees half a line except possibly at the very end of a
+file (which :func:`load_take_dir` drops).
+"""
+
+from __future__ import annotations
+
+import datetime
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from livebridge.errors import InputError
+from livebridge.tomlio import load_toml, save_toml
+
+TAKE_DIR_FORMAT = "livebridge-take-dir"
+TAKE_DIR_VERSION = 1
+MANIFEST = "take.toml"
+CONTRACTIONS = "contractions.csv"
+MARKERS = "markers.csv"
+DISPLACEMENTS = "displacements.csv"
+C3D_NAME = "markers.c3d"
+RAW_FRAMES = "frames"
+FRAME_FORMATS = (".pgm", ".png")  # image files of the raw frames
+
+
+def is_take_dir(folder: str | Path) -> bool:
+    """True when ``folder`` is a take directory (it has a ``take.toml``)."""
+    return (Path(folder) / MANIFEST).is_file()
+
+
+def new_manifest(muscle_names, marker_names, fps: float | None) -> dict:
+    """The manifest of a take directory just created (now as its ``created`` time)."""
+    manifest = {
+        "format": TAKE_DIR_FORMAT, "version": TAKE_DIR_VERSION,
+        "created": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+        "units": "mm", "muscle_names": list(muscle_names), "marker_names": list(marker_names),
+    }
+    if fps:
+        manifest["fps"] = float(fps)
+    return manifest
+
+
+def save_manifest(path: str | Path, manifest: dict) -> None:
+    """Write ``take.toml`` into the take directory ``path``."""
+    save_toml(Path(path) / MANIFEST, manifest)
+
+
+def load_manifest(path: str | Path) -> dict:
+    """``take.toml`` of the take directory ``path``, format and version checked."""
+    file = Path(path) / MANIFEST
+    manifest = load_toml(file)
+    if manifest.get("format") != TAKE_DIR_FORMAT:
+        raise InputError(f"format must be {TAKE_DIR_FORMAT!r}", file, "format")
+    if manifest.get("version", 0) > TAKE_DIR_VERSION:
+        raise InputError(f"version {manifest['version']} is newer than this livebridge reads", file, "version")
+    return manifest
+
+
+def contractions_header(muscle_names) -> list[str]:
+    """Columns of ``contractions.csv``."""
+    return ["frame", "seq", "t", *muscle_names, "error_upper_mm", "error_lower_mm"]
+
+
+def markers_header(marker_names) -> list[str]:
+    """Columns of ``markers.csv`` and ``displacements.csv``."""
+    return ["frame", "seq", "t", *(f"{name}_{axis}" for name in marker_names for axis in "xyz")]
+
+
+def raw_frames_folder(path: str | Path) -> Path:
+    """The raw camera frames of the take directory ``path`` (an error names the take when it has none)."""
+    frames = Path(path) / RAW_FRAMES
+    if not frames.is_dir():
+        raise InputError("this take was recorded without raw frames (recording.raw_frames = false); "
+                         "it cannot be replayed through the cameras", path)
+    return frames
+
+
+def calibration_file(path: str | Path) -> Path | None:
+    """The calibration file recorded with the take directory ``path`` (its manifest's ``calibration``),
+    or None when it has none."""
+    name = load_manifest(path).get("calibration")
+    if not name or not (Path(path) / name).is_file():
+        return None
+    return Path(path) / name
+
+
+@dataclass(frozen=True, eq=False)
+class RecordedTake:
+    """A take directory read back.
+
+    Attributes
+    ----------
+    path : Path
+    seq : ndarray of int, shape (n_frames,)
+    t : ndarray, shape (n_frames,)
+    contractions : ndarray, shape (n_frames, n_muscles)
+    region_errors : ndarray, shape (n_frames, 2)
+    markers : ndarray, shape (n_frames, n_markers, 3)
+        Capture-frame positions, mm, NaN unseen.
+    displacements : ndarray, shape (n_frames, n_markers, 3) or None
+    muscle_names, marker_names : tuple of str
+    manifest : dict
+    complete : bool
+        False when the take was cut short (no final manifest, or a torn last line).
+    """
+
+    path: Path
+    seq: np.ndarray
+    t: np.ndarray
+    contractions: np.ndarray
+    region_errors: np.ndarray
+    markers: np.ndarray
+    displacements: np.ndarray | None
+    muscle_names: tuple[str, ...]
+    marker_names: tuple[str, ...]
+    manifest: dict
+    complete: bool
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.t)
+
+    def to_take(self):
+        """As a :class:`livebridge.take.npz.Take` (positions, displacements, solved contractions)."""
+        from livebridge.take.npz import Take
+
+        return Take(self.t, self.marker_names, displacements=self.displacements, positions=self.markers,
+                    contractions=self.contractions, muscle_names=self.muscle_names, fps=self.manifest.get("fps"))
+
+
+def _read_csv(path: Path, n_columns: int) -> tuple[list[str], np.ndarray, bool]:
+    """Header and float rows of a recorder CSV; a torn or malformed last line is dropped."""
+    text = path.read_text()
+    lines = text.split("\n")
+    torn = not text.endswith("\n")
+    lines = lines[:-1]  # the empty string after the last newline, or a line a crash cut short
+    if not lines:
+        raise InputError("empty file (no header)", path)
+    header = lines[0].split(",")
+    if len(header) != n_columns:
+        raise InputError(f"header has {len(header)} columns, expected {n_columns}", path)
+    rows = []
+    for number, line in enumerate(lines[1:], start=2):
+        fields = line.split(",")
+        if len(fields) != n_columns:
+            raise InputError(f"line {number} has {len(fields)} fields, expected {n_columns}", path)
+        try:
+            rows.append([float(f) if f else np.nan for f in fields])
+        except ValueError as error:
+            raise InputError(f"line {number}: {error}", path) from None
+    return header, np.array(rows, dtype=np.float64).reshape(len(rows), n_columns), torn
+
+
+def load_take_dir(path: str | Path) -> RecordedTake:
+    """Read a take directory, including one cut short by a crash (up to its last flushed line).
+
+    Frames present in some files but not yet in others (a crash between two
+    files' flushes) are dropped, so every array has the same frames.
+    """
+    path = Path(path)
+    manifest = load_manifest(path)
+    muscles = tuple(manifest.get("muscle_names", ()))
+    markers = tuple(manifest.get("marker_names", ()))
+    _, c_rows, torn_c = _read_csv(path / CONTRACTIONS, len(contractions_header(muscles)))
+    _, m_rows, torn_m = _read_csv(path / MARKERS, len(markers_header(markers)))
+    d_rows, torn_d = None, False
+    if (path / DISPLACEMENTS).exists():
+        _, d_rows, torn_d = _read_csv(path / DISPLACEMENTS, len(markers_header(markers)))
+    n = min(len(c_rows), len(m_rows), len(d_rows) if d_rows is not None else len(c_rows))
+    c_rows, m_rows = c_rows[:n], m_rows[:n]
+    if not np.array_equal(c_rows[:, :2], m_rows[:, :2]):
+        raise InputError(f"{CONTRACTIONS} and {MARKERS} disagree on frame numbers", path)
+    displacements = None
+    if d_rows is not None:
+        displacements = d_rows[:n, 3:].reshape(n, len(markers), 3)
+    complete = "frames" in manifest and manifest["frames"] == n and not (torn_c or torn_m or torn_d)
+    return RecordedTake(
+        path=path, seq=c_rows[:, 1].astype(np.int64), t=c_rows[:, 2],
+        contractions=c_rows[:, 3:3 + len(muscles)], region_errors=c_rows[:, 3 + len(muscles):],
+        markers=m_rows[:, 3:].reshape(n, len(markers), 3), displacements=displacements,
+        muscle_names=muscles, marker_names=markers, manifest=manifest, complete=complete,
+    )
+
+
+def read_markers(path: str | Path) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+    """Marker names, positions ``(n_frames, n_markers, 3)`` (mm, NaN unseen) and times ``(n_frames,)`` of the
+    take directory ``path``.
+
+    Reads ``markers.csv`` alone: every row flushed before a crash counts (a torn last line is dropped).
+    """
+    path = Path(path)
+    names = tuple(load_manifest(path).get("marker_names", ()))
+    if not (path / MARKERS).is_file():
+        raise InputError("file not found", path / MARKERS)
+    _, rows, _ = _read_csv(path / MARKERS, len(markers_header(names)))
+    return names, rows[:, 3:].reshape(len(rows), len(names), 3), rows[:, 2]
+
+
+def frame_rate(fps: float | None, t: np.ndarray) -> float | None:
+    """A take's frame rate, Hz: the nominal ``fps``, else from the median step of the times ``t``
+    (shape (n_frames,)); None when neither is known (one frame, no fps)."""
+    if fps:
+        return float(fps)
+    steps = np.diff(t)
+    steps = steps[steps > 0]
+    if not len(steps):
+        return None
+    return round(1.0 / float(np.median(steps)), 3)
