@@ -167,3 +167,28 @@ def test_recorded_demo_replays_through_the_pipeline(tmp_path):
     assert np.abs(difference).max() < 1e-4  # the same frame sets give the same contractions (CSV: 6 decimals)
     truth = np.array([parts.score.truth(int(recorded.seq[k]))[0] for k in common[1:]])
     assert np.sqrt(np.mean((recorded.contractions[common[1:]] - truth) ** 2)) < 0.03
+
+
+def test_a_replayed_take_declares_the_calibration_recorded_with_it(tmp_path, recorded):
+    from livebridge.calibration.cameras import Camera, CameraGroup
+    from livebridge.capture.sources import SourceBase
+    from livebridge.take.recorder import TakeRecorder
+
+    cameras = CameraGroup([Camera("dev/CAM_B", (64, 48), np.diag([50.0, 50.0, 1.0]), np.zeros(5),
+                                  np.array([0.0, 0.1, 0.0]), np.array([1.0, 0.0, 500.0]))])
+    image = np.zeros((48, 64), np.uint8)
+    for name, calibration in (("with", cameras), ("without", None)):
+        with TakeRecorder(tmp_path / name, ("a",), ("m0",), record_frames=True, lossless_frames=True,
+                          cameras=calibration) as recorder:
+            recorder.record_frames([Frame(image, 0.0, 0, "dev/CAM_B"), Frame(image, 0.0, 0, "cam1")])
+    for url in (f"replay://{tmp_path / 'with'}?realtime=0", f"replay://{tmp_path / 'with' / 'frames'}?realtime=0"):
+        by_id = {source.source_id: source for source in open_sources(url)}
+        known = by_id["dev/CAM_B"].calibration
+        assert known.name == "dev/CAM_B" and known.size == (64, 48)
+        np.testing.assert_array_equal(known.rotation, [0.0, 0.1, 0.0])
+        np.testing.assert_array_equal(known.translation, [1.0, 0.0, 500.0])
+        assert by_id["cam1"].calibration is None  # not in the recorded calibration
+    assert all(s.calibration is None for s in open_sources(f"replay://{tmp_path / 'without'}?realtime=0"))
+    folder, _ = recorded  # raw frames alone, not a take directory: no calibration to know
+    assert all(s.calibration is None for s in open_sources(f"replay://{folder}?realtime=0"))
+    assert SourceBase().calibration is None  # the default of every source

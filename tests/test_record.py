@@ -243,6 +243,66 @@ def test_a_busy_disk_drops_whole_frame_sets(tmp_path):
     assert seqs[0] == seqs[1] == seqs[2] and 0 in seqs[0] and 5 in seqs[0] and len(seqs[0]) < 6
 
 
+class _FakeClock:
+    """Monotonic seconds that move only when the test says so."""
+
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_flushes_follow_the_injected_clock(tmp_path):
+    clock = _FakeClock()
+    rec = TakeRecorder(tmp_path / "t", MUSCLES, MARKERS, flush_interval=0.05, clock=clock)
+    try:
+        rec.record(0, 0.0, *_values(0))
+        time.sleep(0.3)  # six flush intervals of real time, none on the recorder's clock
+        assert load_take_dir(tmp_path / "t").n_frames == 0
+        clock.t += 0.05
+        deadline = time.monotonic() + 5.0
+        while load_take_dir(tmp_path / "t").n_frames < 1:
+            assert time.monotonic() < deadline, "no flush once the clock reached the interval"
+            time.sleep(0.01)
+    finally:
+        rec.close()
+
+
+def test_frames_dropped_counts_every_drop_of_concurrent_readers(tmp_path):
+    """Reader threads record at once while the disk stalls: every frame is either written or counted (the
+    count is updated under a lock; under the GIL a lost update is rare enough that this cannot catch it)."""
+    import threading
+
+    from livebridge.capture.frame import Frame
+
+    release = threading.Event()
+    rec = TakeRecorder(tmp_path / "t", MUSCLES, MARKERS, record_frames=True, frame_queue=1)
+    write = rec._write_image
+    rec._write_image = lambda frame: (release.wait(), write(frame))  # the disk stalls
+    image = np.zeros((4, 4), np.uint8)
+    n_threads, n_frames = 4, 500
+
+    def reader(k):
+        for seq in range(n_frames):
+            rec.record_frames([Frame(image, seq / 60, seq, f"cam{k}", sync_domain=f"cam{k}")])
+
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # thread switches as often as the interpreter allows
+    try:
+        threads = [threading.Thread(target=reader, args=(k,)) for k in range(n_threads)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    finally:
+        sys.setswitchinterval(switch)
+        release.set()
+        rec.close()
+    written = load_toml(tmp_path / "t" / "take.toml")["frames_written"]
+    assert rec.frames_dropped > 0 and rec.frames_dropped + sum(written.values()) == n_threads * n_frames
+
+
 def _read_c3d(path):
     """Labels, rate, units, frame count and points (n_frames, n_markers, 5) of a C3D file, read with py-c3d."""
     import c3d
