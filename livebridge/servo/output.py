@@ -168,7 +168,8 @@ class ServoOutput:
         return out
 
     def recover(self, servo_name: str) -> bool:
-        """Try to bring a faulted servo back (Dynamixel: reboot + reconfigure + soft start)."""
+        """Try to bring a faulted servo back with its bus's ``recover`` (Dynamixel: reboot + reconfigure + soft
+        start; a hobby-servo controller cannot: False)."""
         servo = self.rig.servo(servo_name)
         bus = self.buses[servo.bus]
         ok = bus.recover(servo.address)
