@@ -62,10 +62,6 @@ class BusSpec:
     url: str
     facts: BusFacts
 
-    @property
-    def kind(self) -> str:
-        return self.facts.kind
-
 
 @dataclass(frozen=True)
 class ServoSpec:
