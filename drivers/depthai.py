@@ -31,7 +31,8 @@ import numpy as np
 
 from livebridge.calibration.cameras import Camera, CameraGroup
 from livebridge.capture.frame import Frame
-from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase, SourceURL
+from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase
+from livebridge.devices.url import DeviceURL
 from livebridge.errors import InputError
 
 MONO_SOCKETS = ("CAM_B", "CAM_C")
@@ -287,7 +288,7 @@ class OakCameraSource(SourceBase):
 _URL_KEYS = {"fps", "width", "height", "exposure_us", "iso", "ir", "dots", "queue"}
 
 
-def open_url(url: SourceURL) -> list[OakCameraSource]:
+def open_url(url: DeviceURL) -> list[OakCameraSource]:
     """``depthai://DEVICE_ID/CAM_B?fps=60&width=1280&height=800&exposure_us=2000&iso=400&ir=0.5&dots=0``.
 
     Without a socket (``depthai://DEVICE_ID``) both mono cameras are opened as a hardware-synced pair.

@@ -31,14 +31,17 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from urllib.parse import urlsplit
 
+from livebridge.devices.url import DeviceURL
 from livebridge.drivers import dynamixel_protocol as dxl
-from livebridge.drivers.serial_bus import SerialServoBus, clamp_whole, open_simulated, simulator, url_device
+from livebridge.drivers.serial_bus import SerialServoBus, clamp_whole, url_device
 from livebridge.errors import InputError
-from livebridge.servo.bus import ServoInfo, ServoSetup, ServoStatus, url_options
+from livebridge.servo.bus import BusFacts, ServoInfo, ServoSetup, ServoStatus
 
 ADDR = {f.name: f.address for f in dxl.MODELS["XL330-M288"].table}
+FACTS = BusFacts(kind="dynamixel", raw_range=dxl.POSITION_RANGE, address_range=(0, dxl.MAX_ID), address_key="id",
+                 first_address=1, centre=2048.0, typical_span=400.0)
+URL_PARAMETERS = ("baud",)
 
 
 def latency_timer_hint(port: str) -> str | None:
@@ -117,6 +120,8 @@ class DynamixelBus(SerialServoBus):
         Serial device (``/dev/ttyUSB0``) or a simulator's pty path.
     baud : int
         Bus baud rate (the servos must already use it).
+    companion : object with ``close()``, optional
+        Closed after the port when the bus closes (the simulated bus serving a ``simdynamixel://`` port).
     status_every : int
         Read temperature and hardware error status every this many polls.
     fast_read : bool or None
@@ -132,15 +137,15 @@ class DynamixelBus(SerialServoBus):
         simulated buses default to 150 ms so a busy machine does not lose replies).
     """
 
-    kind = "dynamixel"
+    kind = FACTS.kind
 
-    def __init__(self, port: str, baud: int = 1_000_000, url: str | None = None, simulator=None,
+    def __init__(self, port: str, baud: int = 1_000_000, url: str | None = None, companion=None,
                  status_every: int = 10, fast_read: bool | None = None, bus_watchdog_s: float | None = None,
                  return_delay_us: int | None = None, missing_after: int = 5, clock=time.monotonic,
                  log=None, retries: int = 3, timeout_margin_ms: float = 34.0):
         from dynamixel_sdk import PacketHandler
 
-        super().__init__(url or f"dynamixel://{port}?baud={baud}", simulator, status_every, clock, log)
+        super().__init__(url or f"dynamixel://{port}?baud={baud}", companion, status_every, clock, log)
         self.fast_read = fast_read
         self.bus_watchdog_s = bus_watchdog_s
         self.return_delay_us = return_delay_us
@@ -439,31 +444,8 @@ def _hardware_error_text(bits: int) -> str:
     return "hardware error: " + (", ".join(names) if names else f"0x{bits:02x}")
 
 
-def open_url(url: str, **options) -> DynamixelBus:
-    """``dynamixel:///dev/ttyUSB0?baud=1000000`` or ``simdynamixel://?ids=1-16&model=XL330-M288``.
-
-    Simulator options in the URL: ``ids``, ``model``, ``baud``, ``corrupt``,
-    ``drop`` (fault rates), ``seed``, ``delay`` (return delay time, 2 µs units),
-    ``process=1`` (serve it from its own process, as hardware would be).
-    """
-    parts = urlsplit(url)
-    query = url_options(url)
-    try:
-        baud = int(query.get("baud", 1_000_000))
-    except ValueError:
-        raise InputError(f"baud must be an integer, got {query['baud']!r}", url) from None
-    if parts.scheme == "simdynamixel":
-        from livebridge.simulators.dynamixel_bus import DynamixelSim, parse_ids
-
-        try:
-            sim = simulator(query, DynamixelSim, ids=parse_ids(query.get("ids", "1")),
-                            model=query.get("model", "XL330-M288"), baud=baud,
-                            corrupt_rate=float(query.get("corrupt", 0)), drop_rate=float(query.get("drop", 0)),
-                            seed=int(query.get("seed", 0)),
-                            return_delay_time=int(query["delay"]) if "delay" in query else None)
-        except ValueError as error:
-            raise InputError(str(error), url) from None
-        options.setdefault("timeout_margin_ms", 150.0)
-        return open_simulated(sim, lambda path: DynamixelBus(path, baud=baud, url=url, simulator=sim, **options))
+def open_url(url: DeviceURL, **options) -> DynamixelBus:
+    """``dynamixel:///dev/ttyUSB0?baud=1000000`` (the servos must already use that baud rate)."""
+    url.check_known(URL_PARAMETERS)
     port = url_device(url, "dynamixel:///dev/ttyUSB0")
-    return DynamixelBus(port, baud=baud, url=url, **options)
+    return DynamixelBus(port, baud=url.take("baud", int, 1_000_000), url=url.url, **options)

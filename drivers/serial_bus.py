@@ -1,13 +1,12 @@
 """What the serial servo-controller drivers share (Maestro, SSC-32U, DYNAMIXEL).
 
 - :class:`SerialServoBus`: the state every driver keeps (URL, servos,
-  status, faults, clock, log), closing the port and then the simulator the
-  bus owns (``sim...://`` URLs), and the cadence of the slow status reads;
+  status, faults, clock, log), closing the port and then its companion (an
+  object the bus was given to close with it, e.g. the simulator serving a
+  ``sim...://`` port), and the cadence of the slow status reads;
 - :class:`PySerialServoBus`: the same on a pyserial port (open with an
   :class:`~livebridge.errors.InputError` that names the URL, counted writes);
-- :func:`simulator`, :func:`open_simulated` and :func:`url_device`: the
-  halves of an ``open_url`` (a simulator on a pseudo-terminal, in this
-  process or its own, or a device path);
+- :func:`url_device`: the serial device a URL names;
 - :func:`clamp_whole`: a raw target clamped to a servo's limits in whole units.
 
 pyserial is imported inside :meth:`PySerialServoBus.__init__` only.
@@ -17,13 +16,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TypeVar
-from urllib.parse import urlsplit
 
+from livebridge.devices.url import DeviceURL
 from livebridge.errors import InputError
 from livebridge.servo.bus import ServoSetup, ServoStatus
-
-Bus = TypeVar("Bus")
 
 
 def clamp_whole(setup: ServoSetup, value: float) -> int:
@@ -31,46 +27,25 @@ def clamp_whole(setup: ServoSetup, value: float) -> int:
     return int(min(math.floor(setup.high), max(math.ceil(setup.low), round(value))))
 
 
-def simulator(query: dict[str, str], factory, **options):
-    """The simulated device a ``sim...://`` URL asks for: ``factory(**options)``, or with ``process=1`` the same
-    device served from its own process (:class:`~livebridge.simulators.pty_bus.DeviceProcess`), as hardware
-    would be: no simulator thread then competes with the driving process for the CPU and the GIL."""
-    device = factory(**options)  # built here either way: bad options are reported with the URL, at once
-    if query.get("process", "0").lower() in ("0", "false", "no"):
-        return device
-    from livebridge.simulators.pty_bus import DeviceProcess
-
-    return DeviceProcess(factory, options)
-
-
-def open_simulated(sim, make: Callable[[str], Bus]) -> Bus:
-    """Start ``sim`` on a pseudo-terminal and ``make(path)`` the bus on it; the simulator is closed if that fails."""
-    path = sim.start()
-    try:
-        return make(path)
-    except BaseException:
-        sim.close()
-        raise
-
-
-def url_device(url: str, example: str) -> str:
+def url_device(url: DeviceURL, example: str) -> str:
     """The serial device of ``url`` (``scheme:///dev/ttyUSB0``); ``example`` is quoted when there is none."""
-    parts = urlsplit(url)
-    port = parts.path or parts.netloc
+    port = url.path or url.netloc
     if not port:
-        raise InputError(f"no serial device in the URL ({example})", url)
+        raise InputError(f"no serial device in the URL ({example})", url.url)
     return port
 
 
 class SerialServoBus:
-    """Base of a servo bus on a serial port that may own the simulator serving that port.
+    """Base of a servo bus on a serial port.
 
-    A subclass opens its port after :meth:`__init__` and defines :meth:`_close_port`.
+    A subclass opens its port after :meth:`__init__` and defines :meth:`_close_port`. ``companion``
+    (anything with ``close()``, or None) is closed after the port when the bus closes: whoever opened the
+    bus on a port it serves (a simulator on a pseudo-terminal) hands it over this way.
     """
 
-    def __init__(self, url: str, simulator, status_every: int, clock: Callable[[], float], log):
+    def __init__(self, url: str, companion, status_every: int, clock: Callable[[], float], log):
         self.url = url
-        self.simulator = simulator
+        self.companion = companion
         self.status_every = max(1, int(status_every))
         self.clock = clock
         self.log = log or (lambda message: None)
@@ -92,9 +67,9 @@ class SerialServoBus:
         try:
             self._close_port()
         finally:
-            if self.simulator is not None:
-                self.simulator.close()
-                self.simulator = None
+            if self.companion is not None:
+                self.companion.close()
+                self.companion = None
 
 
 class PySerialServoBus(SerialServoBus):
@@ -103,11 +78,11 @@ class PySerialServoBus(SerialServoBus):
     ``estop`` is kept as ``estop_mode`` (``"stop"`` or ``"home"``).
     """
 
-    def __init__(self, port: str, baud: int, url: str, simulator, status_every: int, estop: str, timeout: float,
+    def __init__(self, port: str, baud: int, url: str, companion, status_every: int, estop: str, timeout: float,
                  clock: Callable[[], float], log):
         import serial
 
-        super().__init__(url, simulator, status_every, clock, log)
+        super().__init__(url, companion, status_every, clock, log)
         self.estop_mode = estop
         try:
             self.serial = serial.Serial(port, baudrate=baud, timeout=timeout, write_timeout=1.0)

@@ -1,17 +1,6 @@
-"""Lynxmotion SSC-32U servo controller: ASCII protocol encoding (pure) and a driver on pyserial.
+"""Lynxmotion SSC-32U servo controller: a driver on pyserial (the bytes: :mod:`livebridge.drivers.ssc32_protocol`).
 
-Commands (SSC-32U User Guide), each ended by a carriage return:
-
-- ``#<ch>P<pw>...T<ms>``: move one or more channels (pulse width in µs,
-  500..2500) as a group finishing together in ``<ms>`` milliseconds;
-- ``Q``: is a move in progress? -> ``+`` (moving) or ``.`` (done);
-- ``QP<ch>``: pulse width of a channel now -> one byte, µs / 10 (several
-  ``QP`` in one line give one byte each);
-- ``VER``: firmware version string.
-
-``#<ch>P0`` turns the channel's pulses off (used for E-stop "stop"; an
-assumption about the firmware, the guide documents 500..2500 for moves).
-Raw units in livebridge are microseconds.
+One group move per frame, timed to the frame period. Raw units in livebridge are microseconds.
 """
 
 from __future__ import annotations
@@ -19,54 +8,31 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Mapping, Sequence
-from urllib.parse import urlsplit
 
-from livebridge.drivers.serial_bus import PySerialServoBus, clamp_whole, open_simulated, simulator, url_device
+from livebridge.devices.url import DeviceURL
+from livebridge.drivers.serial_bus import PySerialServoBus, clamp_whole, url_device
+from livebridge.drivers.ssc32_protocol import PULSE_RANGE, decode_pulses, move, pulses_off, query_pulses, version
 from livebridge.errors import InputError
-from livebridge.servo.bus import ServoInfo, ServoSetup, ServoStatus, url_options
+from livebridge.servo.bus import BusFacts, ServoInfo, ServoSetup, ServoStatus
 
-
-def move(pulses: Mapping[int, float], time_ms: float | None = None) -> bytes:
-    """``#<ch>P<pw>...[T<ms>]\\r`` for ``pulses`` channel -> µs (rounded to whole µs)."""
-    if not pulses:
-        raise ValueError("no channels to move")
-    parts = []
-    for channel, pw in sorted(pulses.items()):
-        if not 0 <= channel <= 31:
-            raise ValueError(f"channel {channel} outside 0..31")
-        parts.append(f"#{channel}P{int(round(pw))}")
-    if time_ms is not None:
-        parts.append(f"T{max(0, int(round(time_ms)))}")
-    return ("".join(parts) + "\r").encode("ascii")
-
-
-def query_moving() -> bytes:
-    return b"Q\r"
-
-
-def query_pulses(channels: Sequence[int]) -> bytes:
-    """``QP0 QP1 ...\\r``: the reply is one byte per channel, pulse width / 10."""
-    return (" ".join(f"QP{c}" for c in channels) + "\r").encode("ascii")
-
-
-def version() -> bytes:
-    return b"VER\r"
-
-
-def decode_pulses(reply: bytes) -> list[int]:
-    """One byte per channel -> pulse widths in µs."""
-    return [b * 10 for b in reply]
+FACTS = BusFacts(kind="ssc32", raw_range=PULSE_RANGE, address_range=(0, 31), address_key="channel", first_address=0,
+                 centre=1500.0, typical_span=400.0, estop_modes=("stop", "home"))
+URL_PARAMETERS = ("baud",)
 
 
 class SSC32Bus(PySerialServoBus):
-    """An SSC-32U on a serial port; one group move per frame, timed to the frame period."""
+    """An SSC-32U on a serial port; one group move per frame, timed to the frame period.
 
-    kind = "ssc32"
+    ``companion`` (anything with ``close()``) is closed after the port when the bus closes (the simulated
+    SSC-32U serving a ``simssc32://`` port).
+    """
 
-    def __init__(self, port: str, baud: int = 115200, url: str | None = None, simulator=None,
+    kind = FACTS.kind
+
+    def __init__(self, port: str, baud: int = 115200, url: str | None = None, companion=None,
                  status_every: int = 10, estop: str = "stop", timeout: float = 0.05, clock=time.monotonic,
                  log=None):
-        super().__init__(port, baud, url or f"ssc32://{port}?baud={baud}", simulator, status_every, estop, timeout,
+        super().__init__(port, baud, url or f"ssc32://{port}?baud={baud}", companion, status_every, estop, timeout,
                          clock, log)
         self.frame_ms = 20.0
 
@@ -127,24 +93,17 @@ class SSC32Bus(PySerialServoBus):
         else:
             self.deactivate()
 
+    def recover(self, address: int) -> bool:
+        """An SSC-32U cannot restart one channel's servo: nothing to recover."""
+        return False
+
     def deactivate(self) -> None:
         if self.servos:
-            self._send(("".join(f"#{c}P0" for c in sorted(self.servos)) + "\r").encode("ascii"))
+            self._send(pulses_off(self.servos))
 
 
-def open_url(url: str, **options) -> SSC32Bus:
-    """``ssc32:///dev/ttyUSB1?baud=115200`` or ``simssc32://`` (``?process=1``: the simulator in its own process)."""
-    parts = urlsplit(url)
-    query = url_options(url)
-    try:
-        baud = int(query.get("baud", 115200))
-    except ValueError as error:
-        raise InputError(f"bad URL option ({error})", url) from None
-    if parts.scheme == "simssc32":
-        from livebridge.simulators.ssc32_bus import SSC32Sim
-
-        sim = simulator(query, SSC32Sim, corrupt_rate=float(query.get("corrupt", 0)),
-                        drop_rate=float(query.get("drop", 0)), seed=int(query.get("seed", 0)))
-        return open_simulated(sim, lambda path: SSC32Bus(path, baud=baud, url=url, simulator=sim, **options))
+def open_url(url: DeviceURL, **options) -> SSC32Bus:
+    """``ssc32:///dev/ttyUSB1?baud=115200``."""
+    url.check_known(URL_PARAMETERS)
     port = url_device(url, "ssc32:///dev/ttyUSB1")
-    return SSC32Bus(port, baud=baud, url=url, **options)
+    return SSC32Bus(port, baud=url.take("baud", int, 115200), url=url.url, **options)

@@ -35,7 +35,8 @@ import cv2
 import numpy as np
 
 from livebridge.capture.frame import Frame
-from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase, SourceURL
+from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase
+from livebridge.devices.url import DeviceURL
 from livebridge.errors import InputError
 
 AUTO_EXPOSURE_MANUAL = 1
@@ -319,7 +320,7 @@ class V4L2Source(SourceBase):
                             formats=formats or ((self.fourcc,) if self.fourcc else ()))
 
 
-def open_url(url: SourceURL) -> list[V4L2Source]:
+def open_url(url: DeviceURL) -> list[V4L2Source]:
     """``v4l2:///dev/video0?width=1280&height=720&fps=60&fourcc=MJPG&exposure_us=2000&gain=0&buffer=1&name=cam0``."""
     url.check_known({"width", "height", "fps", "fourcc", "exposure_us", "gain", "buffer", "name"})
     device = url.path if not url.netloc else url.netloc + url.path

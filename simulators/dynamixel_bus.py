@@ -36,10 +36,14 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+from livebridge.devices.url import DeviceURL
 from livebridge.drivers import dynamixel_protocol as dxl
-from livebridge.simulators.pty_bus import PtyDevice, Reply
+from livebridge.drivers.dynamixel import DynamixelBus
+from livebridge.errors import InputError
+from livebridge.simulators.pty_bus import PtyDevice, Reply, open_on_pty, simulated_device
 
 _TABLE_SIZE = 256
+URL_PARAMETERS = ("ids", "model", "baud", "corrupt", "drop", "seed", "delay", "process")
 SHUTDOWN_DELAY_S = 1.0  # overload must persist this long
 THERMAL_TAU_S = 20.0
 
@@ -543,3 +547,30 @@ def parse_ids(text: str) -> list[int]:
     if not ids or any(not 0 <= i <= dxl.MAX_ID for i in ids) or len(set(ids)) != len(ids):
         raise ValueError(f"bad servo id list {text!r} (ids 0..252, no repeats)")
     return ids
+
+
+def open_url(url: DeviceURL, **options) -> DynamixelBus:
+    """``simdynamixel://?ids=1-16&model=XL330-M288&process=1``: a simulated bus on a pseudo-terminal and the
+    real driver on it; closing the bus closes the simulator.
+
+    Parameters in the URL: ``ids`` (default 1), ``model``, ``baud``, ``corrupt``, ``drop`` (fault rates),
+    ``seed``, ``delay`` (return delay time, 2 µs units), ``process=1`` (serve it from its own process, as
+    hardware would be). ``options``: :class:`~livebridge.drivers.dynamixel.DynamixelBus` keyword arguments;
+    the reply timeout margin defaults to 150 ms (a simulator shares this machine's CPUs).
+    """
+    url.check_known(URL_PARAMETERS)
+    baud = url.take("baud", int, 1_000_000)
+    try:
+        ids = parse_ids(url.query.get("ids", "1"))
+    except ValueError as error:
+        raise InputError(str(error), url.url, "ids") from None
+    settings = {"ids": ids, "model": url.query.get("model", "XL330-M288"), "baud": baud,
+                "corrupt_rate": url.take("corrupt", float, 0.0), "drop_rate": url.take("drop", float, 0.0),
+                "seed": url.take("seed", int, 0), "return_delay_time": url.take("delay", int)}
+    own_process = url.take("process", bool, False)
+    try:
+        sim = simulated_device(DynamixelSim, settings, own_process)
+    except ValueError as error:  # an unknown model
+        raise InputError(str(error), url.url) from None
+    options.setdefault("timeout_margin_ms", 150.0)
+    return open_on_pty(sim, lambda path: DynamixelBus(path, baud=baud, url=url.url, companion=sim, **options))

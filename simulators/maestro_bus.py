@@ -8,7 +8,9 @@ clamped to each channel's [min, max] (default 500..2500 µs here; a new
 Maestro ships with 992..2000 µs). A malformed command sets the serial
 protocol error bit (bit 4), cleared by get errors. Commands in the Pololu
 protocol for another device number are ignored. Fault injection as the
-Dynamixel simulator: corrupted or dropped replies.
+Dynamixel simulator: corrupted or dropped replies. Commands are decoded by
+:mod:`livebridge.drivers.maestro_protocol`; :func:`open_url` serves the
+``simmaestro://`` scheme with the real driver on the pseudo-terminal.
 """
 
 from __future__ import annotations
@@ -17,12 +19,12 @@ import random
 import threading
 import time
 
-from livebridge.drivers import maestro as mp
-from livebridge.simulators.pty_bus import PtyDevice, Reply
+from livebridge.devices.url import DeviceURL
+from livebridge.drivers import maestro_protocol as mp
+from livebridge.drivers.maestro import MaestroBus
+from livebridge.simulators.pty_bus import PtyDevice, Reply, open_on_pty, simulated_device
 
-_LENGTHS = {mp.SET_TARGET: 3, mp.SET_SPEED: 3, mp.SET_ACCELERATION: 3, mp.GET_POSITION: 1,
-            mp.GET_MOVING_STATE: 0, mp.GET_ERRORS: 0, mp.GO_HOME: 0}
-PROTOCOL_ERROR = 1 << 4
+URL_PARAMETERS = ("channels", "device", "baud", "corrupt", "drop", "seed", "process")
 
 
 class MaestroSim(PtyDevice):
@@ -89,51 +91,18 @@ class MaestroSim(PtyDevice):
 
     def _parse(self) -> tuple[int, bytes | None]:
         """Consume one command from the buffer: (bytes used, reply); (0, None) when incomplete."""
-        buf = self.buffer
-        offset, device = 0, None
-        if buf[0] == mp.POLOLU_START:
-            if len(buf) < 3:
-                return 0, None
-            device, command, offset = buf[1], buf[2] | 0x80, 3
-            if buf[1] & 0x80 or buf[2] & 0x80:
-                self.errors |= PROTOCOL_ERROR
-                return 1, None
-        elif buf[0] & 0x80:
-            command, offset = buf[0], 1
-        else:
-            self.errors |= PROTOCOL_ERROR
-            return 1, None
-        for k in range(offset, len(buf)):  # a byte with the high bit set starts a new command
-            if buf[k] & 0x80:
-                if k < offset + (2 if command == mp.SET_MULTIPLE_TARGETS else _LENGTHS.get(command, 0)):
-                    self.errors |= PROTOCOL_ERROR
-                    return k, None
-                break
-        if command == mp.SET_MULTIPLE_TARGETS:
-            if len(buf) < offset + 2:
-                return 0, None
-            n = buf[offset]
-            length = 2 + 2 * n
-        elif command in _LENGTHS:
-            length = _LENGTHS[command]
-        else:
-            self.errors |= PROTOCOL_ERROR
-            return offset, None
-        if len(buf) < offset + length:
-            return 0, None
-        data = bytes(buf[offset:offset + length])
-        used = offset + length
-        if any(b & 0x80 for b in data):
-            self.errors |= PROTOCOL_ERROR
-            return offset + next(i for i, b in enumerate(data) if b & 0x80), None
-        if device is not None and device != self.device:
-            return used, None
+        decoded = mp.decode_command(self.buffer)
+        if decoded.protocol_error:
+            self.errors |= mp.PROTOCOL_ERROR
+        command = decoded.command
+        if command is None or (command.device is not None and command.device != self.device):
+            return decoded.used, None
         self.commands += 1
-        return used, self._execute(command, data)
+        return decoded.used, self._execute(command.command, command.data)
 
     def _channel(self, c: int) -> bool:
         if c >= self.channels:
-            self.errors |= PROTOCOL_ERROR
+            self.errors |= mp.PROTOCOL_ERROR
             return False
         return True
 
@@ -146,28 +115,43 @@ class MaestroSim(PtyDevice):
     def _execute(self, command: int, data: bytes) -> bytes | None:
         if command == mp.SET_TARGET:
             if self._channel(data[0]):
-                self._set_target(data[0], data[1] | (data[2] << 7))
+                self._set_target(data[0], mp.join14(data[1], data[2]))
         elif command == mp.SET_MULTIPLE_TARGETS:
             n, first = data[0], data[1]
             for k in range(n):
                 if self._channel(first + k):
-                    self._set_target(first + k, data[2 + 2 * k] | (data[3 + 2 * k] << 7))
+                    self._set_target(first + k, mp.join14(data[2 + 2 * k], data[3 + 2 * k]))
         elif command == mp.SET_SPEED:
             if self._channel(data[0]):
-                self.speed[data[0]] = data[1] | (data[2] << 7)
+                self.speed[data[0]] = mp.join14(data[1], data[2])
         elif command == mp.SET_ACCELERATION:
             if self._channel(data[0]):
-                self.acceleration[data[0]] = data[1] | (data[2] << 7)
+                self.acceleration[data[0]] = mp.join14(data[1], data[2])
         elif command == mp.GET_POSITION:
             if self._channel(data[0]):
-                value = int(round(self.position[data[0]]))
-                return bytes([value & 0xFF, value >> 8])
+                return mp.encode_u16(int(round(self.position[data[0]])))
         elif command == mp.GET_MOVING_STATE:
             return bytes([int(any(abs(p - t) > 0.5 for p, t in zip(self.position, self.target) if t))])
         elif command == mp.GET_ERRORS:
             errors, self.errors = self.errors, 0
-            return bytes([errors & 0xFF, errors >> 8])
+            return mp.encode_u16(errors)
         elif command == mp.GO_HOME:
             for c in range(self.channels):
                 self._set_target(c, self.home)
         return None
+
+
+def open_url(url: DeviceURL, **options) -> MaestroBus:
+    """``simmaestro://?channels=24&device=12&baud=115200&corrupt=0&drop=0&seed=0&process=0``: a simulated
+    Maestro on a pseudo-terminal (``process=1``: served from its own process) and the real driver on it;
+    closing the bus closes the simulator. ``device`` also makes the driver use the Pololu protocol.
+    ``options``: :class:`~livebridge.drivers.maestro.MaestroBus` keyword arguments."""
+    url.check_known(URL_PARAMETERS)
+    device, baud = url.take("device", int), url.take("baud", int, 115200)
+    sim = simulated_device(MaestroSim, {"channels": url.take("channels", int, 24),
+                                        "device": mp.DEFAULT_DEVICE if device is None else device,
+                                        "corrupt_rate": url.take("corrupt", float, 0.0),
+                                        "drop_rate": url.take("drop", float, 0.0), "seed": url.take("seed", int, 0)},
+                           url.take("process", bool, False))
+    return open_on_pty(sim, lambda path: MaestroBus(path, baud=baud, device=device, url=url.url, companion=sim,
+                                                    **options))

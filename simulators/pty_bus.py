@@ -1,11 +1,15 @@
-"""A pseudo-terminal that a simulated device serves from a thread.
+"""A pseudo-terminal that a simulated device serves from a thread, or from its own process.
 
 The transport only moves bytes: whatever the client writes to the slave side
 (``/dev/pts/N``, opened with pyserial or a vendor SDK like any serial port)
 is handed to ``handler(data) -> replies``; each reply is written back after
 its delay. The device logic lives in the handler, as pure framing + state.
 :class:`PtyDevice` is the lifecycle (start, close, context manager) and the
-reply fault injection that the device simulators share.
+reply fault injection that the device simulators share;
+:class:`DeviceProcess` serves a device from a child process; :func:`simulated_device`
+and :func:`open_on_pty` are the halves of a ``sim...://`` scheme's opener (the
+device, then the real driver's bus on its pseudo-terminal, closing the device
+when it closes).
 """
 
 from __future__ import annotations
@@ -13,12 +17,15 @@ from __future__ import annotations
 import os
 import random
 import select
+import subprocess
 import threading
 import time
 import tty
 from collections.abc import Callable, Iterable
+from typing import TypeVar
 
 Reply = tuple[float, bytes]  # (delay in seconds before sending, bytes)
+Bus = TypeVar("Bus")
 
 
 class PtyBus:
@@ -230,7 +237,6 @@ class DeviceProcess:
 
     def start(self, timeout: float = 60.0) -> str:
         import pickle
-        import subprocess
         import sys
 
         code = "from livebridge.simulators.pty_bus import serve_from_stdin; serve_from_stdin()"
@@ -261,7 +267,7 @@ class DeviceProcess:
             pass
         try:
             self._process.wait(timeout=5.0)
-        except Exception:  # noqa: BLE001 - subprocess.TimeoutExpired: it would not stop, so it is killed
+        except subprocess.TimeoutExpired:  # it would not stop, so it is killed
             self._process.kill()
             self._process.wait(timeout=5.0)
         self._process.stdout.close()
@@ -273,3 +279,26 @@ class DeviceProcess:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def simulated_device(factory, options: dict, own_process: bool):
+    """The simulated device ``factory(**options)``, or with ``own_process`` the same device served from its
+    own process (:class:`DeviceProcess`), as hardware would be: no simulator thread then competes with the
+    driving process for the CPU and the GIL. Either has ``start() -> path`` and ``close()``.
+    """
+    device = factory(**options)  # built here either way: bad options are reported at once, in this process
+    return DeviceProcess(factory, options) if own_process else device
+
+
+def open_on_pty(device, open_bus: Callable[[str], Bus]) -> Bus:
+    """Start ``device`` on a pseudo-terminal and return ``open_bus(path)``; the device is closed if that fails.
+
+    ``open_bus`` hands the device to the bus it opens (the driver's ``companion``), so closing the bus
+    closes the device.
+    """
+    path = device.start()
+    try:
+        return open_bus(path)
+    except BaseException:
+        device.close()
+        raise

@@ -34,7 +34,8 @@ from numba import njit, uint64
 
 from livebridge.calibration.cameras import Camera, CameraGroup
 from livebridge.capture.frame import Frame, FrameSet
-from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase, SourceURL
+from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase
+from livebridge.devices.url import DeviceURL
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
@@ -1042,13 +1043,13 @@ _URL_KEYS = {"frames", "cameras", "seed", "fps", "noise", "drop", "jitter_ms", "
              "size", "calibration", "script", "occlusion", "occlusion_rate", "diameter_mm", "basis", "markers"}
 
 
-def rig_from_url(url: SourceURL | str) -> SimRig:
+def rig_from_url(url: DeviceURL | str) -> SimRig:
     """A :class:`SimRig` from ``sim://rig?cameras=4&seed=1&fps=60&noise=2&drop=0.01&jitter_ms=0.5&spurious=0.1
     &blur=1&sync=hardware|free&size=1280x800&script=mixed&occlusion=1&occlusion_rate=0.05&diameter_mm=3
     &calibration=PATH&basis=PATH.npz&markers=PATH.toml`` (``frames`` and ``realtime`` are the sources', see
     :func:`open_url`)."""
     if isinstance(url, str):
-        url = SourceURL.parse(url)
+        url = DeviceURL.parse(url)
     if url.netloc != "rig":
         raise InputError(f"unknown simulator {url.netloc!r}; known: rig", url.url)
     url.check_known(_URL_KEYS)
@@ -1090,7 +1091,7 @@ def rig_from_url(url: SourceURL | str) -> SimRig:
                   seed=url.take("seed", int, 0), script=url.query.get("script", "mixed"))
 
 
-def open_url(url: SourceURL) -> list[SimCameraSource]:
+def open_url(url: DeviceURL) -> list[SimCameraSource]:
     """The registry hook: one source per camera of the rig the URL describes (``frames=N``: the cameras end,
     like a finished take, after rig frame ``N - 1``; default: never)."""
     rig = rig_from_url(url)

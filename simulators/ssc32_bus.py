@@ -6,19 +6,23 @@ channel's speed in µs/s), ``Q`` (``+`` moving / ``.`` done), ``QP<ch>`` (one
 byte per channel, µs / 10), ``VER`` and ``STOP<ch>``. Pulse widths are
 clamped to 500..2500 µs; ``P0`` turns a channel off. Unknown text is
 ignored, as the controller does. Fault injection: corrupted or dropped replies.
+Lines are decoded by :mod:`livebridge.drivers.ssc32_protocol`; :func:`open_url`
+serves the ``simssc32://`` scheme with the real driver on the pseudo-terminal.
 """
 
 from __future__ import annotations
 
 import random
-import re
 import threading
 import time
 
-from livebridge.simulators.pty_bus import PtyDevice, Reply
+from livebridge.devices.url import DeviceURL
+from livebridge.drivers import ssc32_protocol as sp
+from livebridge.drivers.ssc32 import SSC32Bus
+from livebridge.simulators.pty_bus import PtyDevice, Reply, open_on_pty, simulated_device
 
-_TOKEN = re.compile(rb"#(\d+)|P(\d+)|S(\d+)|T(\d+)|QP\s*(\d+)|Q|VER|STOP\s*(\d+)", re.I)
 VERSION = b"SSC32-V2.50USB"
+URL_PARAMETERS = ("channels", "baud", "corrupt", "drop", "seed", "process")
 
 
 class SSC32Sim(PtyDevice):
@@ -65,45 +69,43 @@ class SSC32Sim(PtyDevice):
     def _line(self, line: bytes) -> bytes | None:
         now = self.clock()
         self.commands += 1
-        moves: dict[int, dict[str, int]] = {}
-        current = None
-        group_ms = None
+        decoded = sp.decode_line(line)
         reply = bytearray()
-        for match in _TOKEN.finditer(line):
-            ch, pw, spd, tm, qp, stop = match.groups()
-            text = match.group(0).upper()
-            if ch is not None:
-                current = int(ch)
-                moves.setdefault(current, {})
-            elif pw is not None and current is not None:
-                moves[current]["P"] = int(pw)
-            elif spd is not None and current is not None:
-                moves[current]["S"] = int(spd)
-            elif tm is not None:
-                group_ms = int(tm)
-            elif qp is not None:
-                c = int(qp)
-                reply.append(min(255, int(round(self.pulse(c, now) / 10))) if c < self.channels else 0)
-            elif stop is not None:
-                c = int(stop)
+        for name, c in decoded.queries:  # answered (and stops done) at the time the line arrives
+            if name == "QP":
+                reply.append(sp.encode_pulse(self.pulse(c, now)) if c < self.channels else 0)
+            elif name == "STOP":
                 if c < self.channels:
                     self.goal[c] = self.start_pw[c] = self.pulse(c, now)
-            elif text == b"VER":
+            elif name == "VER":
                 reply += VERSION + b"\r"
-            elif text == b"Q":
+            elif name == "Q":
                 reply += b"+" if self.moving(now) else b"."
-        for c, spec in moves.items():
-            if c >= self.channels or "P" not in spec:
+        for move in decoded.moves:
+            c, pw = move.channel, move.pulse
+            if c >= self.channels or pw is None:
                 continue
-            pw = spec["P"]
             self.move_log.append((c, pw))
             if pw == 0:
                 self.goal[c] = self.start_pw[c] = 0.0
                 continue
-            pw = float(min(2500, max(500, pw)))
+            pw = float(min(sp.PULSE_RANGE[1], max(sp.PULSE_RANGE[0], pw)))
             start = self.pulse(c, now)
-            duration = (group_ms or 0) / 1000.0
-            if "S" in spec and spec["S"] > 0 and start:
-                duration = max(duration, abs(pw - start) / spec["S"])
+            duration = (decoded.time_ms or 0) / 1000.0
+            if move.speed is not None and move.speed > 0 and start:
+                duration = max(duration, abs(pw - start) / move.speed)
             self.start_pw[c], self.goal[c], self.t0[c], self.duration[c] = (start or pw), pw, now, duration
         return bytes(reply) if reply else None
+
+
+def open_url(url: DeviceURL, **options) -> SSC32Bus:
+    """``simssc32://?channels=32&baud=115200&corrupt=0&drop=0&seed=0&process=0``: a simulated SSC-32U on a
+    pseudo-terminal (``process=1``: served from its own process) and the real driver on it; closing the bus
+    closes the simulator. ``options``: :class:`~livebridge.drivers.ssc32.SSC32Bus` keyword arguments."""
+    url.check_known(URL_PARAMETERS)
+    baud = url.take("baud", int, 115200)
+    sim = simulated_device(SSC32Sim, {"channels": url.take("channels", int, 32),
+                                      "corrupt_rate": url.take("corrupt", float, 0.0),
+                                      "drop_rate": url.take("drop", float, 0.0), "seed": url.take("seed", int, 0)},
+                           url.take("process", bool, False))
+    return open_on_pty(sim, lambda path: SSC32Bus(path, baud=baud, url=url.url, companion=sim, **options))

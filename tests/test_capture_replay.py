@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from livebridge.capture.frame import Frame
-from livebridge.capture.sources import open_source, open_sources
 from livebridge.capture.sync import Synchronizer
+from livebridge.devices.registry import open_camera, open_cameras
 from livebridge.errors import InputError
 
 
@@ -19,7 +19,7 @@ def recorded(tmp_path_factory):
     from livebridge.take.raw_frames import RawFrameWriter
 
     folder = tmp_path_factory.mktemp("take")
-    sources = open_sources("sim://rig?cameras=2&seed=3&size=320x200&fps=50&drop=0.1&jitter_ms=1&realtime=0")
+    sources = open_cameras("sim://rig?cameras=2&seed=3&size=320x200&fps=50&drop=0.1&jitter_ms=1&realtime=0")
     frames = {s.source_id: [] for s in sources}
     with RawFrameWriter(folder) as writer:
         for source in sources:
@@ -33,7 +33,7 @@ def recorded(tmp_path_factory):
 
 def test_replay_as_fast_as_possible_is_exact(recorded):
     folder, frames = recorded
-    sources = open_sources(f"replay://{folder}?realtime=0")
+    sources = open_cameras(f"replay://{folder}?realtime=0")
     assert [s.source_id for s in sources] == ["cam0", "cam1"]
     for source in sources:
         with source:
@@ -47,7 +47,7 @@ def test_replay_as_fast_as_possible_is_exact(recorded):
 
 def test_replay_original_timing_and_synchronised(recorded):
     folder, frames = recorded
-    sources = open_sources(f"replay://{folder}?cameras=cam0,cam1")
+    sources = open_cameras(f"replay://{folder}?cameras=cam0,cam1")
     sync = Synchronizer(["cam0", "cam1"], 1 / 50)
     start = time.monotonic()
     for source in sources:
@@ -89,7 +89,7 @@ def test_replay_with_gaps_synchronised_in_step(recorded):
         for frame in stream:
             expected.setdefault(frame.seq, set()).add(name)
     assert any(len(v) == 1 for v in expected.values())  # the take has gaps (drop=0.1)
-    sources = open_sources(f"replay://{folder}?realtime=0")
+    sources = open_cameras(f"replay://{folder}?realtime=0")
     got = []
     with SyncedCapture(sources, 1 / 50, queue_size=1, realtime=False) as capture:
         while (frameset := capture.read(timeout=2.0)) is not None:
@@ -107,7 +107,7 @@ def test_replay_video_and_bad_input(tmp_path):
     for k in range(5):
         writer.write(np.full((48, 64, 3), 40 * k, np.uint8))
     writer.release()
-    source = open_source(f"replay://{tmp_path}?realtime=0&fps=30")
+    source = open_camera(f"replay://{tmp_path}?realtime=0&fps=30")
     with source:
         got = [source.read() for _ in range(6)]
     assert all(isinstance(f, Frame) for f in got[:5]) and got[5] is None
@@ -116,11 +116,11 @@ def test_replay_video_and_bad_input(tmp_path):
     assert abs(float(got[3].image.mean()) - 120) < 3
     (tmp_path / "left.csv").write_text("seq,t_capture\n0,0.0\n1,zero\n")
     with pytest.raises(InputError, match="left.csv.*line 3"):
-        open_sources(f"replay://{tmp_path}")
+        open_cameras(f"replay://{tmp_path}")
     with pytest.raises(InputError, match="no such take"):
-        open_sources(f"replay://{tmp_path}/missing")
+        open_cameras(f"replay://{tmp_path}/missing")
     with pytest.raises(InputError, match="unknown parameter"):
-        open_sources(f"replay://{tmp_path}?speed=2")
+        open_cameras(f"replay://{tmp_path}?speed=2")
 
 
 def _unpaced_capture(pipeline):
@@ -182,13 +182,13 @@ def test_a_replayed_take_declares_the_calibration_recorded_with_it(tmp_path, rec
                           cameras=calibration) as recorder:
             recorder.record_frames([Frame(image, 0.0, 0, "dev/CAM_B"), Frame(image, 0.0, 0, "cam1")])
     for url in (f"replay://{tmp_path / 'with'}?realtime=0", f"replay://{tmp_path / 'with' / 'frames'}?realtime=0"):
-        by_id = {source.source_id: source for source in open_sources(url)}
+        by_id = {source.source_id: source for source in open_cameras(url)}
         known = by_id["dev/CAM_B"].calibration
         assert known.name == "dev/CAM_B" and known.size == (64, 48)
         np.testing.assert_array_equal(known.rotation, [0.0, 0.1, 0.0])
         np.testing.assert_array_equal(known.translation, [1.0, 0.0, 500.0])
         assert by_id["cam1"].calibration is None  # not in the recorded calibration
-    assert all(s.calibration is None for s in open_sources(f"replay://{tmp_path / 'without'}?realtime=0"))
+    assert all(s.calibration is None for s in open_cameras(f"replay://{tmp_path / 'without'}?realtime=0"))
     folder, _ = recorded  # raw frames alone, not a take directory: no calibration to know
-    assert all(s.calibration is None for s in open_sources(f"replay://{folder}?realtime=0"))
+    assert all(s.calibration is None for s in open_cameras(f"replay://{folder}?realtime=0"))
     assert SourceBase().calibration is None  # the default of every source

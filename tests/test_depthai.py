@@ -12,7 +12,8 @@ import pytest
 
 dai = pytest.importorskip("depthai")
 
-from livebridge.capture.sources import CameraSource, open_sources  # noqa: E402
+from livebridge.capture.sources import CameraSource  # noqa: E402
+from livebridge.devices.registry import open_cameras  # noqa: E402
 from livebridge.drivers import depthai as oak  # noqa: E402
 from livebridge.errors import InputError  # noqa: E402
 
@@ -63,7 +64,7 @@ def test_factory_calibration_to_camera_group():
 
 
 def test_no_device_fails_fast_and_clearly():
-    sources = open_sources("depthai://any?fps=30&exposure_us=2000&iso=400")
+    sources = open_cameras("depthai://any?fps=30&exposure_us=2000&iso=400")
     assert [s.socket for s in sources] == ["CAM_B", "CAM_C"] and all(isinstance(s, CameraSource) for s in sources)
     assert sources[0].capabilities.hardware_sync
     if oak.list_devices():
@@ -73,16 +74,16 @@ def test_no_device_fails_fast_and_clearly():
         sources[0].start()
     assert time.monotonic() - start < 5.0
     with pytest.raises(InputError, match="socket"):
-        open_sources("depthai://any/CAM_Z")
+        open_cameras("depthai://any/CAM_Z")
     with pytest.raises(InputError, match="unknown parameter"):
-        open_sources("depthai://any?gain=2")
+        open_cameras("depthai://any?gain=2")
 
 
 @pytest.mark.hardware
 def test_oak_mono_pair_delivers_synced_frames():
     if not oak.list_devices():
         pytest.skip("no DepthAI device")
-    sources = open_sources("depthai://any?fps=30&exposure_us=2000&iso=400")
+    sources = open_cameras("depthai://any?fps=30&exposure_us=2000&iso=400")
     for source in sources:
         source.start()
     try:

@@ -7,9 +7,10 @@ import time
 import numpy as np
 import pytest
 
+from livebridge.devices.registry import open_bus
 from livebridge.drivers import dynamixel_protocol as dxl
 from livebridge.errors import InputError
-from livebridge.servo.bus import ServoBus, ServoSetup, open_bus
+from livebridge.servo.bus import ServoBus, ServoSetup
 
 pytest.importorskip("dynamixel_sdk")
 
@@ -37,7 +38,7 @@ def test_scan_configure_activate(bus):
     infos = bus.scan()
     assert [i.address for i in infos] == [1, 2, 3, 4] and infos[0].model == "XL330-M288"
     bus.configure(_setups([1, 2, 3, 4]), frame_period=0.025)
-    servo = bus.simulator.servo(1)
+    servo = bus.companion.servo(1)
     assert servo.get("drive_mode") & dxl.DRIVE_MODE_TIME_BASED
     assert servo.get("profile_velocity") == 25 and servo.get("operating_mode") == 3
     assert (servo.get("min_position_limit"), servo.get("max_position_limit")) == (1500, 2600)
@@ -57,7 +58,7 @@ def test_model_check_and_missing_servo_name_the_servo(bus):
 def test_write_is_one_sync_write_and_clamps(bus):
     bus.configure(_setups([1, 2, 3, 4]), 0.02)
     bus.activate()
-    sim = bus.simulator
+    sim = bus.companion
     sim.log_goals = True
     before = sim.stats["packets"]
     bus.write({1: 1000.0, 2: 2300.0, 3: float("nan"), 4: 9999.0})
@@ -83,7 +84,7 @@ def test_fast_sync_read_used_when_firmware_has_it(bus):
 def test_estop_turns_torque_off(bus):
     bus.configure(_setups([1, 2, 3, 4]), 0.02)
     bus.activate()
-    sim = bus.simulator
+    sim = bus.companion
     assert all(s.torque_on for s in sim.servos.values())
     bus.estop()
     assert sim.wait_until(lambda: not any(s.torque_on for s in sim.servos.values()))
@@ -96,7 +97,7 @@ def test_corrupted_replies_and_overheating_servo_mid_run():
     bus = open_bus("simdynamixel://?ids=1-6&model=XL330-M288&delay=0&corrupt=0.05&seed=3",
                    timeout_margin_ms=REPLY_MS)
     try:
-        sim = bus.simulator
+        sim = bus.companion
         bus.configure(_setups(range(1, 7), low, high), 0.02)
         bus.activate()
         sim.log_goals = True
@@ -135,7 +136,7 @@ def test_disappearing_servo_is_reported_and_others_continue():
     # each poll waits the whole timeout for the missing servo (twice: FAST SYNC READ, then SYNC READ)
     bus = open_bus("simdynamixel://?ids=1-3&model=XL330-M288&delay=0", timeout_margin_ms=250.0, missing_after=3)
     try:
-        sim = bus.simulator
+        sim = bus.companion
         bus.configure(_setups([1, 2, 3]), 0.02)
         bus.activate()
         sim.disconnect(2)
@@ -198,7 +199,7 @@ def test_sync_read_waits_for_replies_without_spinning(slow_bus):
 
 def test_reply_timeout_is_slept_through_not_spun(slow_bus):
     slow_bus.port.timeout_margin_ms = 100.0  # id 2 never answers: every sync read waits out the timeout
-    slow_bus.simulator.disconnect(2)
+    slow_bus.companion.disconnect(2)
     calls = _count_reads(slow_bus.port)
     for _ in range(3):
         assert set(slow_bus.sync_read(132, 4, [1, 2, 3])) == {1, 3}
@@ -235,7 +236,7 @@ def test_simulated_bus_in_its_own_process():
 
     bus = open_bus("simdynamixel://?ids=1-3&model=XL330-M288&delay=0&process=1", timeout_margin_ms=REPLY_MS)
     try:
-        process = bus.simulator._process
+        process = bus.companion._process
         assert process.poll() is None and not any(t.name.startswith("pty-bus") for t in threading.enumerate())
         assert [i.address for i in bus.scan()] == [1, 2, 3]
         bus.configure(_setups([1, 2, 3]), frame_period=0.02)

@@ -1,26 +1,15 @@
-"""Pololu Maestro: golden bytes, the simulator, and the driver on it."""
+"""Pololu Maestro: the simulator, and the driver on it (golden bytes: test_maestro_protocol.py)."""
 
 from __future__ import annotations
 
 import pytest
 import serial
 
-from livebridge.drivers import maestro as mp
-from livebridge.servo.bus import ServoSetup, open_bus
-from livebridge.simulators.maestro_bus import PROTOCOL_ERROR, MaestroSim
-
-
-def test_golden_bytes():
-    # Pololu Maestro User's Guide: set target of channel 0 to 1500 µs (6000 quarter-µs).
-    assert mp.set_target(0, 6000) == bytes.fromhex("84 00 70 2E")
-    assert mp.set_target(0, 6000, device=12) == bytes.fromhex("AA 0C 04 00 70 2E")
-    assert mp.set_multiple_targets(0, [6000, 7000]) == bytes.fromhex("9F 02 00 70 2E 58 36")
-    assert mp.get_position(5) == bytes.fromhex("90 05")
-    assert mp.get_errors(device=12) == bytes.fromhex("AA 0C 21")
-    assert mp.set_speed(1, 140) == bytes.fromhex("87 01 0C 01")
-    assert mp.decode_u16(bytes([0x70, 0x17])) == 6000
-    with pytest.raises(ValueError):
-        mp.set_target(0, 1 << 14)
+from livebridge.devices.registry import open_bus
+from livebridge.drivers import maestro_protocol as mp
+from livebridge.drivers.maestro_protocol import PROTOCOL_ERROR
+from livebridge.servo.bus import ServoSetup
+from livebridge.simulators.maestro_bus import MaestroSim
 
 
 class _Clock:
@@ -71,7 +60,7 @@ def test_speed_limit_moves_gradually(maestro):
 def test_driver_on_simulator():
     bus = open_bus("simmaestro://?channels=8&device=12", timeout=0.15)  # scan waits this long for each of 16
     try:
-        sim = bus.simulator
+        sim = bus.companion
         assert [i.address for i in bus.scan()] == list(range(8))
         bus.serial.timeout = 2.0  # from now on every query is answered: wait generously (a loaded machine)
         bus.configure([ServoSetup(c, 1000, 2000, 1500, name=f"c{c}") for c in (0, 1, 2, 5)], 0.02)

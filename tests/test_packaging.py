@@ -46,7 +46,7 @@ def test_wheel_holds_the_subpackages_under_livebridge(wheel):
     for name in ("livebridge/__init__.py", "livebridge/drivers/__init__.py", "livebridge/simulators/__init__.py",
                  "livebridge/simulators/performer.py", "livebridge/calibration/__init__.py",
                  "livebridge/calibration/cameras.py", "livebridge/face/data/choe_ko_ict.toml",
-                 "livebridge/face/builtin.py"):
+                 "livebridge/face/builtin.py", "livebridge/devices/registry.py"):
         assert name in wheel, name
     top = {name.split("/")[0] for name in wheel}
     assert not top & {"drivers", "calibration", "simulators", "tests"}, top

@@ -99,7 +99,7 @@ def test_refuses_a_non_empty_directory_and_bad_files(tmp_path):
 
 def test_raw_frames_use_the_replay_format_and_replay_as_cameras(tmp_path):
     from livebridge.capture.frame import Frame
-    from livebridge.capture.sources import open_sources
+    from livebridge.devices.registry import open_cameras
 
     images = [(np.arange(48 * 64) % 251 + k).astype(np.uint8).reshape(48, 64) for k in range(3)]
     with TakeRecorder(tmp_path / "t", MUSCLES, MARKERS, record_frames=True, lossless_frames=True) as rec:
@@ -113,7 +113,7 @@ def test_raw_frames_use_the_replay_format_and_replay_as_cameras(tmp_path):
         "cam1", "cam1.csv", "dev_CAM_B", "dev_CAM_B.csv"]
     assert sorted(p.name for p in (tmp_path / "t" / "frames" / "cam1").iterdir()) == [
         "000000.pgm", "000001.pgm", "000002.pgm"]  # uncompressed by default: fast enough for live cameras
-    sources = open_sources(f"replay://{tmp_path / 't'}?realtime=0")  # the take directory itself
+    sources = open_cameras(f"replay://{tmp_path / 't'}?realtime=0")  # the take directory itself
     assert [s.source_id for s in sources] == ["cam1", "dev/CAM_B"]  # original names, for the calibration
     with sources[1] as source:
         got = [source.read() for _ in range(4)]
@@ -126,14 +126,14 @@ def test_raw_frames_use_the_replay_format_and_replay_as_cameras(tmp_path):
 
 def test_raw_frames_as_png_on_request_and_bad_formats_refused(tmp_path):
     from livebridge.capture.frame import Frame
-    from livebridge.capture.sources import open_sources
+    from livebridge.devices.registry import open_cameras
 
     image = (np.arange(48 * 64) % 251).astype(np.uint8).reshape(48, 64)
     with TakeRecorder(tmp_path / "t", MUSCLES, MARKERS, record_frames=True, lossless_frames=True,
                       frame_format=".png") as rec:
         rec.record_frames([Frame(image, 0.5, 0, "cam0")])
     assert [p.name for p in (tmp_path / "t" / "frames" / "cam0").iterdir()] == ["000000.png"]
-    (source,) = open_sources(f"replay://{tmp_path / 't'}?realtime=0")
+    (source,) = open_cameras(f"replay://{tmp_path / 't'}?realtime=0")
     with source:
         assert np.array_equal(source.read().image, image)
     with pytest.raises(InputError, match="frame_format"):
@@ -143,7 +143,7 @@ def test_raw_frames_as_png_on_request_and_bad_formats_refused(tmp_path):
 def test_a_take_cut_short_replays_up_to_its_last_complete_frame(tmp_path):
     """An image without its timestamp row (killed in between) and a half-written image are ignored."""
     from livebridge.capture.frame import Frame
-    from livebridge.capture.sources import open_sources
+    from livebridge.devices.registry import open_cameras
     from livebridge.take.raw_frames import RawFrameWriter
 
     writer = RawFrameWriter(tmp_path)
@@ -152,7 +152,7 @@ def test_a_take_cut_short_replays_up_to_its_last_complete_frame(tmp_path):
     writer.close()  # no close needed for the rows to be on disk: simulate the crash on top
     (tmp_path / "cam0" / "000004.png").write_bytes((tmp_path / "cam0" / "000003.png").read_bytes())
     (tmp_path / "cam0" / ".000005.png.part").write_bytes(b"\x89PNG torn")
-    with open_sources(f"replay://{tmp_path}?realtime=0")[0] as source:
+    with open_cameras(f"replay://{tmp_path}?realtime=0")[0] as source:
         seqs = [source.read() for _ in range(5)]
     assert [f.seq for f in seqs[:4]] == [0, 1, 2, 3] and seqs[4] is None
 
@@ -219,7 +219,7 @@ def test_a_busy_disk_drops_whole_frame_sets(tmp_path):
     import threading
 
     from livebridge.capture.frame import Frame
-    from livebridge.capture.sources import open_sources
+    from livebridge.devices.registry import open_cameras
 
     release = threading.Event()
     rec = TakeRecorder(tmp_path / "t", MUSCLES, MARKERS, record_frames=True, frame_queue=2)
@@ -237,7 +237,7 @@ def test_a_busy_disk_drops_whole_frame_sets(tmp_path):
     assert rec.frames_dropped > 0 and rec.frames_dropped % 3 == 0
     assert sorted(written) == ["cam0", "cam1", "cam2"] and len(set(written.values())) == 1
     seqs = []
-    for source in open_sources(f"replay://{tmp_path / 't'}?realtime=0"):
+    for source in open_cameras(f"replay://{tmp_path / 't'}?realtime=0"):
         with source:
             seqs.append([frame.seq for frame in iter(source.read, None)])
     assert seqs[0] == seqs[1] == seqs[2] and 0 in seqs[0] and 5 in seqs[0] and len(seqs[0]) < 6

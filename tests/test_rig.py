@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from livebridge.capture.frame import Frame, FrameSet
-from livebridge.capture.sources import CameraSource, open_source, open_sources
+from livebridge.capture.sources import CameraSource
+from livebridge.devices.registry import open_camera, open_cameras
 from livebridge.errors import InputError
 from livebridge.simulators.rig import RigConfig, SimRig, generate_cameras, generate_markers, render_discs
 
@@ -177,7 +178,7 @@ def test_exposure_changes_brightness(face):
 
 
 def test_sim_url_opens_one_source_per_camera():
-    sources = open_sources("sim://rig?cameras=3&seed=2&noise=0&realtime=0&size=640x400&drop=0.3")
+    sources = open_cameras("sim://rig?cameras=3&seed=2&noise=0&realtime=0&size=640x400&drop=0.3")
     assert [s.source_id for s in sources] == ["cam0", "cam1", "cam2"]
     assert all(isinstance(s, CameraSource) for s in sources)
     assert sources[0].capabilities.size == (640, 400) and sources[0].capabilities.hardware_sync
@@ -192,17 +193,17 @@ def test_sim_url_opens_one_source_per_camera():
         assert seqs == sorted(seqs) and len(set(seqs)) == 5  # dropped frames skipped, never repeated
     assert len({f.sync_domain for per in frames for f in per}) == 1
     with pytest.raises(InputError, match="names 3 cameras"):
-        open_source("sim://rig?cameras=3&realtime=0")
+        open_camera("sim://rig?cameras=3&realtime=0")
     with pytest.raises(InputError, match="nosie"):
-        open_sources("sim://rig?nosie=1")
+        open_cameras("sim://rig?nosie=1")
     with pytest.raises(InputError, match="sync"):
-        open_sources("sim://rig?sync=sometimes")
+        open_cameras("sim://rig?sync=sometimes")
 
 
 def test_realtime_source_is_paced():
     import time
 
-    source = open_source("sim://rig?cameras=1&fps=20&noise=0&size=320x200")
+    source = open_camera("sim://rig?cameras=1&fps=20&noise=0&size=320x200")
     with source:
         start = time.monotonic()
         frames = [source.read(timeout=1.0) for _ in range(6)]

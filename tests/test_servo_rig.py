@@ -105,7 +105,7 @@ def test_servo_output_lifecycle(tmp_path):
     out = ServoOutput(rig, MUSCLES)
     out.configure()
     try:
-        sim = out.buses["head"].simulator
+        sim = out.buses["head"].companion
         out.activate()
         assert all(s.torque_on for s in sim.servos.values())
         x = np.zeros(16)
@@ -137,7 +137,7 @@ def test_servo_output_estop_and_bus_kinds():
             for k in range(10):
                 out.send(np.full(16, 0.5), t=k * 0.02)
             out.estop()
-            sim = out.buses["head"].simulator
+            sim = out.buses["head"].companion
             if url.startswith("simmaestro"):
                 assert sim.wait_until(lambda s=sim: s.target[:16] == [0] * 16)  # pulses stopped
             else:

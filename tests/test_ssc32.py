@@ -1,22 +1,13 @@
-"""Lynxmotion SSC-32U: command encoding, the simulator, and the driver on it."""
+"""Lynxmotion SSC-32U: the simulator, and the driver on it (encoding: test_ssc32_protocol.py)."""
 
 from __future__ import annotations
 
-import pytest
 import serial
 
-from livebridge.drivers import ssc32
-from livebridge.servo.bus import ServoSetup, open_bus
+from livebridge.devices.registry import open_bus
+from livebridge.drivers import ssc32_protocol as ssc32
+from livebridge.servo.bus import ServoSetup
 from livebridge.simulators.ssc32_bus import SSC32Sim
-
-
-def test_encoding():
-    assert ssc32.move({0: 1500, 5: 1999.6}, 100) == b"#0P1500#5P2000T100\r"
-    assert ssc32.query_pulses([0, 1]) == b"QP0 QP1\r"
-    assert ssc32.query_moving() == b"Q\r"
-    assert ssc32.decode_pulses(bytes([150, 200])) == [1500, 2000]
-    with pytest.raises(ValueError):
-        ssc32.move({40: 1500})
 
 
 class _Clock:
@@ -53,7 +44,7 @@ def test_simulator_group_move_timed():
 def test_driver_on_simulator():
     bus = open_bus("simssc32://", timeout=2.0)  # reply timeout: generous, the simulator may be descheduled
     try:
-        sim = bus.simulator
+        sim = bus.companion
         bus.configure([ServoSetup(c, 1000, 2000, 1500, name=f"c{c}") for c in (0, 3)], 0.02)
         bus.activate()
         logged = len(sim.move_log)

@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from livebridge.capture.sources import CameraSource, open_source
+from livebridge.capture.sources import CameraSource
+from livebridge.devices.registry import open_camera
 from livebridge.drivers.v4l2 import (
     V4L2Source,
     fourcc_code,
@@ -189,12 +190,12 @@ def test_opencv_image_sequence_backend(tmp_path, rng):
 
 def test_url_errors():
     with pytest.raises(InputError, match="exposure"):
-        open_source("v4l2:///dev/video0?exposure_us=fast")
+        open_camera("v4l2:///dev/video0?exposure_us=fast")
     with pytest.raises(InputError, match="unknown parameter"):
-        open_source("v4l2:///dev/video0?colour=1")
+        open_camera("v4l2:///dev/video0?colour=1")
     with pytest.raises(InputError, match="buffer"):
-        open_source("v4l2:///dev/video0?buffer=4")
-    source = open_source("v4l2:///dev/does-not-exist?width=640&fourcc=yuyv&name=left")
+        open_camera("v4l2:///dev/video0?buffer=4")
+    source = open_camera("v4l2:///dev/does-not-exist?width=640&fourcc=yuyv&name=left")
     assert source.source_id == "left" and source.requested["fourcc"] == "YUYV"
     with pytest.raises(InputError, match="does-not-exist"):
         source.start()

@@ -204,7 +204,7 @@ def _pin_servo_simulators(servo, cpus: set[int]) -> None:
     """Keep the simulated servo buses' processes on ``cpus`` (the servos' own silicon on a real rig): a
     simulator woken on the pipeline's CPU by a write would run before the writing thread goes on."""
     for bus in servo.buses.values():
-        pid = getattr(bus.simulator, "pid", None)
+        pid = getattr(bus.companion, "pid", None)
         if pid is not None:
             os.sched_setaffinity(pid, cpus)
 

@@ -29,8 +29,9 @@ def _goals(sim) -> int:
 def run(quick: bool, log) -> dict:
     from dynamixel_sdk import GroupSyncRead, GroupSyncWrite, PortHandler
 
+    from livebridge.devices.registry import open_bus
     from livebridge.drivers import dynamixel_protocol as dxl
-    from livebridge.servo.bus import ServoSetup, open_bus
+    from livebridge.servo.bus import ServoSetup
     from livebridge.servo.output import ServoOutput
     from livebridge.servo.rig import demo_rig
 
@@ -39,7 +40,7 @@ def run(quick: bool, log) -> dict:
     ids = list(range(1, N_SERVOS + 1))
     url = f"simdynamixel://?ids=1-{N_SERVOS}&model=XL330-M288&baud={BAUD}&delay=0"
     bus = open_bus(url)
-    sim = bus.simulator
+    sim = bus.companion
     result: dict = {"servos": N_SERVOS, "baud": BAUD, "model": "XL330-M288", "frames": frames, "reads": reads,
                     "transport": "pseudo-terminal (no wire time)"}
     try:

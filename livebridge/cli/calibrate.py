@@ -119,18 +119,14 @@ def _run(images, videos, sources, board_spec, out, fisheye, up, origin_view, boa
 
 
 def _source_frames(named: dict[str, str], n_frames: int):
-    """Frame sets from live sources (``livebridge.capture.sources``): one frame per camera, read in turn.
+    """Frame sets from live sources (``livebridge.devices.registry``): one frame per camera, read in turn.
 
     Frames are matched by read order, not by hardware sync, so hold the board still for a moment in each pose.
     """
+    from livebridge.devices.registry import open_camera
     from livebridge.errors import InputError
 
-    try:
-        from livebridge.capture.sources import open_source
-    except ImportError:
-        raise InputError("live sources are not available (livebridge.capture.sources is missing); "
-                         "record videos or images and use --videos / --images", field="--sources") from None
-    opened = [open_source(url) for url in named.values()]
+    opened = [open_camera(url) for url in named.values()]
     started = []
     try:
         for source in opened:

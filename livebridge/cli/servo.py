@@ -28,8 +28,8 @@ def servo() -> None:
 @click.option("--ids", default=None, help="Only these IDs/channels (e.g. 1-20); default: broadcast ping / all.")
 def scan(url: str, ids: str | None) -> None:
     """List the servos that answer on bus URL (e.g. dynamixel:///dev/ttyUSB0?baud=1000000)."""
+    from livebridge.devices.registry import open_bus
     from livebridge.errors import InputError
-    from livebridge.servo.bus import open_bus
 
     try:
         bus = open_bus(url, log=lambda m: click.echo(m, err=True))
@@ -59,15 +59,16 @@ def jog(url: str, address: int, goal: float | None, delta: float | None, speed: 
     """Move one servo gently to --to or --by, ramping at --speed, and print where it ended."""
     import math
 
+    from livebridge.devices.registry import bus_facts, open_bus
     from livebridge.errors import InputError
-    from livebridge.servo.bus import RAW_RANGES, ServoSetup, bus_kind, open_bus
+    from livebridge.servo.bus import ServoSetup
 
     if (goal is None) == (delta is None):
         raise click.UsageError("give exactly one of --to and --by")
-    lo_dev, hi_dev = RAW_RANGES[bus_kind(url)]
-    low = lo_dev if low is None else max(lo_dev, low)
-    high = hi_dev if high is None else min(hi_dev, high)
     try:
+        lo_dev, hi_dev = bus_facts(url).raw_range
+        low = lo_dev if low is None else max(lo_dev, low)
+        high = hi_dev if high is None else min(hi_dev, high)
         bus = open_bus(url, log=lambda m: click.echo(m, err=True))
         bus.configure([ServoSetup(address, low, high, (low + high) / 2, name=f"{address}")], 0.02)
         present = bus.activate().get(address, math.nan)
@@ -103,8 +104,9 @@ def limits(rig_file: str, servo_name: str, minimum, neutral, maximum, from_prese
     """Record min / neutral / max of SERVO_NAME into RIG_FILE (validated before writing)."""
     import math
 
+    from livebridge.devices.registry import open_bus
     from livebridge.errors import InputError
-    from livebridge.servo.bus import RAW_RANGES, ServoSetup, open_bus
+    from livebridge.servo.bus import ServoSetup
     from livebridge.servo.rig import load_rig, set_servo_limits
 
     try:
@@ -117,7 +119,7 @@ def limits(rig_file: str, servo_name: str, minimum, neutral, maximum, from_prese
     values = {"min": minimum, "neutral": neutral, "max": maximum}
     if from_present:
         bus_spec = rig.buses[spec.bus]
-        lo, hi = RAW_RANGES[bus_spec.kind]
+        lo, hi = bus_spec.facts.raw_range
         bus = open_bus(bus_spec.url, log=lambda m: click.echo(m, err=True))
         try:
             bus.configure([ServoSetup(spec.address, lo, hi, spec.neutral, spec.model, spec.name)], 0.02)

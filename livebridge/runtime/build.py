@@ -99,13 +99,13 @@ def open_cameras(session: Session, log=None):
     uses its own cameras, and replays of one recorded take directory use the calibration recorded with it.
     """
     from livebridge.calibration.cameras import CameraGroup
-    from livebridge.capture.sources import open_sources
+    from livebridge.devices.registry import open_cameras
 
     calibrated = _load_calibration(session.calibration) if session.calibration is not None else None
     sources = []
     for k, url in enumerate(session.camera_urls):
         try:
-            sources += open_sources(_session_url(url, session))
+            sources += open_cameras(_session_url(url, session))
         except InputError as error:
             inner = error.message if error.path in (None, url) and error.field is None else str(error)
             raise InputError(f"{url}: {inner}", session.path, f"cameras.urls[{k}]") from None

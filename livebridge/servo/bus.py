@@ -1,9 +1,10 @@
-"""The servo-bus interface and the URL registry that picks an implementation.
+"""The servo-bus interface: what every bus (real driver or simulator) implements, and the facts it declares.
 
 A servo bus moves raw targets to servos and reads their state back. Real
 drivers (``livebridge.drivers.dynamixel``, ``.maestro``, ``.ssc32``) and the
 simulated buses implement the same :class:`ServoBus` protocol; which one is
-used is chosen by a URL in the rig file, never by code::
+used is chosen by a URL in the rig file, never by code (the schemes and
+their openers: :mod:`livebridge.devices.registry`)::
 
     dynamixel:///dev/ttyUSB0?baud=1000000
     maestro:///dev/ttyACM0?device=12          (device => Pololu protocol)
@@ -12,36 +13,50 @@ used is chosen by a URL in the rig file, never by code::
     simmaestro://?channels=12
     simssc32://?channels=32
 
-Raw units: Dynamixel position ticks (0..4095 in position mode), Maestro and
-SSC-32 pulse widths in microseconds.
+Raw units (Dynamixel position ticks, Maestro and SSC-32 pulse widths in
+microseconds) and every other vendor fact belong to the driver that speaks
+to that vendor; it declares what rig validation needs as :class:`BusFacts`.
 """
 
 from __future__ import annotations
 
-import importlib
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
-from urllib.parse import parse_qs, urlsplit
 
-from livebridge.errors import InputError
 
-# Raw range each bus kind accepts at all (rig limits must lie inside).
-RAW_RANGES: dict[str, tuple[float, float]] = {
-    "dynamixel": (0, 4095),
-    "maestro": (64, 4080),  # µs: 0.25 µs units, 14-bit target
-    "ssc32": (500, 2500),  # µs, SSC-32U manual
-}
-_KIND = {"dynamixel": "dynamixel", "simdynamixel": "dynamixel", "maestro": "maestro", "simmaestro": "maestro",
-         "ssc32": "ssc32", "simssc32": "ssc32"}
-_OPENERS = {
-    "dynamixel": "livebridge.drivers.dynamixel:open_url",
-    "simdynamixel": "livebridge.drivers.dynamixel:open_url",
-    "maestro": "livebridge.drivers.maestro:open_url",
-    "simmaestro": "livebridge.drivers.maestro:open_url",
-    "ssc32": "livebridge.drivers.ssc32:open_url",
-    "simssc32": "livebridge.drivers.ssc32:open_url",
-}
+@dataclass(frozen=True)
+class BusFacts:
+    """What a driver declares about its device family, for rig files and tools (raw units of that family).
+
+    Attributes
+    ----------
+    kind : str
+        Family name (``dynamixel``, ``maestro``, ``ssc32``); a simulated bus has its real driver's.
+    raw_range : tuple of float
+        ``(low, high)`` raw targets the device accepts at all (rig limits must lie inside).
+    address_range : tuple of int
+        ``(first, last)`` servo address (ID or channel) the family allows.
+    address_key : str
+        The rig file's key for a servo address: ``"id"`` or ``"channel"``.
+    first_address : int
+        The lowest address a factory-new device uses (Dynamixel IDs start at 1, channels at 0).
+    centre : float
+        Raw target of a servo at mid travel.
+    typical_span : float
+        A modest raw span of travel (a ready-made demo rig swings this far).
+    estop_modes : tuple of str
+        The ``estop`` choices the driver takes (``"stop"``, ``"home"``); empty: E-stop is always torque off.
+    """
+
+    kind: str
+    raw_range: tuple[float, float]
+    address_range: tuple[int, int]
+    address_key: str
+    first_address: int
+    centre: float
+    typical_span: float
+    estop_modes: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -89,6 +104,10 @@ class ServoBus(Protocol):
 
     url: str
     kind: str
+    status: dict[int, ServoStatus]
+    """Address -> last known status (what the last :meth:`poll` read)."""
+    faults: dict[int, str]
+    """Address -> fault text, for servos the bus stopped and leaves out of the writes."""
 
     def scan(self, addresses: Sequence[int] | None = None) -> list[ServoInfo]:
         """Servos that answer (for buses that cannot answer, the configured channels)."""
@@ -105,6 +124,9 @@ class ServoBus(Protocol):
     def poll(self) -> dict[int, ServoStatus]:
         """Read back state at the bus's own (lower) rate; returns the latest known status."""
 
+    def recover(self, address: int) -> bool:
+        """Bring a faulted servo back (reboot, reconfigure, soft start); False when it or the bus cannot."""
+
     def estop(self) -> None:
         """Stop now: torque off (Dynamixel), stop pulses or go home (Maestro, SSC-32)."""
 
@@ -112,34 +134,4 @@ class ServoBus(Protocol):
         """Torque off / pulses off, keep the port open."""
 
     def close(self) -> None:
-        """Release the port (and a simulator the bus started)."""
-
-
-def bus_kind(url: str) -> str:
-    """``dynamixel``, ``maestro`` or ``ssc32`` for a bus URL; :class:`InputError` otherwise."""
-    scheme = urlsplit(url).scheme
-    if scheme not in _KIND:
-        raise InputError(f"unknown bus URL scheme {scheme!r}; known: {', '.join(sorted(_KIND))}", url)
-    return _KIND[scheme]
-
-
-def url_options(url: str) -> dict[str, str]:
-    """Query options of a URL as a flat dict (last value wins)."""
-    return {k: v[-1] for k, v in parse_qs(urlsplit(url).query).items()}
-
-
-def register(scheme: str, opener: str | Callable[[str], ServoBus], kind: str) -> None:
-    """Add a URL scheme: ``opener`` is ``"module:function"`` or a callable ``url -> ServoBus``."""
-    _OPENERS[scheme] = opener
-    _KIND[scheme] = kind
-
-
-def open_bus(url: str, **options) -> ServoBus:
-    """Open the bus a URL names (the port opens now; servos are touched in ``configure``)."""
-    scheme = urlsplit(url).scheme
-    bus_kind(url)
-    opener = _OPENERS[scheme]
-    if isinstance(opener, str):
-        module_name, function = opener.split(":")
-        opener = getattr(importlib.import_module(module_name), function)
-    return opener(url, **options)
+        """Release the port (and whatever the bus was given to close with it, e.g. the simulator serving it)."""

@@ -24,7 +24,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from livebridge.servo.bus import ServoSetup, ServoStatus, open_bus
+from livebridge.devices.registry import open_bus
+from livebridge.servo.bus import ServoSetup, ServoStatus
 from livebridge.servo.rig import Rig
 from livebridge.servo.safety import to_raw_int
 
@@ -80,7 +81,7 @@ class ServoOutput:
             for name, spec in self.rig.buses.items():
                 options = dict(self.bus_options.get(name, {}))
                 options.setdefault("log", lambda message, name=name: self._event(name, message))
-                if spec.kind in ("maestro", "ssc32"):
+                if spec.facts.estop_modes:
                     options.setdefault("estop", self.rig.estop)
                 bus = open_bus(spec.url, **options)
                 self.buses[name] = bus
@@ -150,7 +151,7 @@ class ServoOutput:
         out = {}
         for servo in self.rig.servos:
             bus = self.buses.get(servo.bus)
-            out[servo.name] = getattr(bus, "status", {}).get(servo.address) if bus else None
+            out[servo.name] = bus.status.get(servo.address) if bus else None
         return out
 
     def faults(self) -> dict[str, str]:
@@ -158,7 +159,7 @@ class ServoOutput:
         out = {}
         for servo in self.rig.servos:
             bus = self.buses.get(servo.bus)
-            fault = getattr(bus, "faults", {}).get(servo.address) if bus else None
+            fault = bus.faults.get(servo.address) if bus else None
             if fault:
                 out[servo.name] = fault
         for name in self.failed_buses:
@@ -167,14 +168,13 @@ class ServoOutput:
         return out
 
     def recover(self, servo_name: str) -> bool:
-        """Try to bring a faulted servo back (Dynamixel: reboot + reconfigure + soft start)."""
+        """Try to bring a faulted servo back with its bus's ``recover`` (Dynamixel: reboot + reconfigure + soft
+        start; a hobby-servo controller cannot: False)."""
         servo = self.rig.servo(servo_name)
         bus = self.buses[servo.bus]
-        if not hasattr(bus, "recover"):
-            return False
         ok = bus.recover(servo.address)
         if ok and self.state is not None:
-            position = getattr(bus, "status", {}).get(servo.address)
+            position = bus.status.get(servo.address)
             i = self.servo_names.index(servo_name)
             if position is not None and position.position is not None:
                 target = self.state.target.copy()

@@ -40,13 +40,12 @@ from typing import Any
 
 import numpy as np
 
+from livebridge.devices.registry import bus_facts
 from livebridge.errors import InputError
-from livebridge.servo.bus import RAW_RANGES, bus_kind
+from livebridge.servo.bus import BusFacts
 from livebridge.servo.mapping import Curve, Mapping
 from livebridge.servo.safety import Filter, SafetyMapper
 from livebridge.tomlio import load_toml, require, save_toml
-
-ADDRESS_RANGES = {"dynamixel": (0, 252), "maestro": (0, 23), "ssc32": (0, 31)}
 
 
 def default_muscle_names() -> tuple[str, ...]:
@@ -57,9 +56,11 @@ def default_muscle_names() -> tuple[str, ...]:
 
 @dataclass(frozen=True)
 class BusSpec:
+    """One bus of the rig: its URL and what its driver declares about the device family."""
+
     name: str
     url: str
-    kind: str
+    facts: BusFacts
 
 
 @dataclass(frozen=True)
@@ -129,7 +130,7 @@ class Rig:
     def to_dict(self) -> dict[str, Any]:
         servos = {}
         for s in self.servos:
-            key = "id" if self.buses[s.bus].kind == "dynamixel" else "channel"
+            key = self.buses[s.bus].facts.address_key
             entry: dict[str, Any] = {"bus": s.bus, key: s.address, "muscles": dict(s.muscles),
                                      "neutral": s.neutral, "min": s.minimum, "max": s.maximum, "slew": s.slew}
             if s.model:
@@ -188,10 +189,10 @@ def rig_from_dict(data: dict[str, Any], path: str | Path | None = None, muscle_n
             raise InputError("expected a table with url", path, f"buses.{name}")
         url = require(entry, "url", str, path, f"buses.{name}")
         try:
-            kind = bus_kind(url)
+            facts = bus_facts(url)
         except InputError as error:
             raise InputError(error.message, path, f"buses.{name}.url") from None
-        buses[name] = BusSpec(name, url, kind)
+        buses[name] = BusSpec(name, url, facts)
     servos_table = require(data, "servos", dict, path)
     servos = []
     used: dict[tuple[str, int], str] = {}
@@ -203,12 +204,12 @@ def rig_from_dict(data: dict[str, Any], path: str | Path | None = None, muscle_n
         if bus not in buses:
             raise InputError(f"servo {name!r}: unknown bus {bus!r} (known: {', '.join(buses)})", path,
                              f"{prefix}.bus")
-        kind = buses[bus].kind
+        facts = buses[bus].facts
         key = "id" if "id" in entry else "channel"
         address = require(entry, key, int, path, prefix)
-        lo, hi = ADDRESS_RANGES[kind]
+        lo, hi = facts.address_range
         if not lo <= address <= hi:
-            raise InputError(f"servo {name!r}: {key} {address} outside {lo}..{hi} for a {kind} bus", path,
+            raise InputError(f"servo {name!r}: {key} {address} outside {lo}..{hi} for a {facts.kind} bus", path,
                              f"{prefix}.{key}")
         if (bus, address) in used:
             raise InputError(f"servo {name!r} and servo {used[bus, address]!r} both use {key} {address} on bus "
@@ -228,9 +229,9 @@ def rig_from_dict(data: dict[str, Any], path: str | Path | None = None, muscle_n
         minimum = _number(entry, "min", path, prefix)
         maximum = _number(entry, "max", path, prefix)
         low, high = min(minimum, maximum), max(minimum, maximum)
-        dev_lo, dev_hi = RAW_RANGES[kind]
+        dev_lo, dev_hi = facts.raw_range
         if low < dev_lo or high > dev_hi:
-            raise InputError(f"servo {name!r}: limits {minimum:g}..{maximum:g} outside the {kind} range "
+            raise InputError(f"servo {name!r}: limits {minimum:g}..{maximum:g} outside the {facts.kind} range "
                              f"{dev_lo:g}..{dev_hi:g}", path, prefix)
         if low == high:
             raise InputError(f"servo {name!r}: min and max are equal", path, prefix)
@@ -293,15 +294,18 @@ def set_servo_limits(path: str | Path, servo: str, minimum=None, neutral=None, m
 
 
 def demo_rig(url: str = "simdynamixel://?ids=1-16&model=XL330-M288", muscle_names=None) -> Rig:
-    """One servo per muscle on a Dynamixel bus (ids 1..16): a ready rig for demos and benchmarks."""
+    """One servo per muscle on one bus (by default Dynamixel ids 1..16): a ready rig for demos and benchmarks.
+
+    Each servo swings its driver's typical span around the centre, from the family's first address on.
+    """
     names = tuple(muscle_names) if muscle_names is not None else default_muscle_names()
-    kind = bus_kind(url)
-    neutral, span = {"dynamixel": (2048.0, 400.0), "maestro": (1500.0, 400.0), "ssc32": (1500.0, 400.0)}[kind]
+    facts = bus_facts(url)
+    neutral, span = facts.centre, facts.typical_span
     servos = []
     for i, muscle in enumerate(names):
         inverted = i % 2 == 1  # mirrored mounting on the right side
-        servos.append(ServoSpec(muscle, "head", i + 1 if kind == "dynamixel" else i, ((muscle, 1.0),), neutral,
+        servos.append(ServoSpec(muscle, "head", facts.first_address + i, ((muscle, 1.0),), neutral,
                                 neutral - (0.5 * span if not inverted else -0.5 * span),
                                 neutral + (span if not inverted else -span), slew=span * 4,
                                 filter=Filter("exponential", tau=0.02)))
-    return Rig({"head": BusSpec("head", url, kind)}, tuple(servos))
+    return Rig({"head": BusSpec("head", url, facts)}, tuple(servos))

@@ -21,7 +21,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from livebridge.capture.frame import Frame
-from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase, SourceURL
+from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase
+from livebridge.devices.url import DeviceURL
 from livebridge.errors import InputError
 from livebridge.take.directory import RAW_FRAMES, calibration_file, is_take_dir
 from livebridge.take.raw_frames import (
@@ -231,7 +232,7 @@ def open_take(folder, cameras=None, realtime: bool = True, fps: float = 30.0, lo
     return [ReplaySource(folder, name, realtime, fps, loop, clock) for name in names]
 
 
-def open_url(url: SourceURL) -> list[ReplaySource]:
+def open_url(url: DeviceURL) -> list[ReplaySource]:
     """The registry hook for ``replay://PATH?realtime=1&cameras=a,b&fps=30&loop=0``."""
     url.check_known({"realtime", "cameras", "fps", "loop"})
     path = url.netloc + url.path if url.netloc else url.path

@@ -1,0 +1,1 @@
+"""Device URLs and the one registry that opens camera sources and servo buses by URL scheme."""

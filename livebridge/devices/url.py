@@ -1,0 +1,84 @@
+"""The one strict parser of device URLs (cameras and servo buses): ``scheme://netloc/path?key=value&...``.
+
+Every opener declares the query parameters it knows (:meth:`DeviceURL.check_known`); a parameter it does
+not know or a parameter given twice is an :class:`~livebridge.errors.InputError` naming the parameter and
+the URL, so a typo is never silently ignored.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from urllib.parse import parse_qs, urlsplit
+
+from livebridge.errors import InputError
+
+_TRUE = ("1", "true", "yes", "on")
+_FALSE = ("0", "false", "no", "off")
+
+
+@dataclass(frozen=True)
+class DeviceURL:
+    """A parsed device URL.
+
+    Attributes
+    ----------
+    url : str
+        The URL as given (errors quote it).
+    scheme : str
+        Lower case.
+    netloc, path : str
+    query : dict of str to str
+        Each parameter once.
+    """
+
+    url: str
+    scheme: str
+    netloc: str
+    path: str
+    query: dict[str, str]
+
+    @classmethod
+    def parse(cls, url: str) -> DeviceURL:
+        """Split ``url``; a parameter given twice raises :class:`InputError` naming it."""
+        parts = urlsplit(url)
+        if not parts.scheme:
+            raise InputError("a device URL needs a scheme (v4l2://, depthai://, replay://, sim://, dynamixel://, "
+                             "maestro://, ssc32://, simdynamixel://, ...)", url)
+        query = {}
+        for key, values in parse_qs(parts.query, keep_blank_values=True).items():
+            if len(values) > 1:
+                raise InputError(f"parameter {key!r} given {len(values)} times", url, key)
+            query[key] = values[0]
+        return cls(url, parts.scheme.lower(), parts.netloc, parts.path, query)
+
+    @property
+    def location(self) -> str:
+        """``netloc + path``: the device, port or folder the URL names (``''`` when none)."""
+        return self.netloc + self.path
+
+    def take(self, key: str, kind: type, default=None):
+        """The value of parameter ``key`` converted to ``kind`` (bool accepts 0/1/true/false/yes/no/on/off);
+        ``default`` when the URL does not give it."""
+        if key not in self.query:
+            return default
+        raw = self.query[key]
+        try:
+            if kind is bool:
+                lowered = raw.lower()
+                if lowered in _TRUE:
+                    return True
+                if lowered in _FALSE:
+                    return False
+                raise ValueError(raw)
+            return kind(raw)
+        except ValueError:
+            raise InputError(f"parameter {key!r}: expected {kind.__name__}, got {raw!r}", self.url, key) from None
+
+    def check_known(self, known: Iterable[str]) -> None:
+        """Raise :class:`InputError` naming the first parameter the opener does not know."""
+        known = set(known)
+        unknown = sorted(set(self.query) - known)
+        if unknown:
+            raise InputError(f"unknown parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}",
+                             self.url, unknown[0])
