@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import os
 import threading
@@ -251,7 +252,8 @@ def run_once(frames: int, rig_process: bool, log, split: tuple[set[int], set[int
 
     cpu_start, wall_start = time.process_time(), time.monotonic()
     try:
-        summary = run_until_stopped(pipeline, frames=frames, log=lambda message: None, on_start=started)
+        summary = dataclasses.asdict(run_until_stopped(pipeline, frames=frames, log=lambda message: None,
+                                                       on_start=started))
     finally:
         stop.set()
         for client in clients:
