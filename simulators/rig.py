@@ -1031,6 +1031,11 @@ class SimCameraSource(SourceBase):
                                      current_gain if gain is None else gain)
 
     @property
+    def calibration(self) -> Camera:
+        """The simulated camera: the rig films with it."""
+        return self.rig.cameras.cameras[self.camera]
+
+    @property
     def capabilities(self) -> Capabilities:
         return Capabilities(size=self.rig.cameras.cameras[self.camera].size, fps=self.rig.config.fps,
                             manual_exposure=True, exposure_range_us=(10.0, 0.9e6 / self.rig.config.fps),
@@ -1039,14 +1044,18 @@ class SimCameraSource(SourceBase):
 
 
 _URL_KEYS = {"frames", "cameras", "seed", "fps", "noise", "drop", "jitter_ms", "spurious", "blur", "sync", "realtime",
-             "size", "calibration", "script", "occlusion", "occlusion_rate", "diameter_mm", "basis", "markers"}
+             "size", "calibration", "script", "occlusion", "occlusion_rate", "diameter_mm", "basis", "markers",
+             "lead_in_s"}
 
 
 def rig_from_url(url: SourceURL | str) -> SimRig:
     """A :class:`SimRig` from ``sim://rig?cameras=4&seed=1&fps=60&noise=2&drop=0.01&jitter_ms=0.5&spurious=0.1
     &blur=1&sync=hardware|free&size=1280x800&script=mixed&occlusion=1&occlusion_rate=0.05&diameter_mm=3
-    &calibration=PATH&basis=PATH.npz&markers=PATH.toml`` (``frames`` and ``realtime`` are the sources', see
-    :func:`open_url`)."""
+    &calibration=PATH&basis=PATH.npz&markers=PATH.toml&lead_in_s=2`` (``frames`` and ``realtime`` are the
+    sources', see :func:`open_url`; ``lead_in_s``: the performer first holds a still, neutral face this long,
+    :class:`~livebridge.simulators.lead_in.LeadIn`)."""
+    from livebridge.simulators.lead_in import scripted_performer
+
     if isinstance(url, str):
         url = SourceURL.parse(url)
     if url.netloc != "rig":
@@ -1086,8 +1095,13 @@ def rig_from_url(url: SourceURL | str) -> SimRig:
 
         cameras = load_calibration(url.query["calibration"])
         cameras = getattr(cameras, "cameras", cameras) if not isinstance(cameras, CameraGroup) else cameras
-    return SimRig(basis, markers, cameras=cameras, n_cameras=url.take("cameras", int, 4), config=config,
-                  seed=url.take("seed", int, 0), script=url.query.get("script", "mixed"))
+    seed = url.take("seed", int, 0)
+    lead_in_s = url.take("lead_in_s", float, 0.0)
+    if lead_in_s < 0:
+        raise InputError(f"lead_in_s must be >= 0, got {lead_in_s}", url.url, "lead_in_s")
+    performer = scripted_performer(basis, markers, config.fps, seed, url.query.get("script", "mixed"), lead_in_s)
+    return SimRig(basis, markers, cameras=cameras, n_cameras=url.take("cameras", int, 4), config=config, seed=seed,
+                  performer=performer)
 
 
 def open_url(url: SourceURL) -> list[SimCameraSource]:

@@ -53,7 +53,7 @@ def test_demo_end_to_end_matches_ground_truth():
 
 
 def test_lead_in_holds_a_still_neutral_face_then_performs():
-    from livebridge.runtime.demo import LeadIn
+    from livebridge.simulators.lead_in import LeadIn
     from livebridge.simulators.performer import Performer
     from livebridge.simulators.rig import default_face
 

@@ -20,11 +20,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 from urllib.parse import parse_qs, urlsplit
 
 from livebridge.capture.frame import Frame
 from livebridge.errors import InputError
+
+if TYPE_CHECKING:
+    from livebridge.calibration.cameras import Camera
 
 
 @dataclass(frozen=True)
@@ -161,6 +164,11 @@ class SourceBase:
     @property
     def error(self) -> str | None:
         return self._error
+
+    @property
+    def calibration(self) -> Camera | None:
+        """The camera's own calibration when the source knows it (a simulated camera); None otherwise."""
+        return None
 
     def _end(self, error: str | None) -> None:
         self._ended = True
