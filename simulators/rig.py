@@ -664,10 +664,8 @@ class SimRig:
             yield FrameSet.from_frames(frames, self.names, index=seq, truth=truth)
             seq += 1
 
-    def render(self, seq: int, cameras=None, draw: bool = True) -> tuple[list[Frame | None], SimTruth]:
+    def render(self, seq: int, cameras=None) -> tuple[list[Frame | None], SimTruth]:
         """Render frame ``seq`` of every camera (or the camera indices in ``cameras``).
-
-        With ``draw=False`` only the ground truth is computed (no images; frames are all None).
 
         Returns
         -------
@@ -675,6 +673,15 @@ class SimRig:
             None for a dropped frame or a camera not asked for.
         truth : SimTruth
         """
+        return self._film(seq, cameras, self._render_camera)
+
+    def truth(self, seq: int) -> SimTruth:
+        """Ground truth of frame ``seq`` without drawing images (spurious highlights are left out)."""
+        return self._film(seq, None, self._see_camera)[1]
+
+    def _film(self, seq: int, cameras, film_camera) -> tuple[list[Frame | None], SimTruth]:
+        """Frame ``seq`` of the cameras ``cameras`` (None: all), each filmed by ``film_camera(state, c)``
+        (:meth:`_render_camera`, or :meth:`_see_camera` for the ground truth only)."""
         self.start()
         state = self._state(seq)
         indices = range(self.n_cameras) if cameras is None else cameras
@@ -686,16 +693,12 @@ class SimRig:
         dropped = np.zeros(n_cams, dtype=bool)
         frames: list[Frame | None] = [None] * n_cams
         for c in indices:
-            frame, vis, pix, rad, spur, drop = self._render_camera(state, c, draw)
+            frame, vis, pix, rad, spur, drop = film_camera(state, c)
             frames[c], spurious[c], dropped[c] = frame, spur, drop
             visible[c], points_2d[c], radius[c] = vis, np.where(vis[:, None], pix, np.nan), np.where(vis, rad, np.nan)
         truth = SimTruth(seq, state.t, self.markers.names, state.markers, state.contractions, state.head2world,
                          visible, points_2d, radius, tuple(spurious), dropped)
         return frames, truth
-
-    def truth(self, seq: int) -> SimTruth:
-        """Ground truth of frame ``seq`` without drawing images (spurious highlights are left out)."""
-        return self.render(seq, draw=False)[1]
 
     def camera_frame(self, seq: int, camera: int) -> Frame | None:
         """Frame ``seq`` of one camera, None when that camera drops it."""
@@ -853,21 +856,33 @@ class SimRig:
         rng = np.random.default_rng([self.seed, seq, c, 31])
         return rng.random(len(self.markers)) >= self.config.occlusion_rate
 
-    def _render_camera(self, state: _State, c: int, draw: bool = True):
+    def _see(self, state: _State, c: int):
+        """What camera ``c`` sees of ``state``, before drawing: ``(visible (n,) bool, pixels (n, 2), radii (n,),
+        dropped, background shift, rng)``; ``rng`` goes on to draw the image."""
         camera = self.cameras.cameras[c]
         config = self.config
         rng = np.random.default_rng([self.seed, state.seq, c, 29])
-        n_markers = len(self.markers)
         pixels, shift = self._project(c, state)
         marker_cam = _apply(self._world2cam[c], state.markers)
         radii = float(camera.matrix[0, 0]) * config.marker_diameter_mm / 2.0 / np.maximum(marker_cam[:, 2], 1e-6)
         if config.drop_rate > 0 and rng.random() < config.drop_rate:
-            return None, np.zeros(n_markers, bool), pixels, radii, np.zeros((0, 2)), True
+            return np.zeros(len(self.markers), bool), pixels, radii, True, shift, rng
         visible = self._visibility(c, state, pixels, marker_cam)
         if config.occlusion_rate > 0:
             visible &= self._unoccluded(state.seq, c)
-        if not draw:
-            return None, visible, pixels, radii, np.zeros((0, 2)), False
+        return visible, pixels, radii, False, shift, rng
+
+    def _see_camera(self, state: _State, c: int):
+        """:meth:`_render_camera`'s result without the image (frame None, no spurious highlights)."""
+        visible, pixels, radii, dropped, _, _ = self._see(state, c)
+        return None, visible, pixels, radii, np.zeros((0, 2)), dropped
+
+    def _render_camera(self, state: _State, c: int):
+        """``(frame or None, visible, pixels, radii, spurious (n_spurious, 2), dropped)`` of camera ``c``."""
+        visible, pixels, radii, dropped, shift, rng = self._see(state, c)
+        if dropped:
+            return None, visible, pixels, radii, np.zeros((0, 2)), True
+        camera, config = self.cameras.cameras[c], self.config
         exposure_us, gain = self._exposure[c]
         image, spurious = self._image(c, state, rng, np.flatnonzero(visible), pixels, radii, shift, (exposure_us, gain))
         t_capture = self.t0 + state.seq * self.period + self._offsets[c]
