@@ -304,9 +304,6 @@ class RenderServer:
         """Seconds from each frame's ``t_ref`` to its first hand-over to a client socket, shape (n,)."""
         return np.array(self._latencies, dtype=np.float64)
 
-    def reset_latencies(self) -> None:
-        self._latencies.clear()
-
     def _call_soon(self, callback) -> None:
         loop = self._loop
         if loop is None or loop.is_closed():

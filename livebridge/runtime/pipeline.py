@@ -366,7 +366,6 @@ class Pipeline:
         self._stop = threading.Event()
         self._outputs_gone = threading.Event()  # unpaced: the reconstruct thread waits for the outputs until then
         self._queue: NewestQueue[OutputWork | None] = NewestQueue(1)
-        self._finished = threading.Event()
         self._ended = threading.Event()
         self._threads: list[threading.Thread] = []
         self._solver = None
@@ -449,10 +448,6 @@ class Pipeline:
         """Wait until the pipeline ends by itself (every camera ended, or a stage failed)."""
         return self._ended.wait(timeout)
 
-    @property
-    def running(self) -> bool:
-        return bool(self._threads) and not self._finished.is_set()
-
     def stop(self) -> None:
         """Shut down in order: cameras, stages, servos (ease to neutral, torque off), recorder, render, VMC."""
         if self._stopped:
@@ -477,7 +472,6 @@ class Pipeline:
             self.vmc.close()
         self._garbage.stop()
         self._switching.stop()
-        self._finished.set()
 
     def __enter__(self) -> Pipeline:
         return self.start()
