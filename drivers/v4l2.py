@@ -25,7 +25,6 @@ import fcntl
 import glob
 import math
 import os
-import queue
 import struct
 import threading
 import time
@@ -35,6 +34,7 @@ import cv2
 import numpy as np
 
 from livebridge.capture.frame import Frame
+from livebridge.capture.queue import NewestQueue
 from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase
 from livebridge.devices.url import DeviceURL
 from livebridge.errors import InputError
@@ -145,7 +145,7 @@ class V4L2Source(SourceBase):
         self._factory = capture_factory or _open_capture
         self._cap = None
         self._lock = threading.Lock()
-        self._queue: queue.Queue[Frame] = queue.Queue(maxsize=queue_size)
+        self._queue: NewestQueue[Frame] = NewestQueue(queue_size)
         self._thread: threading.Thread | None = None
         self._running = threading.Event()
         self.fourcc = ""
@@ -154,7 +154,6 @@ class V4L2Source(SourceBase):
         self.exposure = ExposureSetting(False)
         self.timestamp_source = "unknown"
         self.frames_grabbed = 0
-        self.frames_dropped = 0
         self.decode_failures = 0
         self._node_existed = False
 
@@ -210,12 +209,11 @@ class V4L2Source(SourceBase):
     def read(self, timeout: float | None = None) -> Frame | None:
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            try:
-                return self._queue.get(timeout=0.05 if deadline is None else max(0.0, min(0.05, deadline
-                                                                                         - time.monotonic())))
-            except queue.Empty:
-                if self._ended or (deadline is not None and time.monotonic() >= deadline):
-                    return None
+            frame = self._queue.get(0.05 if deadline is None else max(0.0, min(0.05, deadline - time.monotonic())))
+            if frame is not None:
+                return frame
+            if self._ended or (deadline is not None and time.monotonic() >= deadline):
+                return None
 
     def _gone(self) -> bool:
         """The device node existed at start and has disappeared (USB unplug)."""
@@ -256,7 +254,7 @@ class V4L2Source(SourceBase):
             half = 0.5 * exposure_us * 1e-6 if math.isfinite(exposure_us) else 0.0
             frame = Frame(image, t_end - half, seq, self.source_id, exposure_us, self.exposure.gain, self.source_id)
             seq += 1
-            self._offer(frame)
+            self._queue.put(frame)
 
     def _timestamp(self, kernel_ms: float, t_host: float) -> float:
         """Kernel buffer time on the monotonic clock when plausible (within 1 s before the grab), else host time."""
@@ -267,18 +265,6 @@ class V4L2Source(SourceBase):
                 return kernel
         self.timestamp_source = "host"
         return t_host
-
-    def _offer(self, frame: Frame) -> None:
-        while True:
-            try:
-                self._queue.put_nowait(frame)
-                return
-            except queue.Full:
-                try:
-                    self._queue.get_nowait()
-                    self.frames_dropped += 1
-                except queue.Empty:
-                    pass
 
     def _fail(self, message: str) -> None:
         self._end(message)
@@ -307,6 +293,11 @@ class V4L2Source(SourceBase):
                 cap.set(cv2.CAP_PROP_GAIN, gain)
             self.exposure = self._read_exposure()
         return self.exposure
+
+    @property
+    def frames_dropped(self) -> int:
+        """Grabbed frames dropped because ``read`` had not taken the older ones (the newest win)."""
+        return self._queue.dropped
 
     @property
     def capabilities(self) -> Capabilities:

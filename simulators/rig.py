@@ -665,10 +665,8 @@ class SimRig:
             yield FrameSet.from_frames(frames, self.names, index=seq, truth=truth)
             seq += 1
 
-    def render(self, seq: int, cameras=None, draw: bool = True) -> tuple[list[Frame | None], SimTruth]:
+    def render(self, seq: int, cameras=None) -> tuple[list[Frame | None], SimTruth]:
         """Render frame ``seq`` of every camera (or the camera indices in ``cameras``).
-
-        With ``draw=False`` only the ground truth is computed (no images; frames are all None).
 
         Returns
         -------
@@ -676,6 +674,15 @@ class SimRig:
             None for a dropped frame or a camera not asked for.
         truth : SimTruth
         """
+        return self._film(seq, cameras, self._render_camera)
+
+    def truth(self, seq: int) -> SimTruth:
+        """Ground truth of frame ``seq`` without drawing images (spurious highlights are left out)."""
+        return self._film(seq, None, self._see_camera)[1]
+
+    def _film(self, seq: int, cameras, film_camera) -> tuple[list[Frame | None], SimTruth]:
+        """Frame ``seq`` of the cameras ``cameras`` (None: all), each filmed by ``film_camera(state, c)``
+        (:meth:`_render_camera`, or :meth:`_see_camera` for the ground truth only)."""
         self.start()
         state = self._state(seq)
         indices = range(self.n_cameras) if cameras is None else cameras
@@ -687,16 +694,12 @@ class SimRig:
         dropped = np.zeros(n_cams, dtype=bool)
         frames: list[Frame | None] = [None] * n_cams
         for c in indices:
-            frame, vis, pix, rad, spur, drop = self._render_camera(state, c, draw)
+            frame, vis, pix, rad, spur, drop = film_camera(state, c)
             frames[c], spurious[c], dropped[c] = frame, spur, drop
             visible[c], points_2d[c], radius[c] = vis, np.where(vis[:, None], pix, np.nan), np.where(vis, rad, np.nan)
         truth = SimTruth(seq, state.t, self.markers.names, state.markers, state.contractions, state.head2world,
                          visible, points_2d, radius, tuple(spurious), dropped)
         return frames, truth
-
-    def truth(self, seq: int) -> SimTruth:
-        """Ground truth of frame ``seq`` without drawing images (spurious highlights are left out)."""
-        return self.render(seq, draw=False)[1]
 
     def camera_frame(self, seq: int, camera: int) -> Frame | None:
         """Frame ``seq`` of one camera, None when that camera drops it."""
@@ -854,21 +857,33 @@ class SimRig:
         rng = np.random.default_rng([self.seed, seq, c, 31])
         return rng.random(len(self.markers)) >= self.config.occlusion_rate
 
-    def _render_camera(self, state: _State, c: int, draw: bool = True):
+    def _see(self, state: _State, c: int):
+        """What camera ``c`` sees of ``state``, before drawing: ``(visible (n,) bool, pixels (n, 2), radii (n,),
+        dropped, background shift, rng)``; ``rng`` goes on to draw the image."""
         camera = self.cameras.cameras[c]
         config = self.config
         rng = np.random.default_rng([self.seed, state.seq, c, 29])
-        n_markers = len(self.markers)
         pixels, shift = self._project(c, state)
         marker_cam = _apply(self._world2cam[c], state.markers)
         radii = float(camera.matrix[0, 0]) * config.marker_diameter_mm / 2.0 / np.maximum(marker_cam[:, 2], 1e-6)
         if config.drop_rate > 0 and rng.random() < config.drop_rate:
-            return None, np.zeros(n_markers, bool), pixels, radii, np.zeros((0, 2)), True
+            return np.zeros(len(self.markers), bool), pixels, radii, True, shift, rng
         visible = self._visibility(c, state, pixels, marker_cam)
         if config.occlusion_rate > 0:
             visible &= self._unoccluded(state.seq, c)
-        if not draw:
-            return None, visible, pixels, radii, np.zeros((0, 2)), False
+        return visible, pixels, radii, False, shift, rng
+
+    def _see_camera(self, state: _State, c: int):
+        """:meth:`_render_camera`'s result without the image (frame None, no spurious highlights)."""
+        visible, pixels, radii, dropped, _, _ = self._see(state, c)
+        return None, visible, pixels, radii, np.zeros((0, 2)), dropped
+
+    def _render_camera(self, state: _State, c: int):
+        """``(frame or None, visible, pixels, radii, spurious (n_spurious, 2), dropped)`` of camera ``c``."""
+        visible, pixels, radii, dropped, shift, rng = self._see(state, c)
+        if dropped:
+            return None, visible, pixels, radii, np.zeros((0, 2)), True
+        camera, config = self.cameras.cameras[c], self.config
         exposure_us, gain = self._exposure[c]
         image, spurious = self._image(c, state, rng, np.flatnonzero(visible), pixels, radii, shift, (exposure_us, gain))
         t_capture = self.t0 + state.seq * self.period + self._offsets[c]
@@ -1032,6 +1047,11 @@ class SimCameraSource(SourceBase):
                                      current_gain if gain is None else gain)
 
     @property
+    def calibration(self) -> Camera:
+        """The simulated camera: the rig films with it."""
+        return self.rig.cameras.cameras[self.camera]
+
+    @property
     def capabilities(self) -> Capabilities:
         return Capabilities(size=self.rig.cameras.cameras[self.camera].size, fps=self.rig.config.fps,
                             manual_exposure=True, exposure_range_us=(10.0, 0.9e6 / self.rig.config.fps),
@@ -1040,14 +1060,18 @@ class SimCameraSource(SourceBase):
 
 
 _URL_KEYS = {"frames", "cameras", "seed", "fps", "noise", "drop", "jitter_ms", "spurious", "blur", "sync", "realtime",
-             "size", "calibration", "script", "occlusion", "occlusion_rate", "diameter_mm", "basis", "markers"}
+             "size", "calibration", "script", "occlusion", "occlusion_rate", "diameter_mm", "basis", "markers",
+             "lead_in_s"}
 
 
 def rig_from_url(url: DeviceURL | str) -> SimRig:
     """A :class:`SimRig` from ``sim://rig?cameras=4&seed=1&fps=60&noise=2&drop=0.01&jitter_ms=0.5&spurious=0.1
     &blur=1&sync=hardware|free&size=1280x800&script=mixed&occlusion=1&occlusion_rate=0.05&diameter_mm=3
-    &calibration=PATH&basis=PATH.npz&markers=PATH.toml`` (``frames`` and ``realtime`` are the sources', see
-    :func:`open_url`)."""
+    &calibration=PATH&basis=PATH.npz&markers=PATH.toml&lead_in_s=2`` (``frames`` and ``realtime`` are the
+    sources', see :func:`open_url`; ``lead_in_s``: the performer first holds a still, neutral face this long,
+    :class:`~livebridge.simulators.lead_in.LeadIn`)."""
+    from livebridge.simulators.lead_in import scripted_performer
+
     if isinstance(url, str):
         url = DeviceURL.parse(url)
     if url.netloc != "rig":
@@ -1087,8 +1111,13 @@ def rig_from_url(url: DeviceURL | str) -> SimRig:
 
         cameras = load_calibration(url.query["calibration"])
         cameras = getattr(cameras, "cameras", cameras) if not isinstance(cameras, CameraGroup) else cameras
-    return SimRig(basis, markers, cameras=cameras, n_cameras=url.take("cameras", int, 4), config=config,
-                  seed=url.take("seed", int, 0), script=url.query.get("script", "mixed"))
+    seed = url.take("seed", int, 0)
+    lead_in_s = url.take("lead_in_s", float, 0.0)
+    if lead_in_s < 0:
+        raise InputError(f"lead_in_s must be >= 0, got {lead_in_s}", url.url, "lead_in_s")
+    performer = scripted_performer(basis, markers, config.fps, seed, url.query.get("script", "mixed"), lead_in_s)
+    return SimRig(basis, markers, cameras=cameras, n_cameras=url.take("cameras", int, 4), config=config, seed=seed,
+                  performer=performer)
 
 
 def open_url(url: DeviceURL) -> list[SimCameraSource]:

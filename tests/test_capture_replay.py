@@ -159,7 +159,7 @@ def test_recorded_demo_replays_through_the_pipeline(tmp_path):
     frames = []
     pipeline = build_pipeline(load_session(session), log=lambda m: None, on_frame=frames.append)
     summary = run_until_stopped(_unpaced_capture(pipeline), log=lambda m: None)  # ends when the take does
-    assert summary["cameras_alive"] == 0 and pipeline.capture.sync.stats.framesets >= min(written.values())
+    assert summary.cameras_alive == 0 and pipeline.capture.sync.stats.framesets >= min(written.values())
     replayed = {f.seq: f.contractions for f in frames}
     common = [k for k, seq in enumerate(recorded.seq) if seq in replayed]
     assert len(common) >= 0.9 * recorded.n_frames

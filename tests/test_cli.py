@@ -42,3 +42,14 @@ def test_basis_show_renders_a_png(tmp_path, rng):
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 1000
     result = CliRunner().invoke(main, ["basis", "show", str(tmp_path / "missing.npz"), "--out", str(out)])
     assert result.exit_code != 0 and "missing.npz" in result.output
+
+
+def test_a_command_module_that_fails_to_import_is_an_error():
+    import pytest
+
+    from livebridge.cli._attach import attach
+
+    group = click.Group("test")
+    with pytest.raises(ModuleNotFoundError, match="livebridge.cli.not_written"):
+        attach(group, (("livebridge.cli.not_written", "command"),))
+    assert not group.commands

@@ -41,19 +41,19 @@ def test_demo_end_to_end_matches_ground_truth():
     finally:
         stop.set()
     score = parts.score
-    assert summary["solved"] >= 300 and score.frames >= 300
+    assert summary.solved >= 300 and score.frames >= 300
     assert score.rmse <= 0.03, score.rmse
     assert score.swaps == 0
-    assert summary["labelled_fraction"] > 0.95  # markers seen by fewer than 2 cameras are never labelled
-    assert summary["error_upper_mm"] < 0.5 and summary["error_lower_mm"] < 0.5
-    assert np.isfinite(summary["latency_p99_ms"]) and np.isfinite(summary["render_latency_p50_ms"])
+    assert summary.labelled_fraction > 0.95  # markers seen by fewer than 2 cameras are never labelled
+    assert summary.error_upper_mm < 0.5 and summary.error_lower_mm < 0.5
+    assert np.isfinite(summary.latency_p99_ms) and np.isfinite(summary.render_latency_p50_ms)
     assert received[0] == (1).to_bytes(4, "little") and len(received) > 10  # the mesh, then frames
     servo = pipeline.servo
     assert servo.frames >= 300 and not servo.faults()
 
 
 def test_lead_in_holds_a_still_neutral_face_then_performs():
-    from livebridge.runtime.demo import LeadIn
+    from livebridge.simulators.lead_in import LeadIn
     from livebridge.simulators.performer import Performer
     from livebridge.simulators.rig import default_face
 
@@ -92,4 +92,4 @@ def test_three_cameras_label_on_the_first_frame_and_follow_the_face():
                        on_frame=lambda frame: first.append(frame.seq) if not first else None)
     summary = run_until_stopped(parts.pipeline, frames=200, log=lambda m: None)
     assert first == [0]  # labelled on the neutral frame, not on a later one with an expression
-    assert summary["solved"] >= 200 and parts.score.swaps == 0 and parts.score.rmse <= 0.02, parts.score.rmse
+    assert summary.solved >= 200 and parts.score.swaps == 0 and parts.score.rmse <= 0.02, parts.score.rmse

@@ -125,9 +125,9 @@ def test_client_gets_init_mesh_then_frames(server):
         markers[2] = np.nan
         server.publish(RenderFrame(7, time.monotonic(), x, markers, (0.25, 0.5), np.array([0.0, 1.0])))
         frame = decode_frame(ws.recv(timeout=5))
-        assert frame["seq"] == 7 and np.allclose(frame["contractions"], x)
-        assert np.allclose(frame["markers"], markers, equal_nan=True)
-        assert frame["region_errors"] == (0.25, 0.5) and np.allclose(frame["servo_targets"], [0, 1])
+        assert frame.seq == 7 and np.allclose(frame.contractions, x)
+        assert np.allclose(frame.markers, markers, equal_nan=True)
+        assert frame.region_errors == (0.25, 0.5) and np.allclose(frame.servo_targets, [0, 1])
         server.publish_status({"line": "fps 60"})
         assert json.loads(ws.recv(timeout=5)) == {"type": "status", "line": "fps 60"}
     assert len(server.sent_latencies()) == 1 and 0 <= server.sent_latencies()[0] < 5
@@ -159,7 +159,7 @@ def test_a_stalled_client_never_slows_the_publisher_or_the_other_clients(rng):
             last = None
             deadline = time.monotonic() + 5
             while time.monotonic() < deadline:
-                last = decode_frame(live.recv(timeout=5))["seq"]
+                last = decode_frame(live.recv(timeout=5)).seq
                 if last == 2999:
                     break
             assert last == 2999  # the live client caught up with the newest frame
@@ -192,7 +192,7 @@ def test_100_abrupt_disconnects_leak_nothing(server):
         ws.recv(timeout=5), ws.recv(timeout=5)
         _wait(lambda: server.n_clients == 1)
         server.publish(RenderFrame(1000, time.monotonic(), np.ones(4)))
-        assert decode_frame(ws.recv(timeout=5))["seq"] == 1000
+        assert decode_frame(ws.recv(timeout=5)).seq == 1000
 
 
 def test_stop_closes_the_port_and_publish_after_stop_is_harmless(rng):

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from livebridge.runtime.demo import build_demo
-from livebridge.runtime.pipeline import NewestQueue, run_until_stopped
+from livebridge.runtime.pipeline import run_until_stopped
 from livebridge.take.directory import load_take_dir
 
 _HANDSHAKE = (
@@ -25,18 +25,11 @@ _HANDSHAKE = (
 SMALL = (640, 400)  # keeps the simulated cameras cheap on a shared CI machine
 
 
-def test_newest_queue_keeps_the_newest_and_never_blocks():
-    q = NewestQueue(2)
-    for k in range(10):
-        q.put(k)
-    assert (q.get(0), q.get(0), q.get(0)) == (8, 9, None) and q.dropped == 8
-
-
 def test_unpaced_pipeline_drops_nothing():
     parts = build_demo(size=SMALL, realtime=False, servo=False, render=False, log=lambda m: None)
     summary = run_until_stopped(parts.pipeline, frames=60, log=lambda m: None)
-    assert summary["solved"] >= 60 and summary["drops"] == 0
-    assert summary["cameras_alive"] == 4 and parts.score.rmse < 0.03
+    assert summary.solved >= 60 and summary.drops == 0
+    assert summary.cameras_alive == 4 and parts.score.rmse < 0.03
 
 
 def test_a_camera_dies_mid_take_and_the_rest_keep_going():
@@ -48,8 +41,8 @@ def test_a_camera_dies_mid_take_and_the_rest_keep_going():
     inner = dying.source  # DetectingSource -> SimCameraSource
     inner.kill_after(40)
     summary = run_until_stopped(pipeline, frames=120, log=lambda m: None)
-    assert summary["solved"] >= 120
-    assert summary["dead_cameras"] == [dying.source_id] and summary["cameras_alive"] == 3
+    assert summary.solved >= 120
+    assert summary.dead_cameras == (dying.source_id,) and summary.cameras_alive == 3
     late = [f for f in frames if f.seq > 60]
     assert late and all(f.n_cameras == 3 for f in late)
     assert np.mean([f.labelled_fraction for f in late]) > 0.9
@@ -119,8 +112,8 @@ def test_stop_goes_in_order_servos_then_recording_then_render(tmp_path):
     assert not servo.buses and servo.state is None  # torque off (deactivated) and ports released
     assert np.allclose(servo.last_targets, servo.mapper.neutral, atol=1.0)  # eased to neutral first
     take = load_take_dir(tmp_path / "take")
-    assert take.complete and take.n_frames == summary["solved"]
-    assert summary["latency_p50_ms"] > 0 and np.isfinite(summary["latency_p99_ms"])
+    assert take.complete and take.n_frames == summary.solved
+    assert summary.latency_p50_ms > 0 and np.isfinite(summary.latency_p99_ms)
 
 
 def test_run_command_on_a_simulated_session(tmp_path):
@@ -216,3 +209,36 @@ def test_demo_ctrl_c_to_the_process_group_eases_the_servos(tmp_path):
     assert process.returncode == 0, err
     assert "SIGINT: stopping" in out + err and "frame sets solved" in out
     assert "failed" not in out + err and "Traceback" not in err
+
+
+class _SteppingClock:
+    """A monotonic clock that moves ``step`` seconds each time it is read (thread-safe)."""
+
+    def __init__(self, start=1000.0, step=0.001):
+        self.now, self.step, self._lock = start, step, threading.Lock()
+
+    def __call__(self):
+        with self._lock:
+            self.now += self.step
+            return self.now
+
+
+def test_pipeline_times_every_stage_on_the_clock_it_is_given():
+    from livebridge.runtime.pipeline import Pipeline
+    from livebridge.simulators.rig import RigConfig, SimRig, default_face
+
+    basis, markers = default_face()
+    rig = SimRig(basis, markers, n_cameras=4, config=RigConfig(size=SMALL, fps=30.0), seed=1)
+    clock, frames, lines = _SteppingClock(), [], []
+    pipeline = Pipeline(rig.sources(realtime=False), rig.cameras, basis, markers, rig.period, realtime=False,
+                        log=lines.append, on_frame=frames.append, status_interval=0.05, clock=clock)
+    start = clock.now
+    summary = run_until_stopped(pipeline, frames=20, log=lambda m: None)
+    assert summary.solved >= 20 and len(frames) >= 20
+    for frame in frames:
+        t = frame.timing
+        assert start < t.complete < t.detected < t.dequeued < t.reconstructed < t.solved < t.outputs < clock.now
+    assert 0 < summary.wall_s < clock.now - start
+    assert summary.latency_p50_ms == pytest.approx(1e3 * np.median([f.timing.solved - f.timing.complete
+                                                                      for f in frames]))
+    assert any(line.startswith("fps") for line in lines)  # status lines every 0.05 s of the given clock

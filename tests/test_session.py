@@ -5,7 +5,9 @@ from __future__ import annotations
 import pytest
 
 from livebridge.errors import InputError
+from livebridge.reconstruct.pipeline import ReconstructConfig
 from livebridge.runtime.session import load_session
+from livebridge.solve.solver import SolverConfig
 
 
 def _write(tmp_path, text, name="session.toml"):
@@ -54,8 +56,8 @@ frames = 300
     assert session.basis == sub / "basis.npz" and session.markers == sub / "markers.toml"
     assert session.calibration == sub / "rig.toml" and session.servo_rig == sub / "head.toml"
     assert session.recording.directory == tmp_path / "takes" and session.recording.raw_frames
-    assert session.solver == {"mode": "joint", "exaggerate": True}
-    assert session.reconstruct == {"tolerance_px": 1.5}
+    assert session.solver == SolverConfig(mode="joint", exaggerate=True)
+    assert session.reconstruct == ReconstructConfig(tolerance_px=1.5)
     assert session.vmc.enabled and session.vmc.port == 39540 and session.vmc.case == "pascal"
     assert session.vmc.mapping == {"jaw": {"jawOpen": 1.0}}
     assert session.render.port == 0 and session.render.host == "127.0.0.1"
@@ -96,6 +98,29 @@ def test_errors_name_file_and_field(tmp_path, text, field):
         load_session(path)
     assert info.value.field == field, str(info.value)
     assert info.value.path == str(path.resolve())
+
+
+@pytest.mark.parametrize("table,tolerance", [
+    ("", ReconstructConfig().tolerance_px),
+    ("tolerance_px = 2.5\n", 2.5),
+    ("max_residual_px = 1.0\n", 1.0),
+    ("tolerance_px = 2.5\nmax_residual_px = 2.0\n", 2.0),
+    ("tolerance_px = 0.8\nmax_residual_px = 2.0\n", 0.8),
+])
+def test_the_session_holds_the_stage_configs(tmp_path, table, tolerance):
+    """One tolerance gates and rejects: the smaller of tolerance_px and max_residual_px."""
+    session = load_session(_write(tmp_path, f'[cameras]\nurls = ["sim://rig"]\n[reconstruct]\n{table}'))
+    assert session.reconstruct == ReconstructConfig(tolerance_px=tolerance)
+    assert session.solver == SolverConfig()
+
+
+def test_a_simulated_rig_films_the_session_face(tmp_path):
+    from livebridge.runtime.build import open_session_cameras
+
+    session = load_session(_write(tmp_path, '[cameras]\nurls = ["sim://rig?basis=face.npz"]\n'))
+    with pytest.raises(InputError) as info:
+        open_session_cameras(session)
+    assert info.value.field == "cameras.urls[0]" and "[face]" in info.value.message
 
 
 def test_malformed_toml_names_the_file(tmp_path):
@@ -157,5 +182,5 @@ def test_the_documented_example_session_is_valid(tmp_path):
         (tmp_path / name).write_text("")
     session = load_session(_write(tmp_path, example))
     assert session.calibration == tmp_path / "calibration.toml" and session.servo_rig == tmp_path / "head.toml"
-    assert len(session.camera_urls) == 2 and session.solver["mode"] == "split-compensated"
+    assert len(session.camera_urls) == 2 and session.solver.mode == "split-compensated"
     assert session.recording.directory == tmp_path / "takes" and not session.recording.raw_frames

@@ -7,6 +7,7 @@ import pytest
 from factories import random_basis
 from solver_factories import random_markers
 
+from livebridge.bench.solver import ReferenceSolver
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis, Muscle
 from livebridge.face.markers import MarkerSet
@@ -48,7 +49,7 @@ def test_modes_match_scipy_bvls_step_for_step(small, mode, exaggerate):
     data = observed(markers, basis, x, rng, noise=0.3, missing=0.1)
     config = SolverConfig(mode=mode, exaggerate=exaggerate)
     ours = ContractionSolver(basis, markers, config).solve_take(data)
-    reference = ContractionSolver(basis, markers, config, backend="scipy-bvls").solve_take(data)
+    reference = ReferenceSolver(basis, markers, config).solve_take(data)
     assert np.abs(ours.contractions - reference.contractions).max() <= 1e-6
     assert np.allclose(ours.rms_error_mm, reference.rms_error_mm, atol=1e-6, equal_nan=True)
     if exaggerate:
@@ -65,7 +66,7 @@ def test_ict_modes_match_scipy_step_for_step(ict, rng):
     for mode in MODES:
         config = SolverConfig(mode=mode)
         ours = ContractionSolver(ict, markers, config).solve_take(data)
-        reference = ContractionSolver(ict, markers, config, backend="scipy-bvls").solve_take(data)
+        reference = ReferenceSolver(ict, markers, config).solve_take(data)
         assert np.abs(ours.contractions - reference.contractions).max() <= 1e-6, mode
 
 
@@ -91,7 +92,7 @@ def test_a_region_with_every_marker_missing_is_held(small):
     data[20][markers.face_mask] = np.nan
     for mode in MODES:
         solver = ContractionSolver(basis, markers, SolverConfig(mode=mode))
-        reference = ContractionSolver(basis, markers, SolverConfig(mode=mode), backend="scipy-bvls")
+        reference = ReferenceSolver(basis, markers, SolverConfig(mode=mode))
         state, ref_state = solver.initial_state(), reference.initial_state()
         for i, frame in enumerate(data):
             before = state.contractions
@@ -193,7 +194,7 @@ def test_rank_deficient_basis_reaches_the_bvls_fit():
     data = observed(markers, basis, x, rng, noise=0.2, missing=0.05)
     for mode in MODES:
         ours = ContractionSolver(basis, markers, SolverConfig(mode=mode)).solve_take(data)
-        reference = ContractionSolver(basis, markers, SolverConfig(mode=mode), backend="scipy-bvls").solve_take(data)
+        reference = ReferenceSolver(basis, markers, SolverConfig(mode=mode)).solve_take(data)
         assert np.all(np.isfinite(ours.contractions)) and ours.contractions.min() >= 0 and ours.contractions.max() <= 1
         assert np.allclose(ours.rms_error_mm, reference.rms_error_mm, atol=1e-5, equal_nan=True), mode
         duplicate_sum = ours.contractions[:, 2] + ours.contractions[:, 4]
@@ -211,5 +212,5 @@ def test_every_muscle_in_one_region(rng):
     data = observed(markers, basis, smooth_contractions(20, 4, rng), rng, noise=0.1, missing=0.1)
     for mode in MODES:
         ours = ContractionSolver(basis, markers, SolverConfig(mode=mode)).solve_take(data)
-        reference = ContractionSolver(basis, markers, SolverConfig(mode=mode), backend="scipy-bvls").solve_take(data)
+        reference = ReferenceSolver(basis, markers, SolverConfig(mode=mode)).solve_take(data)
         assert np.abs(ours.contractions - reference.contractions).max() <= 1e-6, mode

@@ -267,3 +267,59 @@ def test_unpaced_in_flight_stall_guard_never_deadlocks():
         got = [capture.read(timeout=2.0) for _ in range(3)]  # the consumer never reports done
         assert all(fs is not None for fs in got)
         assert 0.15 < time.monotonic() - start < 1.5  # two stalls of ~0.1 s
+
+
+class _FakeClock:
+    """A monotonic clock the test sets."""
+
+    def __init__(self, now=100.0):
+        self.now = now
+
+    def __call__(self):
+        return self.now
+
+
+class _OneFrameCamera:
+    """A live camera that delivers one frame, taken at the injected clock's time, then nothing."""
+
+    def __init__(self, name, clock):
+        self.source_id, self.clock = name, clock
+        self.ended, self.error, self.delivered = False, None, False
+
+    def start(self):
+        pass
+
+    def stop(self):
+        self.ended = True
+
+    def read(self, timeout=None):
+        if self.delivered:
+            time.sleep(min(timeout or 0.01, 0.01))
+            return None
+        self.delivered = True
+        return Frame(IMAGE, self.clock(), 0, self.source_id, sync_domain="hw")
+
+
+def test_realtime_capture_reads_the_host_clock_it_is_given():
+    """Silent cameras are marked dead by the injected clock's time, not by the real time that passes."""
+    clock = _FakeClock()
+    cameras = [_OneFrameCamera(name, clock) for name in ("a", "b")]
+    with SyncedCapture(cameras, 1 / 60, queue_size=4, clock=clock) as capture:
+        assert capture.read(timeout=2.0).complete
+        time.sleep(0.5)  # twice dead_after_s of real time, none of the clock's
+        assert capture.sync.dead == ()
+        clock.now += 1.0
+        deadline = time.monotonic() + 2.0
+        while capture.sync.dead != ("a", "b"):
+            assert time.monotonic() < deadline, capture.sync.dead
+            time.sleep(0.01)
+
+
+def test_unpaced_in_flight_stall_guard_runs_on_the_clock_it_is_given():
+    clock = _FakeClock()
+    a = _GappyCamera("a", range(5))
+    with SyncedCapture([a], 1 / 60, queue_size=8, realtime=False, in_flight=1, stall_s=0.1, clock=clock) as capture:
+        assert capture.read(timeout=2.0) is not None  # the consumer never reports done
+        assert capture.read(timeout=0.3) is None  # the clock stands still: no stall yet
+        clock.now += 0.2
+        assert capture.read(timeout=2.0) is not None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import os
 import threading
@@ -219,9 +220,10 @@ def run_once(frames: int, rig_process: bool, log, split: tuple[set[int], set[int
 
     from livebridge.runtime.demo import build_demo
     from livebridge.runtime.pipeline import Pipeline, run_until_stopped
+    from livebridge.simulators.rig import rig_from_url
 
     parts = build_demo(realtime=False, port=0, log=lambda message: None)
-    rig, process = parts.rig, None
+    rig, process = rig_from_url(parts.session.camera_urls[0]), None  # the demo's rig (a deterministic one)
     affinity = os.sched_getaffinity(0) if split else None
     if split:
         _pin_servo_simulators(parts.pipeline.servo, split[1])
@@ -242,7 +244,7 @@ def run_once(frames: int, rig_process: bool, log, split: tuple[set[int], set[int
 
     def started(pipeline):
         if process is not None:  # the child rig must be the demo's rig
-            expected = np.stack([c.projection for c in parts.rig.cameras.cameras])
+            expected = np.stack([c.projection for c in parts.pipeline.cameras.cameras])
             if not np.allclose(process.projections, expected, rtol=1e-9, atol=1e-9):
                 raise RuntimeError("the rig process built other cameras than the demo's rig")
         url = f"ws://127.0.0.1:{pipeline.render.port}/ws"
@@ -251,7 +253,8 @@ def run_once(frames: int, rig_process: bool, log, split: tuple[set[int], set[int
 
     cpu_start, wall_start = time.process_time(), time.monotonic()
     try:
-        summary = run_until_stopped(pipeline, frames=frames, log=lambda message: None, on_start=started)
+        summary = dataclasses.asdict(run_until_stopped(pipeline, frames=frames, log=lambda message: None,
+                                                       on_start=started))
     finally:
         stop.set()
         for client in clients:

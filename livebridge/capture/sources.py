@@ -17,6 +17,9 @@ from livebridge.capture.frame import Frame
 if TYPE_CHECKING:
     from livebridge.calibration.cameras import Camera
 
+if TYPE_CHECKING:
+    from livebridge.calibration.cameras import Camera
+
 
 @dataclass(frozen=True)
 class Capabilities:

@@ -24,13 +24,14 @@ reader threads and hands out frame sets through a bounded queue that keeps the n
 from __future__ import annotations
 
 import math
-import queue
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from livebridge.capture.frame import Frame, FrameSet
+from livebridge.capture.queue import NewestQueue
 
 MAX_DELIVERY_DELAY_S = 1.0  # a live synchroniser's host clock lags by at most this much (see SyncedCapture)
 
@@ -279,12 +280,17 @@ class SyncedCapture:
     stall_s : float
         With ``in_flight``: if the consumer reports nothing for this long (a frame set lost on its way),
         the sources go on regardless, so nothing deadlocks.
+    clock : callable
+        Monotonic seconds, the host clock of ``realtime`` capture and of the ``stall_s`` timeout (tests pass
+        one they drive).
     **sync_options
         Passed to :class:`Synchronizer`.
     """
 
     def __init__(self, sources, period_s: float, queue_size: int = 2, realtime: bool = True,
-                 in_flight: int | None = None, stall_s: float = 0.5, **sync_options):
+                 in_flight: int | None = None, stall_s: float = 0.5, clock: Callable[[], float] = time.monotonic,
+                 **sync_options):
+        self.clock = clock
         self.sources = list(sources)
         self.realtime = bool(realtime)
         if in_flight is not None and (self.realtime or int(in_flight) < 1):
@@ -293,7 +299,7 @@ class SyncedCapture:
         self.stall_s = float(stall_s)
         self.sync = Synchronizer([s.source_id for s in self.sources], period_s, **sync_options)
         self._lock = threading.Lock()
-        self._queue: queue.Queue[FrameSet] = queue.Queue(maxsize=queue_size)
+        self._queue: NewestQueue[FrameSet] = NewestQueue(queue_size)
         self._threads: list[threading.Thread] = []
         self._running = threading.Event()
         self._delays: deque[tuple[float, float]] = deque(maxlen=1024)  # (arrival, arrival - t_capture)
@@ -302,8 +308,7 @@ class SyncedCapture:
         self._read_t = [-math.inf] * len(self.sources)
         self._live = [True] * len(self.sources)
         self._done_t = -math.inf  # unpaced with in_flight: time of the newest frame set the consumer finished
-        self._done_at = time.monotonic()
-        self.dropped_framesets = 0
+        self._done_at = self.clock()
 
     @property
     def events(self) -> list[str]:
@@ -314,7 +319,7 @@ class SyncedCapture:
     def delivery_delay(self) -> float:
         """Recent largest delay from mid-exposure to a frame reaching the synchroniser, seconds (0 unknown)."""
         with self._lock:
-            return self._delivery_delay(time.monotonic())
+            return self._delivery_delay(self.clock())
 
     def start(self) -> None:
         self._running.set()
@@ -348,38 +353,26 @@ class SyncedCapture:
         self.stop()
 
     def read(self, timeout: float | None = None) -> FrameSet | None:
-        try:
-            return self._queue.get(timeout=timeout)
-        except queue.Empty:
-            return None
+        return self._queue.get(timeout)
+
+    @property
+    def dropped_framesets(self) -> int:
+        """Ready frame sets dropped because the consumer had not taken the older ones (live only)."""
+        return self._queue.dropped
 
     def done(self, t: float) -> None:
         """The consumer finished (or gave up on) the frame set of time ``t`` (see ``in_flight``)."""
         with self._step:
             self._done_t = max(self._done_t, float(t))
-            self._done_at = time.monotonic()
+            self._done_at = self.clock()
             self._step.notify_all()
 
     def _offer(self, framesets: list[FrameSet]) -> None:
         for frameset in framesets:
-            if not self.realtime:  # unpaced sources can wait: hand out every frame set
-                while self._running.is_set():
-                    try:
-                        self._queue.put(frameset, timeout=0.05)
-                        break
-                    except queue.Full:
-                        continue
-                continue
-            while True:
-                try:
-                    self._queue.put_nowait(frameset)
-                    break
-                except queue.Full:
-                    try:
-                        self._queue.get_nowait()
-                        self.dropped_framesets += 1
-                    except queue.Empty:
-                        pass
+            if self.realtime:
+                self._queue.put(frameset)
+            else:  # unpaced sources can wait: hand out every frame set
+                self._queue.put_waiting(frameset, self._running.is_set)
 
     def _delivery_delay(self, now: float) -> float:
         """Largest delivery delay of the frames that arrived in the last second (call with the lock held)."""
@@ -393,7 +386,7 @@ class SyncedCapture:
         """Advance the synchroniser to host time (minus the delivery delay); frame time only when unpaced."""
         if not self.realtime or self._first_arrival is None:  # host time means nothing before the first frame
             return self.sync.poll(-math.inf)
-        now = time.monotonic()
+        now = self.clock()
         return self.sync.poll(now - self._delivery_delay(now))
 
     def _may_read(self, k: int) -> bool:
@@ -408,8 +401,8 @@ class SyncedCapture:
         ahead = (self.in_flight - 1) * self.sync.period_s + tolerance
         if self._read_t[k] <= self._done_t + ahead:
             return True
-        if time.monotonic() - self._done_at > self.stall_s:  # nothing came back: do not deadlock
-            self._done_t, self._done_at = self._read_t[k] - ahead, time.monotonic()
+        if self.clock() - self._done_at > self.stall_s:  # nothing came back: do not deadlock
+            self._done_t, self._done_at = self._read_t[k] - ahead, self.clock()
             return True
         return False
 
@@ -439,7 +432,7 @@ class SyncedCapture:
                 with self._step:
                     self._read_t[k] = frame.t_capture
                     self._step.notify_all()
-            arrival = time.monotonic()
+            arrival = self.clock()
             with self._lock:
                 if self._first_arrival is None:
                     self._first_arrival = arrival

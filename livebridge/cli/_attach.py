@@ -8,12 +8,9 @@ import click
 
 
 def attach(group: click.Group, commands: tuple[tuple[str, str], ...]) -> None:
-    """Add each ``(module, attribute)`` command to ``group``; modules not written yet are skipped."""
+    """Add each ``(module, attribute)`` command to ``group``.
+
+    A module that fails to import is an error, not a command quietly missing from ``--help``.
+    """
     for module_name, attribute in commands:
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as error:
-            if error.name != module_name:
-                raise
-            continue
-        group.add_command(getattr(module, attribute))
+        group.add_command(getattr(importlib.import_module(module_name), attribute))

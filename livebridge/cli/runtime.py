@@ -11,15 +11,15 @@ def _log(message: str) -> None:
     click.echo(message, err=True)
 
 
-def _print_summary(summary: dict, score=None) -> None:
-    click.echo(f"frame sets solved: {summary['solved']} ({summary['framesets']} reconstructed), "
-               f"{summary['fps']:.1f} per second, {summary['drops']} dropped")
-    click.echo(f"latency (frame set complete -> servo bytes written): p50 {summary['latency_p50_ms']:.2f} ms, "
-               f"p99 {summary['latency_p99_ms']:.2f} ms; render message sent: p50 "
-               f"{summary['render_latency_p50_ms']:.2f} ms, p99 {summary['render_latency_p99_ms']:.2f} ms")
-    click.echo(f"labelled markers {100 * summary['labelled_fraction']:.2f}%, marker error upper "
-               f"{summary['error_upper_mm']:.3f} mm, lower {summary['error_lower_mm']:.3f} mm; "
-               f"cameras alive {summary['cameras_alive']}/{summary['cameras']}")
+def _print_summary(summary, score=None) -> None:
+    click.echo(f"frame sets solved: {summary.solved} ({summary.framesets} reconstructed), "
+               f"{summary.fps:.1f} per second, {summary.drops} dropped")
+    click.echo(f"latency (frame set complete -> servo bytes written): p50 {summary.latency_p50_ms:.2f} ms, "
+               f"p99 {summary.latency_p99_ms:.2f} ms; render message sent: p50 "
+               f"{summary.render_latency_p50_ms:.2f} ms, p99 {summary.render_latency_p99_ms:.2f} ms")
+    click.echo(f"labelled markers {100 * summary.labelled_fraction:.2f}%, marker error upper "
+               f"{summary.error_upper_mm:.3f} mm, lower {summary.error_lower_mm:.3f} mm; "
+               f"cameras alive {summary.cameras_alive}/{summary.cameras}")
     if score is not None:
         click.echo(f"contraction RMSE vs ground truth: {score.rmse:.4f} (worst {score.worst_abs:.3f}), "
                    f"label swaps: {score.swaps}")

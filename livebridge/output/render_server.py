@@ -124,18 +124,41 @@ def encode_frame(frame: RenderFrame, n_markers: int, n_servos: int, latency_ms: 
                      servos.tobytes()))
 
 
-def decode_frame(data: bytes) -> dict:
+@dataclass(frozen=True, eq=False)
+class FrameMessage:
+    """A frame message as a client receives it (:func:`decode_frame`; float32 arrays).
+
+    Attributes
+    ----------
+    seq : int
+        Frame-set sequence number (low 32 bits).
+    region_errors : tuple of float
+        RMS marker error of the (upper, lower) face solve, mm.
+    latency_ms : float
+        Frame set complete -> handed to this client's socket.
+    contractions : ndarray, shape (n_muscles,)
+    markers : ndarray, shape (n_markers, 3)
+        NaN rows unseen.
+    servo_targets : ndarray, shape (n_servos,)
+    """
+
+    seq: int
+    region_errors: tuple[float, float]
+    latency_ms: float
+    contractions: np.ndarray
+    markers: np.ndarray
+    servo_targets: np.ndarray
+
+
+def decode_frame(data: bytes) -> FrameMessage:
     """Inverse of :func:`encode_frame` (for tests and tools)."""
     kind, seq, m, n, s = np.frombuffer(data, "<u4", 5)
     if kind != FRAME_KIND:
         raise ValueError(f"not a frame message (kind {kind})")
     floats = np.frombuffer(data, "<f4", offset=20)
-    return {
-        "seq": int(seq), "region_errors": (float(floats[0]), float(floats[1])), "latency_ms": float(floats[2]),
-        "contractions": floats[3:3 + m].copy(),
-        "markers": floats[3 + m:3 + m + 3 * n].reshape(n, 3).copy(),
-        "servo_targets": floats[3 + m + 3 * n:3 + m + 3 * n + s].copy(),
-    }
+    return FrameMessage(int(seq), (float(floats[0]), float(floats[1])), float(floats[2]), floats[3:3 + m].copy(),
+                        floats[3 + m:3 + m + 3 * n].reshape(n, 3).copy(),
+                        floats[3 + m + 3 * n:3 + m + 3 * n + s].copy())
 
 
 class _Client:
@@ -280,9 +303,6 @@ class RenderServer:
     def sent_latencies(self) -> np.ndarray:
         """Seconds from each frame's ``t_ref`` to its first hand-over to a client socket, shape (n,)."""
         return np.array(self._latencies, dtype=np.float64)
-
-    def reset_latencies(self) -> None:
-        self._latencies.clear()
 
     def _call_soon(self, callback) -> None:
         loop = self._loop

@@ -24,13 +24,17 @@ call (warm it up before the cameras start).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
-from livebridge.calibration.cameras import CameraGroup
+from livebridge.calibration.cameras import Camera, CameraGroup
+from livebridge.capture.sources import SourceWrapper
 
 
 @dataclass(frozen=True)
@@ -578,4 +582,86 @@ def detect_markers(images: Sequence[np.ndarray], cameras: CameraGroup,
     """
     if len(images) != len(cameras):
         raise ValueError(f"got {len(images)} images for {len(cameras)} cameras")
-    return [camera.undistort_points(detect_blobs(image, config)) for camera, image in zip(cameras.cameras, images)]
+    return [detect_undistorted(image, camera, config) for camera, image in zip(cameras.cameras, images)]
+
+
+def detect_undistorted(image: np.ndarray, camera: Camera, config: DetectConfig = DetectConfig()) -> np.ndarray:
+    """Undistorted marker centroids in one camera's image, shape (n_blobs, 2) (:func:`detect_blobs`, then
+    ``camera.undistort_points``)."""
+    return camera.undistort_points(detect_blobs(image, config))
+
+
+@dataclass(frozen=True, eq=False)
+class Detection:
+    """The markers detected in one frame, and when.
+
+    Attributes
+    ----------
+    points_2d : ndarray, shape (n_blobs, 2)
+        Undistorted centroids.
+    arrived : float
+        The frame reached the host (its source's ``read`` returned it), monotonic seconds.
+    detected : float
+        Its detection finished, monotonic seconds.
+    """
+
+    points_2d: np.ndarray
+    arrived: float
+    detected: float
+
+
+class DetectingSource(SourceWrapper):
+    """A camera source that detects its markers on its own reader thread.
+
+    Wraps any :class:`~livebridge.capture.sources.CameraSource`; ``read`` returns the frame as the inner
+    source does, after storing its :class:`Detection`, which the reconstruct stage looks up with
+    :meth:`result`.
+
+    Parameters
+    ----------
+    source : CameraSource
+    camera : Camera
+        The source's calibration (detections are undistorted with it).
+    config : DetectConfig
+    keep : int
+        Detections kept for :meth:`result` (the newest).
+    clock : callable
+        Monotonic seconds (the pipeline's clock).
+    """
+
+    def __init__(self, source, camera: Camera, config: DetectConfig = DetectConfig(), keep: int = 64,
+                 clock: Callable[[], float] = time.monotonic):
+        super().__init__(source)
+        self._camera, self._config = camera, config
+        self._clock = clock
+        self._results: dict[int, Detection] = {}
+        self._order: deque[int] = deque()
+        self._keep = keep
+        self._lock = threading.Lock()
+        self.cpu_s = 0.0
+        self.frames = 0
+
+    def read(self, timeout: float | None = None):
+        frame = self.source.read(timeout)
+        if frame is None:
+            return None
+        arrived = self._clock()
+        cpu = time.thread_time()
+        points = detect_undistorted(frame.image, self._camera, self._config)
+        self.cpu_s += time.thread_time() - cpu
+        self.frames += 1
+        with self._lock:
+            self._results[frame.seq] = Detection(points, arrived, self._clock())
+            self._order.append(frame.seq)
+            while len(self._order) > self._keep:
+                self._results.pop(self._order.popleft(), None)
+        return frame
+
+    def result(self, frame) -> Detection:
+        """The :class:`Detection` of a frame this source returned."""
+        with self._lock:
+            found = self._results.get(frame.seq)
+        if found is not None:
+            return found
+        now = self._clock()  # not seen by read (should not happen): detect here
+        return Detection(detect_undistorted(frame.image, self._camera, self._config), now, self._clock())

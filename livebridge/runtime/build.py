@@ -15,14 +15,11 @@ from livebridge.errors import InputError
 from livebridge.runtime.session import Session
 
 
-def load_face(session: Session, rig=None):
-    """The session's basis and marker set (a simulated rig's own face when the session names none)."""
+def load_face(session: Session):
+    """The session's basis and marker set (``builtin`` / ``ict`` or files; a simulated rig films this face)."""
     from livebridge.face.basis import Basis
     from livebridge.face.markers import MarkerSet
 
-    explicit_basis = session.path is not None and session.basis != "builtin"
-    if rig is not None and not explicit_basis and session.markers is None:
-        return rig.basis, rig.markers
     if session.basis == "builtin":
         from livebridge.face.builtin import builtin_basis
 
@@ -60,10 +57,11 @@ def _load_calibration(path: Path):
     return load_calibration(path)
 
 
-def _session_url(url: str, session: Session) -> str:
+def _session_url(url: str, session: Session, k: int) -> str:
     """A camera URL as the session means it: a relative ``replay://`` path is relative to the session file,
-    and a simulated rig films with the session's calibrated cameras unless its URL names a calibration."""
-    from urllib.parse import quote, urlsplit
+    and a simulated rig films the session's face (``[face]`` files) with the session's calibrated cameras
+    (unless its URL names a calibration)."""
+    from urllib.parse import parse_qs, quote, urlsplit
 
     parts = urlsplit(url)
     scheme = parts.scheme.lower()
@@ -72,31 +70,29 @@ def _session_url(url: str, session: Session) -> str:
         if path and not Path(path).is_absolute():
             resolved = (session.path.parent / path).resolve()
             return f"replay://{resolved}" + (f"?{parts.query}" if parts.query else "")
-    if scheme == "sim" and session.calibration is not None and "calibration=" not in parts.query:
-        joiner = "&" if parts.query else "?"
-        return url + f"{joiner}calibration={quote(str(session.calibration), safe='/')}"
-    return url
+    if scheme != "sim":
+        return url
+    query = parse_qs(parts.query)
+    named = [key for key in ("basis", "markers") if key in query]
+    if named:
+        raise InputError(f"the simulated rig films the session's face: name its {named[0]} in [face], "
+                         f"not in the camera URL", session.path, f"cameras.urls[{k}]")
+    options = [(key, value) for key, value in (("basis", session.basis), ("markers", session.markers))
+               if isinstance(value, Path)]
+    if session.calibration is not None and "calibration" not in query:
+        options.append(("calibration", session.calibration))
+    if not options:
+        return url
+    joiner = "&" if parts.query else "?"
+    return url + joiner + "&".join(f"{key}={quote(str(value), safe='/')}" for key, value in options)
 
 
-def _recorded_calibration(sources) -> Path | None:
-    """The calibration a recorded take was made with, when every source replays the same take directory."""
-    from livebridge.take.replay import ReplaySource
+def open_session_cameras(session: Session):
+    """Open every camera URL; returns ``(sources, cameras (CameraGroup), realtime)``.
 
-    folders = {getattr(s, "folder", None) for s in sources}
-    if not sources or not all(isinstance(s, ReplaySource) for s in sources) or len(folders) != 1:
-        return None
-    folder = next(iter(folders))
-    for take in (folder, folder.parent):
-        if (take / "take.toml").is_file() and (take / "calibration.toml").is_file():
-            return take / "calibration.toml"
-    return None
-
-
-def open_cameras(session: Session, log=None):
-    """Open every camera URL; returns ``(sources, cameras (CameraGroup), sim rig or None, realtime)``.
-
-    Cameras are matched to the session's calibration by name. Without a calibration file, a simulated rig
-    uses its own cameras, and replays of one recorded take directory use the calibration recorded with it.
+    Cameras are matched to the session's calibration by name. Without a calibration file, each camera must
+    know its own (:attr:`~livebridge.capture.sources.CameraSource.calibration`: a simulated rig's cameras,
+    the calibration recorded with a take).
     """
     from livebridge.calibration.cameras import CameraGroup
     from livebridge.devices.registry import open_cameras
@@ -105,57 +101,54 @@ def open_cameras(session: Session, log=None):
     sources = []
     for k, url in enumerate(session.camera_urls):
         try:
-            sources += open_cameras(_session_url(url, session))
+            sources += open_cameras(_session_url(url, session, k))
         except InputError as error:
             inner = error.message if error.path in (None, url) and error.field is None else str(error)
             raise InputError(f"{url}: {inner}", session.path, f"cameras.urls[{k}]") from None
-    rigs = {id(s.rig): s.rig for s in sources if hasattr(s, "rig")}
-    rig = next(iter(rigs.values())) if len(rigs) == 1 and all(hasattr(s, "rig") for s in sources) else None
-    calibration, field = session.calibration, "calibration"
-    if calibration is None and rig is None:
-        calibration = _recorded_calibration(sources)
-        field = "cameras.urls"
-        if calibration is not None and log is not None:
-            log(f"using the calibration recorded with the take: {calibration}")
-    if calibration is not None:
-        cameras = calibrated if calibrated is not None else _load_calibration(calibration)
-        by_name = {c.name: c for c in cameras.cameras}
+    if calibrated is not None:
+        by_name = {c.name: c for c in calibrated.cameras}
         missing = [s.source_id for s in sources if s.source_id not in by_name]
         if missing:
-            raise InputError(f"no calibration for camera {missing[0]!r} in {calibration}; calibrated: "
-                             f"{', '.join(by_name)}", session.path, field)
+            raise InputError(f"no calibration for camera {missing[0]!r} in {session.calibration}; calibrated: "
+                             f"{', '.join(by_name)}", session.path, "calibration")
         cameras = CameraGroup([by_name[s.source_id] for s in sources])
-    elif rig is not None:
-        cameras = rig.cameras
     else:
-        raise InputError("these cameras need a calibration file", session.path, "calibration")
+        own = [s.calibration for s in sources]
+        if any(camera is None for camera in own):
+            raise InputError("these cameras need a calibration file", session.path, "calibration")
+        cameras = CameraGroup(own)
     realtime = all(getattr(s, "realtime", True) for s in sources)
-    return sources, cameras, rig, realtime
+    return sources, cameras, realtime
+
+
+def _servo_rig(session: Session, muscle_names):
+    """The session's servo rig: read from its file (checked against the face's muscles), or made in code."""
+    from livebridge.servo.rig import load_rig
+
+    if isinstance(session.servo_rig, Path):
+        return load_rig(session.servo_rig, muscle_names)
+    return session.servo_rig
 
 
 def build_pipeline(session: Session, log=print, on_frame=None):
-    """The pipeline a session describes, with every output opened (see the module docstring)."""
-    from livebridge.reconstruct.pipeline import ReconstructConfig
-    from livebridge.runtime.pipeline import Pipeline
-    from livebridge.solve.solver import SolverConfig
+    """The pipeline a session describes, with every output opened (see the module docstring).
 
-    sources, cameras, rig, realtime = open_cameras(session, log)
-    basis, markers = load_face(session, rig)
-    options = dict(session.reconstruct)
-    if "max_residual_px" in options:  # the reconstructor uses one tolerance for gating and residuals
-        options["tolerance_px"] = min(options.get("tolerance_px", options["max_residual_px"]),
-                                      options.pop("max_residual_px"))
-    reconstruct_config = ReconstructConfig(**options)
-    solver_config = SolverConfig(**session.solver)
-    period = 1.0 / (rig.config.fps if rig is not None else _fps(sources))
+    ``on_frame`` is called on the outputs thread with every solved frame (see
+    :class:`~livebridge.runtime.pipeline.Pipeline`).
+    """
+    from livebridge.runtime.pipeline import Pipeline
+
+    sources, cameras, realtime = open_session_cameras(session)
+    basis, markers = load_face(session)
+    fps = _fps(sources)
+    period = 1.0 / fps
     opened = []
     try:
         servo = None
         if session.servo_rig is not None:
             from livebridge.servo.output import ServoOutput
-            from livebridge.servo.rig import load_rig
 
-            servo = ServoOutput(load_rig(session.servo_rig, basis.names), basis.names, log=log, poll_every=15)
+            servo = ServoOutput(_servo_rig(session, basis.names), basis.names, log=log, poll_every=15)
             servo.configure()
             opened.append(lambda: servo.close(ease=False))
         render = None
@@ -178,15 +171,15 @@ def build_pipeline(session: Session, log=print, on_frame=None):
         if session.recording.enabled:
             from livebridge.take.recorder import TakeRecorder
 
-            stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
-            directory = session.recording.directory / f"take-{stamp}"
+            name = session.recording.take_name or f"take-{datetime.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+            directory = session.recording.directory / name
             recorder = TakeRecorder(directory, basis.names, markers.names, session.path, session.calibration,
-                                    fps=1.0 / period, record_frames=session.recording.raw_frames, cameras=cameras,
+                                    fps=fps, record_frames=session.recording.raw_frames, cameras=cameras,
                                     lossless_frames=not realtime, frame_format=session.recording.frame_format)
             opened.append(recorder.close)
             sources = recorder.wrap_sources(sources)
             log(f"recording to {directory}" + (" (with raw frames)" if session.recording.raw_frames else ""))
-        return Pipeline(sources, cameras, basis, markers, period, reconstruct_config, solver_config, servo=servo,
+        return Pipeline(sources, cameras, basis, markers, period, session.reconstruct, session.solver, servo=servo,
                         render=render, vmc=vmc, recorder=recorder, sync_tolerance=session.sync_tolerance,
                         realtime=realtime, log=log, on_frame=on_frame, status_interval=session.status_interval)
     except BaseException:

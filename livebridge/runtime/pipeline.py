@@ -35,17 +35,16 @@ off, the recording is flushed and closed, then the render server and VMC socket 
 from __future__ import annotations
 
 import math
-import queue
 import signal
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from livebridge.capture.sources import SourceWrapper
+from livebridge.capture.queue import NewestQueue
 from livebridge.capture.sync import SyncedCapture
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
@@ -119,41 +118,82 @@ class SolvedFrame:
     n_cameras: int
 
 
-class NewestQueue:
-    """A bounded queue that keeps the newest items: ``put`` never blocks, it drops the oldest.
+@dataclass(frozen=True, eq=False)
+class OutputWork:
+    """What the reconstruct stage hands the outputs stage for one frame set.
 
-    With ``wait_until`` (an event: unpaced pipelines, where sources wait for the consumer anyway) ``put``
-    instead waits for room, so nothing is dropped, until that event is set.
+    Attributes
+    ----------
+    frame : SolvedFrame
+    servo_targets : ndarray, shape (n_servos,) or None
+        The servo targets written, scaled to [0, 1] between each servo's limits (None without servos).
+    poll_servos : bool
+        The outputs stage reads the servos' status back after this frame set.
     """
 
-    def __init__(self, maxsize: int = 1, wait_until: threading.Event | None = None):
-        self._queue: queue.Queue = queue.Queue(maxsize=maxsize)
-        self._wait_until = wait_until
-        self.dropped = 0
+    frame: SolvedFrame
+    servo_targets: np.ndarray | None
+    poll_servos: bool
 
-    def put(self, item) -> None:
-        while self._wait_until is not None and not self._wait_until.is_set():
-            try:
-                self._queue.put(item, timeout=0.05)
-                return
-            except queue.Full:
-                continue
-        while True:
-            try:
-                self._queue.put_nowait(item)
-                return
-            except queue.Full:
-                try:
-                    self._queue.get_nowait()
-                    self.dropped += 1
-                except queue.Empty:
-                    pass
 
-    def get(self, timeout: float | None = None):
-        try:
-            return self._queue.get(timeout=timeout)
-        except queue.Empty:
-            return None
+@dataclass(frozen=True)
+class PipelineSummary:
+    """Figures of a run (:meth:`Pipeline.summary`); latencies in ms, NaN when nothing was measured.
+
+    Attributes
+    ----------
+    framesets, solved : int
+        Frame sets reconstructed; solved (their outputs done).
+    fps : float
+        Solved frame sets per second.
+    drops : int
+        Frame sets dropped between stages.
+    camera_frame_drops : int
+        Frame sets missing a live camera's frame.
+    latency_p50_ms, latency_p99_ms, latency_max_ms : float
+        Frame set complete -> servo bytes written (without servos: -> solved).
+    solve_latency_p50_ms, solve_latency_p99_ms : float
+        Frame set complete -> solved.
+    render_latency_p50_ms, render_latency_p99_ms : float
+        Frame set complete -> render message handed to a client socket.
+    labelled_fraction : float
+    error_upper_mm, error_lower_mm : float
+        Mean RMS marker error per region.
+    cameras, cameras_alive : int
+    dead_cameras : tuple of str
+    cpu_per_frameset_ms : float
+        Process CPU time per solved frame set.
+    pipeline_cpu_per_frameset_ms, detect_cpu_per_frameset_ms, reconstruct_solve_cpu_per_frameset_ms,
+    outputs_cpu_per_frameset_ms : float
+        CPU time of the pipeline's own threads (all; detection; reconstruct and solve; outputs).
+    wall_s : float
+        Seconds since the start.
+    """
+
+    framesets: int
+    solved: int
+    fps: float
+    drops: int
+    camera_frame_drops: int
+    latency_p50_ms: float
+    latency_p99_ms: float
+    latency_max_ms: float
+    solve_latency_p50_ms: float
+    solve_latency_p99_ms: float
+    render_latency_p50_ms: float
+    render_latency_p99_ms: float
+    labelled_fraction: float
+    error_upper_mm: float
+    error_lower_mm: float
+    cameras: int
+    cameras_alive: int
+    dead_cameras: tuple[str, ...]
+    cpu_per_frameset_ms: float
+    pipeline_cpu_per_frameset_ms: float
+    detect_cpu_per_frameset_ms: float
+    reconstruct_solve_cpu_per_frameset_ms: float
+    outputs_cpu_per_frameset_ms: float
+    wall_s: float
 
 
 class GarbageCollection:
@@ -228,50 +268,6 @@ class SwitchInterval:
             self._previous = None
 
 
-class DetectingSource(SourceWrapper):
-    """A camera source that detects its markers on its own reader thread.
-
-    Wraps any :class:`~livebridge.capture.sources.CameraSource`; ``read`` returns the frame as the
-    inner source does, after storing the frame's undistorted centroids and its arrival time, which
-    the reconstruct stage looks up by ``(source_id, seq)``.
-    """
-
-    def __init__(self, source, detect: Callable[[np.ndarray], np.ndarray], keep: int = 64):
-        super().__init__(source)
-        self._detect = detect
-        self._results: dict[int, tuple[np.ndarray, float, float]] = {}
-        self._order: deque[int] = deque()
-        self._keep = keep
-        self._lock = threading.Lock()
-        self.cpu_s = 0.0
-        self.frames = 0
-
-    def read(self, timeout: float | None = None):
-        frame = self.source.read(timeout)
-        if frame is None:
-            return None
-        arrived = time.monotonic()
-        cpu = time.thread_time()
-        points = self._detect(frame.image)
-        self.cpu_s += time.thread_time() - cpu
-        self.frames += 1
-        with self._lock:
-            self._results[frame.seq] = (points, arrived, time.monotonic())
-            self._order.append(frame.seq)
-            while len(self._order) > self._keep:
-                self._results.pop(self._order.popleft(), None)
-        return frame
-
-    def result(self, frame) -> tuple[np.ndarray, float, float]:
-        """``(points_2d (n, 2), arrival time, detection done time)`` of a frame this source returned."""
-        with self._lock:
-            found = self._results.get(frame.seq)
-        if found is not None:
-            return found
-        now = time.monotonic()  # not seen by read (should not happen): detect here
-        return self._detect(frame.image), now, time.monotonic()
-
-
 def _percentile(values, q) -> float:
     values = np.asarray(values, dtype=np.float64)
     values = values[np.isfinite(values)]
@@ -341,30 +337,27 @@ class Pipeline:
                  reconstruct_config=None, solver_config=None, servo=None, render=None, vmc=None, recorder=None,
                  sync_tolerance: float = 0.5, realtime: bool = True, log: Callable[[str], None] | None = None,
                  on_frame: Callable[[SolvedFrame], None] | None = None, status_interval: float = 1.0,
-                 unpaced_in_flight: int | None = 1):
-        from livebridge.reconstruct.detect import DetectConfig, detect_blobs
+                 unpaced_in_flight: int | None = 1, clock: Callable[[], float] = time.monotonic):
+        from livebridge.reconstruct.detect import DetectingSource
         from livebridge.reconstruct.pipeline import ReconstructConfig, Reconstructor
         from livebridge.solve.solver import SolverConfig
 
+        self.clock = clock
         self.cameras = cameras
         self.basis, self.markers = basis, markers
         self.period_s = float(period_s)
         self.reconstruct_config = reconstruct_config or ReconstructConfig()
         self.solver_config = solver_config or SolverConfig()
         self.reconstructor = Reconstructor(cameras, markers, basis, self.reconstruct_config)
-        detect_config = self.reconstruct_config.detect if hasattr(self.reconstruct_config, "detect") \
-            else DetectConfig()
+        detect_config = self.reconstruct_config.detect
         if len(sources) != len(cameras):
             raise ValueError(f"{len(sources)} camera sources for {len(cameras)} calibrated cameras")
-        self.sources = [
-            DetectingSource(source, lambda image, camera=camera: camera.undistort_points(
-                detect_blobs(image, detect_config)))
-            for source, camera in zip(sources, cameras.cameras)
-        ]
+        self.sources = [DetectingSource(source, camera, detect_config, clock=clock)
+                        for source, camera in zip(sources, cameras.cameras)]
         self.realtime = bool(realtime)
         self.capture = SyncedCapture(self.sources, self.period_s, queue_size=1, realtime=self.realtime,
                                      tolerance_s=sync_tolerance * self.period_s,
-                                     in_flight=None if self.realtime else unpaced_in_flight)
+                                     in_flight=None if self.realtime else unpaced_in_flight, clock=clock)
         self.servo, self.render, self.vmc, self.recorder = servo, render, vmc, recorder
         self.log = log or (lambda message: None)
         self.on_frame = on_frame
@@ -372,8 +365,7 @@ class Pipeline:
         self.stats = PipelineStats()
         self._stop = threading.Event()
         self._outputs_gone = threading.Event()  # unpaced: the reconstruct thread waits for the outputs until then
-        self._queue = NewestQueue(1, wait_until=None if realtime else self._outputs_gone)
-        self._finished = threading.Event()
+        self._queue: NewestQueue[OutputWork | None] = NewestQueue(1)
         self._ended = threading.Event()
         self._threads: list[threading.Thread] = []
         self._solver = None
@@ -388,6 +380,11 @@ class Pipeline:
         self._garbage = GarbageCollection()
         self._switching = SwitchInterval()
         self._warm_up(detect_config)
+
+    def _hand_over(self, work: OutputWork | None) -> None:
+        """To the outputs stage (None: the end); unpaced, waiting for room while the outputs stage runs."""
+        if self.realtime or not self._queue.put_waiting(work, lambda: not self._outputs_gone.is_set()):
+            self._queue.put(work)
 
     def _warm_up(self, detect_config) -> None:
         """Run every compiled per-frame kernel once, before any camera starts.
@@ -424,8 +421,8 @@ class Pipeline:
             self.servo.activate()
             low, high = self.servo.mapper.low, self.servo.mapper.high
             self._servo_scale = (low, np.where(high != low, high - low, 1.0))
-        self._cpu_start, self._wall_start = time.process_time(), time.monotonic()
-        self._next_status = time.monotonic() + self.status_interval
+        self._cpu_start, self._wall_start = time.process_time(), self.clock()
+        self._next_status = self.clock() + self.status_interval
         self._garbage.start()
         self._switching.start()
         self.capture.start()
@@ -444,16 +441,12 @@ class Pipeline:
                 self.log(f"pipeline stage failed: {type(error).__name__}: {error}")
                 self._stop.set()
                 self._ended.set()
-                self._queue.put(None)
+                self._hand_over(None)
         return run
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait until the pipeline ends by itself (every camera ended, or a stage failed)."""
         return self._ended.wait(timeout)
-
-    @property
-    def running(self) -> bool:
-        return bool(self._threads) and not self._finished.is_set()
 
     def stop(self) -> None:
         """Shut down in order: cameras, stages, servos (ease to neutral, torque off), recorder, render, VMC."""
@@ -479,7 +472,6 @@ class Pipeline:
             self.vmc.close()
         self._garbage.stop()
         self._switching.stop()
-        self._finished.set()
 
     def __enter__(self) -> Pipeline:
         return self.start()
@@ -499,16 +491,16 @@ class Pipeline:
                     break
                 continue
             t0 = time.thread_time()
-            dequeued = time.monotonic()
+            dequeued = self.clock()
             points_2d, complete, detected = [], -math.inf, -math.inf
             present = 0
             for source, frame in zip(self.sources, frameset.frames):
                 if frame is None:
                     points_2d.append(np.zeros((0, 2)))
                     continue
-                points, arrived, done = source.result(frame)
-                points_2d.append(points)
-                complete, detected = max(complete, arrived), max(detected, done)
+                detection = source.result(frame)
+                points_2d.append(detection.points_2d)
+                complete, detected = max(complete, detection.arrived), max(detected, detection.detected)
                 present += 1
             seq = next(f.seq for f in frameset.frames if f is not None)
             if not state.labelled and present < len(self.sources) - len(self.capture.sync.dead):
@@ -517,7 +509,7 @@ class Pipeline:
             state, labelled = self.reconstructor.step(state, points_2d, frameset.t)
             if not state.labelled:
                 self.stats.unlabelled_attempts += 1
-            reconstructed = time.monotonic()
+            reconstructed = self.clock()
             if self._solver is None and state.alignment is not None:
                 from livebridge.solve.solver import ContractionSolver
 
@@ -529,24 +521,24 @@ class Pipeline:
                 self._frameset_done(frameset.t)
                 continue  # not labelled yet (the first frames must show the neutral face)
             self._solver_state, result = self._solver.step(self._solver_state, labelled.displacements)
-            solved = time.monotonic()
+            solved = self.clock()
             t_servo, servo_targets = math.nan, None
             poll_servos = False
             if self.servo is not None:  # the servos first, on this thread: no queue hop before the bytes go out
                 poll_servos = self.servo.frames % self.servo.poll_every == 0
                 self.servo.send(result.contractions, complete, poll=False)
-                t_servo = time.monotonic()
+                t_servo = self.clock()
                 low, span = self._servo_scale
                 servo_targets = (np.asarray(self.servo.last_targets, dtype=np.float64) - low) / span
             timing = FrameTiming(frameset.t, complete, detected, dequeued, reconstructed, solved, t_servo)
-            self._queue.put((SolvedFrame(
+            self._hand_over(OutputWork(SolvedFrame(
                 seq, frameset.index, timing, result.contractions, labelled.positions, labelled.positions_world,
                 labelled.displacements, (float(result.rms_error_mm[0]), float(result.rms_error_mm[1])),
                 labelled.labelled_fraction, labelled.n_stray, present), servo_targets, poll_servos))
             cpu += time.thread_time() - t0
             self.stats.cpu_reconstruct_s = cpu
         self._ended.set()
-        self._queue.put(None)
+        self._hand_over(None)
 
     def _frameset_done(self, t: float) -> None:
         if not self.realtime:  # unpaced sources wait for the pipeline (SyncedCapture in_flight)
@@ -562,14 +554,14 @@ class Pipeline:
         cpu = 0.0
         stats = self.stats
         while True:
-            item = self._queue.get(timeout=0.1)
-            if item is None:
+            work = self._queue.get(timeout=0.1)
+            if work is None:
                 if self._ended.is_set():
                     break
                 self._maybe_status()
                 continue
             t0 = time.thread_time()
-            frame, servo_targets, poll_servos = item
+            frame, servo_targets = work.frame, work.servo_targets
             timing = frame.timing
             t_servo = timing.servo
             if self.render is not None:
@@ -584,13 +576,8 @@ class Pipeline:
             if self.recorder is not None:
                 self.recorder.record(frame.seq, timing.capture, frame.contractions, frame.positions_world,
                                      frame.displacements, frame.region_errors)
-            done = time.monotonic()
-            frame = SolvedFrame(frame.seq, frame.index,
-                                FrameTiming(timing.capture, timing.complete, timing.detected, timing.dequeued,
-                                            timing.reconstructed, timing.solved, t_servo, done),
-                                frame.contractions, frame.positions_model, frame.positions_world,
-                                frame.displacements, frame.region_errors, frame.labelled_fraction, frame.n_stray,
-                                frame.n_cameras)
+            done = self.clock()
+            frame = replace(frame, timing=replace(timing, outputs=done))
             stats.solved += 1
             if math.isnan(stats.first_t):
                 stats.first_t = done
@@ -602,7 +589,7 @@ class Pipeline:
             stats.errors.append(frame.region_errors)
             if self.on_frame is not None:
                 self.on_frame(frame)
-            if poll_servos:  # the status read-back waits for the servos' replies: after the outputs
+            if work.poll_servos:  # the status read-back waits for the servos' replies: after the outputs
                 self.servo.poll()
             self._frameset_done(timing.capture)
             self._garbage.collect()  # after the frame set, not in the middle of the next one
@@ -612,7 +599,7 @@ class Pipeline:
 
     # ------------------------------------------------------------------------------ reporting
     def _maybe_status(self) -> None:
-        now = time.monotonic()
+        now = self.clock()
         if now < self._next_status:
             return
         self._next_status = now + self.status_interval
@@ -623,32 +610,35 @@ class Pipeline:
 
     def status_line(self) -> str:
         """One line: fps, drops, latency p50/p99, labelled fraction, region errors, cameras."""
-        s = self.summary(recent=True)
+        s = self.recent_summary()
         if not self.stats.solved and self.stats.unlabelled_attempts:
             return (f"waiting for the first labelling: show the neutral face to every camera "
                     f"({self.stats.unlabelled_attempts} frame sets tried) | cameras "
-                    f"{s['cameras_alive']}/{len(self.sources)}")
-        return (f"fps {s['fps']:5.1f} | drops {s['drops']} | latency servo p50 {s['latency_p50_ms']:.2f} "
-                f"p99 {s['latency_p99_ms']:.2f} ms, render p99 {s['render_latency_p99_ms']:.2f} ms | "
-                f"labelled {100 * s['labelled_fraction']:.1f}% | error upper {s['error_upper_mm']:.3f} "
-                f"lower {s['error_lower_mm']:.3f} mm | cameras {s['cameras_alive']}/{len(self.sources)}")
+                    f"{s.cameras_alive}/{len(self.sources)}")
+        return (f"fps {s.fps:5.1f} | drops {s.drops} | latency servo p50 {s.latency_p50_ms:.2f} "
+                f"p99 {s.latency_p99_ms:.2f} ms, render p99 {s.render_latency_p99_ms:.2f} ms | "
+                f"labelled {100 * s.labelled_fraction:.1f}% | error upper {s.error_upper_mm:.3f} "
+                f"lower {s.error_lower_mm:.3f} mm | cameras {s.cameras_alive}/{len(self.sources)}")
 
-    def summary(self, recent: bool = False) -> dict:
-        """Figures of the run so far (``recent``: the last ~2 s for the rates and latencies)."""
+    def summary(self) -> PipelineSummary:
+        """Figures of the run so far."""
         stats = self.stats
-        window = 120 if recent else None
+        fps = (stats.solved - 1) / max(stats.last_t - stats.first_t, 1e-9) if stats.solved > 1 else 0.0
+        return self._summary(fps, None)
+
+    def recent_summary(self) -> PipelineSummary:
+        """Figures of the run so far, the rates and latencies over the last ~2 s (120 frame sets)."""
+        times = list(self.stats.recent_t)
+        fps = (len(times) - 1) / max(times[-1] - times[0], 1e-9) if len(times) > 1 else 0.0
+        return self._summary(fps, 120)
+
+    def _summary(self, fps: float, window: int | None) -> PipelineSummary:
+        stats = self.stats
 
         def tail(values):
             values = list(values)
             return values[-window:] if window else values
 
-        times = list(stats.recent_t) if recent else []
-        if recent and len(times) > 1:
-            fps = (len(times) - 1) / max(times[-1] - times[0], 1e-9)
-        elif stats.solved > 1:
-            fps = (stats.solved - 1) / max(stats.last_t - stats.first_t, 1e-9)
-        else:
-            fps = 0.0
         servo_latency = np.array(tail(stats.servo_latency)) * 1e3
         solve_latency = np.array(tail(stats.solve_latency)) * 1e3
         render_latency = self.render.sent_latencies() * 1e3 if self.render is not None else np.zeros(0)
@@ -660,40 +650,40 @@ class Pipeline:
         dead = sync.dead if self._dead_at_stop is None else self._dead_at_stop
         drops = int(self.capture.dropped_framesets + self._queue.dropped)
         camera_drops = sum(sync.drops.values())
-        wall = time.monotonic() - self._wall_start
+        wall = self.clock() - self._wall_start
         cpu = time.process_time() - self._cpu_start
         detect_cpu = sum(s.cpu_s for s in self.sources)
-        return {
-            "framesets": stats.framesets,
-            "solved": stats.solved,
-            "fps": fps,
-            "drops": drops,
-            "camera_frame_drops": camera_drops,
-            "latency_p50_ms": _percentile(primary, 50),
-            "latency_p99_ms": _percentile(primary, 99),
-            "latency_max_ms": float(np.nanmax(primary)) if primary.size else math.nan,
-            "solve_latency_p50_ms": _percentile(solve_latency, 50),
-            "solve_latency_p99_ms": _percentile(solve_latency, 99),
-            "render_latency_p50_ms": _percentile(render_latency, 50),
-            "render_latency_p99_ms": _percentile(render_latency, 99),
-            "labelled_fraction": float(np.mean(tail(stats.labelled))) if stats.labelled else math.nan,
-            "error_upper_mm": float(np.nanmean(errors[:, 0])) if len(errors) else math.nan,
-            "error_lower_mm": float(np.nanmean(errors[:, 1])) if len(errors) else math.nan,
-            "cameras": len(self.sources),
-            "cameras_alive": len(self.sources) - len(dead),
-            "dead_cameras": list(dead),
-            "cpu_per_frameset_ms": 1e3 * cpu / max(stats.solved, 1),
-            "pipeline_cpu_per_frameset_ms": 1e3 * (stats.cpu_reconstruct_s + stats.cpu_outputs_s + detect_cpu)
-            / max(stats.solved, 1),
-            "detect_cpu_per_frameset_ms": 1e3 * detect_cpu / max(stats.solved, 1),
-            "reconstruct_solve_cpu_per_frameset_ms": 1e3 * stats.cpu_reconstruct_s / max(stats.solved, 1),
-            "outputs_cpu_per_frameset_ms": 1e3 * stats.cpu_outputs_s / max(stats.solved, 1),
-            "wall_s": wall,
-        }
+        solved = max(stats.solved, 1)
+        return PipelineSummary(
+            framesets=stats.framesets,
+            solved=stats.solved,
+            fps=fps,
+            drops=drops,
+            camera_frame_drops=camera_drops,
+            latency_p50_ms=_percentile(primary, 50),
+            latency_p99_ms=_percentile(primary, 99),
+            latency_max_ms=float(np.nanmax(primary)) if primary.size else math.nan,
+            solve_latency_p50_ms=_percentile(solve_latency, 50),
+            solve_latency_p99_ms=_percentile(solve_latency, 99),
+            render_latency_p50_ms=_percentile(render_latency, 50),
+            render_latency_p99_ms=_percentile(render_latency, 99),
+            labelled_fraction=float(np.mean(tail(stats.labelled))) if stats.labelled else math.nan,
+            error_upper_mm=float(np.nanmean(errors[:, 0])) if len(errors) else math.nan,
+            error_lower_mm=float(np.nanmean(errors[:, 1])) if len(errors) else math.nan,
+            cameras=len(self.sources),
+            cameras_alive=len(self.sources) - len(dead),
+            dead_cameras=tuple(dead),
+            cpu_per_frameset_ms=1e3 * cpu / solved,
+            pipeline_cpu_per_frameset_ms=1e3 * (stats.cpu_reconstruct_s + stats.cpu_outputs_s + detect_cpu) / solved,
+            detect_cpu_per_frameset_ms=1e3 * detect_cpu / solved,
+            reconstruct_solve_cpu_per_frameset_ms=1e3 * stats.cpu_reconstruct_s / solved,
+            outputs_cpu_per_frameset_ms=1e3 * stats.cpu_outputs_s / solved,
+            wall_s=wall,
+        )
 
 
 def run_until_stopped(pipeline: Pipeline, frames: int = 0, log: Callable[[str], None] = print,
-                      on_start: Callable[[Pipeline], None] | None = None) -> dict:
+                      on_start: Callable[[Pipeline], None] | None = None) -> PipelineSummary:
     """Run until Ctrl-C, SIGTERM, every camera ending, or ``frames`` solved frame sets; stop in order.
 
     ``on_start`` is called once the pipeline runs (e.g. to print the render URL).

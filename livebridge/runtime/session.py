@@ -18,7 +18,7 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
 
     [reconstruct]
     tolerance_px = 2.0            # epipolar gate
-    max_residual_px = 2.0         # outlier view rejection
+    max_residual_px = 2.0         # outlier view rejection (one tolerance does both: the smaller is used)
 
     [solver]
     mode = "split-compensated"    # "split", "joint"
@@ -56,12 +56,17 @@ file and the dotted field.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from livebridge.errors import InputError
 from livebridge.tomlio import load_toml
+
+if TYPE_CHECKING:
+    from livebridge.reconstruct.pipeline import ReconstructConfig
+    from livebridge.servo.rig import Rig
+    from livebridge.solve.solver import SolverConfig
 
 BUILTIN_NAMES = ("builtin", "ict")
 _TOP_KEYS = {"cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime"}
@@ -85,10 +90,26 @@ class VMCOptions:
 
 @dataclass(frozen=True)
 class RecordingOptions:
+    """``[recording]``; ``take_name`` (not in the file): the take directory's name inside ``directory``
+    (default ``take-YYYYmmdd-HHMMSS`` of the start)."""
+
     enabled: bool = False
     directory: Path | None = None
     raw_frames: bool = False
     frame_format: str = ".pgm"
+    take_name: str | None = None
+
+
+def _reconstruct_config() -> ReconstructConfig:
+    from livebridge.reconstruct.pipeline import ReconstructConfig
+
+    return ReconstructConfig()
+
+
+def _solver_config() -> SolverConfig:
+    from livebridge.solve.solver import SolverConfig
+
+    return SolverConfig()
 
 
 @dataclass(frozen=True)
@@ -107,11 +128,13 @@ class Session:
     markers : Path or str or None
         A marker-set TOML path, ``"builtin"``, or None (the rig's / built-in markers).
     calibration : Path or None
-    reconstruct : dict
-        Options for the reconstruction stage (``tolerance_px``, ``max_residual_px``).
-    solver : dict
-        Keyword arguments of :class:`livebridge.solve.solver.SolverConfig`.
-    servo_rig : Path or None
+    reconstruct : ReconstructConfig
+        The reconstruction stage's configuration (the file's ``tolerance_px`` and ``max_residual_px``: the
+        smaller of the two, since the reconstructor uses one tolerance for gating and residuals).
+    solver : SolverConfig
+    servo_rig : Path or Rig or None
+        A servo rig file (read with the face's muscle names when the pipeline is built), or a rig made in
+        code (the demo's).
     render, vmc, recording : option records
     status_interval : float
     frames : int
@@ -124,9 +147,9 @@ class Session:
     basis: Path | str = "builtin"
     markers: Path | str | None = None
     calibration: Path | None = None
-    reconstruct: dict = field(default_factory=dict)
-    solver: dict = field(default_factory=dict)
-    servo_rig: Path | None = None
+    reconstruct: ReconstructConfig = field(default_factory=_reconstruct_config)
+    solver: SolverConfig = field(default_factory=_solver_config)
+    servo_rig: Path | Rig | None = None
     render: RenderOptions = RenderOptions()
     vmc: VMCOptions = VMCOptions()
     recording: RecordingOptions = RecordingOptions()
@@ -221,32 +244,8 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     if calibration is None and not all(u.startswith(("sim://", "replay://")) for u in urls):
         raise InputError("real cameras need a calibration file", path, "calibration")
 
-    reconstruct = top.table("reconstruct")
-    reconstruct_options = {}
-    for key in ("tolerance_px", "max_residual_px"):
-        value = _positive(reconstruct.get(key, float), path, f"reconstruct.{key}")
-        if value is not None:
-            reconstruct_options[key] = value
-    reconstruct.check_known()
-
-    solver = top.table("solver")
-    solver_options = {}
-    mode = solver.get("mode", str)
-    if mode is not None:
-        solver_options["mode"] = mode
-    for key, kind in (("exaggerate", bool), ("sweeps", int)):
-        value = solver.get(key, kind)
-        if value is not None:
-            solver_options[key] = value
-    solver.check_known()
-    try:
-        from livebridge.solve.solver import SolverConfig
-
-        SolverConfig(**solver_options)
-    except InputError as error:
-        raise InputError(error.message, path, f"solver.{error.field}") from None
-    except ImportError:  # pragma: no cover - the solver module is part of the package
-        pass
+    reconstruct_config = _reconstruct(top.table("reconstruct"), path)
+    solver_config = _solver(top.table("solver"), path)
 
     servo = top.table("servo")
     servo_rig = servo.path_value("rig")
@@ -288,8 +287,34 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     frames = _positive(runtime.get("frames", int, 0), path, "runtime.frames", allow_zero=True)
     runtime.check_known()
 
-    return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_options,
-                   solver_options, servo_rig, render, vmc, recording, status_interval, frames)
+    return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_config,
+                   solver_config, servo_rig, render, vmc, recording, status_interval, frames)
+
+
+def _reconstruct(table: _Table, path: Path | None) -> ReconstructConfig:
+    """``[reconstruct]``: ``tolerance_px`` and ``max_residual_px`` set the one tolerance (the smaller)."""
+    tolerances = [_positive(table.get(key, float), path, f"reconstruct.{key}")
+                  for key in ("tolerance_px", "max_residual_px")]
+    table.check_known()
+    config = _reconstruct_config()
+    given = [value for value in tolerances if value is not None]
+    return replace(config, tolerance_px=min(given)) if given else config
+
+
+def _solver(table: _Table, path: Path | None) -> SolverConfig:
+    """``[solver]``: :class:`~livebridge.solve.solver.SolverConfig`, its errors named ``solver.FIELD``."""
+    from livebridge.solve.solver import SolverConfig
+
+    options = {}
+    for key, kind in (("mode", str), ("exaggerate", bool), ("sweeps", int)):
+        value = table.get(key, kind)
+        if value is not None:
+            options[key] = value
+    table.check_known()
+    try:
+        return SolverConfig(**options)
+    except InputError as error:
+        raise InputError(error.message, path, f"solver.{error.field}") from None
 
 
 def load_session(path: str | Path) -> Session:

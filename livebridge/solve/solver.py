@@ -42,10 +42,10 @@ region's last QP of the frame solved without bounds, with the same right-hand si
 contractions given the other region's (bounded) contractions of the last sweep. A badly sculpted
 element shows up there as contractions far outside [0, 1] that the bounds would otherwise hide.
 
-The ``"scipy-bvls"`` backend is the reference for tests and benchmarks: the same frame, step for step,
-with each block's QP solved by ``scipy.optimize.lsq_linear(method="bvls")`` on the block's marker rows
-instead of the active-set kernel; everything else (visibility, compensation, unconstrained solve, marker
-errors) runs through the same compiled helpers.
+The reference for tests and benchmarks, :class:`livebridge.bench.solver.ReferenceSolver`, solves the same
+frame step for step with each block's QP solved by ``scipy.optimize.lsq_linear(method="bvls")`` instead of
+the active-set kernel (it replaces :attr:`ContractionSolver.frame_kernel`); everything else (visibility,
+compensation, unconstrained solve, marker errors) runs through the same compiled helpers.
 """
 
 from __future__ import annotations
@@ -61,7 +61,6 @@ from livebridge.face.markers import MarkerSet
 from livebridge.solve.qp import FREE, KKT_TOLERANCE, RANK_TOLERANCE, SINGULAR, box_qp_kernel
 
 MODES = ("split-compensated", "split", "joint")
-BACKENDS = ("active-set", "scipy-bvls")
 
 
 @dataclass(frozen=True)
@@ -144,10 +143,6 @@ class SolveResult:
     def rms_mm(self, region: str) -> float:
         """RMS marker error of ``region`` in mm."""
         return float(self.rms_error_mm[REGIONS.index(region)])
-
-    def mean_mm(self, region: str) -> float:
-        """Mean marker error of ``region`` in mm."""
-        return float(self.mean_error_mm[REGIONS.index(region)])
 
 
 @dataclass(frozen=True, eq=False)
@@ -377,17 +372,6 @@ def _frame(observed, face_index, marker_region, a, marker_gram, full_gram, perm,
     return iterations, counts[0], counts[1]
 
 
-def _reference_unconstrained(gram: np.ndarray, rhs: np.ndarray, scale: float) -> np.ndarray:
-    """Stage 0 of :func:`_frame` for the reference backend: ``Q^-1 c`` (k,), with the same rank test and ridge."""
-    unbounded, solution = np.full(len(rhs), np.inf), np.empty(len(rhs))
-    _, status = box_qp_kernel(gram, rhs, -unbounded, unbounded, np.zeros(len(rhs), np.int8), solution, 0.0,
-                              RANK_TOLERANCE * scale, False, 1)
-    if status == SINGULAR:
-        box_qp_kernel(gram + RANK_TOLERANCE * scale * np.eye(len(rhs)), rhs, -unbounded, unbounded,
-                      np.zeros(len(rhs), np.int8), solution, 0.0, 0.0, True, 1)
-    return solution
-
-
 class ContractionSolver:
     """Contractions from marker displacements for one basis and marker set.
 
@@ -397,21 +381,18 @@ class ContractionSolver:
     markers : MarkerSet
         Face markers are used (their region from the marker set); head markers are ignored.
     config : SolverConfig, optional
-    backend : {"active-set", "scipy-bvls"}
-        ``"active-set"`` is the product (:mod:`livebridge.solve.qp`); ``"scipy-bvls"`` solves each
-        region's QP with ``scipy.optimize.lsq_linear(method="bvls")`` on the same rows instead, step
-        for step (everything else shared): the reference for tests and benchmarks.
     displacement : ndarray, shape (n_markers, n_muscles, 3), optional
         ``d_ij`` to use instead of ``markers.displacement_matrix(basis)`` (basis refinement solves with
         marker displacements that no mesh has yet).
     """
 
+    # One frame: compiled, with the active-set QP of :mod:`livebridge.solve.qp` (see :func:`_frame` for the
+    # arguments); the benchmarks' reference solver replaces it with one that solves each QP with scipy.
+    frame_kernel = staticmethod(_frame)
+
     def __init__(self, basis: Basis, markers: MarkerSet, config: SolverConfig | None = None,
-                 backend: str = "active-set", displacement: np.ndarray | None = None):
-        if backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+                 displacement: np.ndarray | None = None):
         self.config = config or SolverConfig()
-        self.backend = backend
         self.basis = basis
         self.markers = markers
         self.muscle_names = basis.names
@@ -442,7 +423,6 @@ class ContractionSolver:
         self._plans, self._plan_sizes = self._block_plans()
         self._upper_bound = np.inf if self.config.exaggerate else 1.0
         self._sweeps = int(self.config.sweeps) if self.config.mode == "split-compensated" else 1
-        self._reference = backend != "active-set"
         self._shape = (self.n_markers, 3)
         self._held = [self._held_of(code) for code in range(4)]
         self.step(self.initial_state(), np.zeros(self._shape))  # compile (or load) the kernels now, not mid-take
@@ -514,8 +494,7 @@ class ContractionSolver:
         errors = np.empty((2, 2))
         x_previous = np.ascontiguousarray(state.contractions, dtype=np.float64)
         active_previous = np.ascontiguousarray(state.active, dtype=np.int8)
-        frame = self._reference_frame if self._reference else _frame
-        iterations, upper_seen, lower_seen = frame(
+        iterations, upper_seen, lower_seen = self.frame_kernel(
             observed, self.face_index, self.marker_region, self._a, self._marker_gram, self._full_gram, self._perm,
             self._plans, self._plan_sizes, self._sweeps, self._upper_bound, x_previous, active_previous,
             x, active, unconstrained, errors)
@@ -523,40 +502,6 @@ class ContractionSolver:
         result = SolveResult(x, unconstrained, errors[0], errors[1], held, held_regions, upper_seen + lower_seen,
                              iterations)
         return SolverState(x, active, state.frame + 1), result
-
-    def _reference_frame(self, observed, face_index, marker_region, a, marker_gram, full_gram, perm, plans,
-                         plan_sizes, sweeps, upper, x_previous, active_previous, x_out, active_out, unconstrained_out,
-                         errors):
-        """:func:`_frame` with each block's QP solved by ``scipy.optimize.lsq_linear(method="bvls")``.
-
-        Same arguments and return value. The unconstrained solution is the active-set kernel's (as in
-        :func:`_frame`); the working set is carried over unchanged, one "iteration" per QP.
-        """
-        from scipy.optimize import lsq_linear
-
-        n_face, n_muscles = len(face_index), len(perm)
-        d, visible = np.empty((n_face, 3)), np.empty(n_face, bool)
-        grams, c, counts = np.empty((3, n_muscles, n_muscles)), np.empty((3, n_muscles)), np.empty(2, np.int64)
-        _prepare(observed, face_index, marker_region, a, marker_gram, full_gram, d, visible, grams, c, counts)
-        held_code = (counts[0] == 0) + 2 * (counts[1] == 0)
-        plan, n_blocks = plans[held_code], plan_sizes[held_code]
-        x, unconstrained = x_previous[perm], np.full(n_muscles, np.nan)
-        rows_of, targets = a.reshape(3 * n_face, n_muscles), d.ravel()
-        for sweep in range(sweeps):
-            for block in range(n_blocks):
-                marker_set, start, stop, other_start, other_stop = plan[block].tolist()
-                if sweep == sweeps - 1:
-                    gram, rhs, scale = _block_system(grams, full_gram, c, x, plan, block)
-                    unconstrained[start:stop] = _reference_unconstrained(gram, rhs, scale)
-                in_rows = visible if marker_set == ALL_MARKERS else visible & (marker_region == marker_set)
-                rows = np.flatnonzero(np.repeat(in_rows, 3))
-                a_rows = rows_of[rows]
-                target = targets[rows] - a_rows[:, other_start:other_stop] @ x[other_start:other_stop]
-                x[start:stop] = lsq_linear(a_rows[:, start:stop], target, bounds=(0.0, upper), method="bvls").x
-        _errors(d, visible, marker_region, a, x, counts, errors)
-        x_out[perm], unconstrained_out[perm] = x, unconstrained
-        active_out[:] = active_previous
-        return sweeps * n_blocks, int(counts[0]), int(counts[1])
 
     def solve_take(self, displacements: np.ndarray, state: SolverState | None = None,
                    progress: bool = False) -> TakeSolution:
