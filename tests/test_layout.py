@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -20,7 +21,7 @@ from livebridge.face.layout import (
 )
 from livebridge.face.markers import MarkerSet
 from livebridge.face.meshio import triangle_normals
-from livebridge.simulators.rig import look_at
+from livebridge.geometry.transforms import look_at
 
 
 @pytest.fixture(scope="module")
@@ -146,10 +147,11 @@ def camera_ring(target, placements, distance=700.0, focal=1400.0, old2new=None):
     for k, (azimuth, elevation) in enumerate(np.deg2rad(placements)):
         direction = np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation),
                               np.cos(azimuth) * np.cos(elevation)])
-        rotation, translation = look_at(rotate @ (target + distance * direction) + shift, rotate @ target + shift,
-                                        rotate @ [0.0, 1.0, 0.0])
+        world2cam = look_at(rotate @ (target + distance * direction) + shift, rotate @ target + shift,
+                            rotate @ [0.0, 1.0, 0.0])
         matrix = np.array([[focal, 0, 639.5], [0, focal, 399.5], [0, 0, 1]])
-        cameras.append(Camera(f"cam{k}", (1280, 800), matrix, np.array([-0.08, 0, 0, 0, 0.0]), rotation, translation))
+        cameras.append(Camera(f"cam{k}", (1280, 800), matrix, np.array([-0.08, 0, 0, 0, 0.0]),
+                              cv2.Rodrigues(world2cam[:3, :3])[0].ravel(), world2cam[:3, 3]))
     return CameraGroup(cameras)
 
 

@@ -58,7 +58,7 @@ from numba import njit
 from livebridge.errors import InputError
 from livebridge.face.basis import REGIONS, Basis
 from livebridge.face.markers import MarkerSet
-from livebridge.solve.qp import FREE, KKT_TOLERANCE, RANK_TOLERANCE, SINGULAR, box_qp_kernel
+from livebridge.qp import FREE, KKT_TOLERANCE, RANK_TOLERANCE, SINGULAR, box_qp_kernel
 
 MODES = ("split-compensated", "split", "joint")
 BACKENDS = ("active-set", "scipy-bvls")
