@@ -278,19 +278,10 @@ def generate_markers(basis: Basis, n_face: int = 40, n_head: int = 4, seed: int 
 
 
 def default_face() -> tuple[Basis, MarkerSet]:
-    """The built-in face and markers when available, else the ICT reference basis with generated markers."""
-    try:
-        from livebridge.face.builtin import builtin_basis, builtin_markers
-    except ImportError:
-        builtin_basis = builtin_markers = None
-    if builtin_basis is not None:
-        return builtin_basis(), builtin_markers()
-    from livebridge.face.reference import ict_basis
+    """The built-in face and its designed markers (``sim://rig?basis=PATH.npz`` films another face)."""
+    from livebridge.face.builtin import builtin_basis, builtin_markers
 
-    basis = ict_basis()
-    if basis is None:
-        raise InputError("no face basis: the built-in face is missing and the reference data is absent")
-    return basis, generate_markers(basis)
+    return builtin_basis(), builtin_markers()
 
 
 # ------------------------------------------------------------------------------------------- rendering

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from geometry_reference import behind_surface_numpy
 from scipy.spatial.transform import Rotation
 
 from livebridge.geometry.transforms import (
@@ -78,22 +79,6 @@ def test_look_at_points_the_optical_axis_at_the_target():
     assert world2cam[1, 1] < 0
 
 
-def _behind_surface_numpy(surface, points, cosine, cell_mm):
-    """The depth splat written with numpy (the marker-layout designer's former implementation)."""
-    surface = surface[surface[:, 2] > 1.0]
-    face_depth = float(np.median(surface[:, 2]))
-    cell = cell_mm / face_depth
-    site_cells = np.floor(points[:, :2] / points[:, 2:] / cell).astype(np.int64)
-    surface_cells = np.floor(surface[:, :2] / surface[:, 2:] / cell).astype(np.int64)
-    low, high = site_cells.min(axis=0), site_cells.max(axis=0)
-    inside = ((surface_cells >= low) & (surface_cells <= high)).all(axis=1)
-    nearest = np.full(tuple(high - low + 1), np.inf)
-    np.minimum.at(nearest, tuple((surface_cells[inside] - low).T), surface[inside, 2])
-    facing = np.clip(cosine, 0.17, 1.0)
-    own_patch = 1.5 * cell_mm * points[:, 2] / face_depth * (np.sqrt(1.0 - facing ** 2) / facing)
-    return points[:, 2] > nearest[tuple((site_cells - low).T)] + own_patch + 3.0
-
-
 def test_behind_surface_matches_the_numpy_depth_splat(ict, rng):
     world2cam = look_at([150.0, 80.0, 650.0], ict.neutral.mean(axis=0))
     surface = apply(world2cam, ict.neutral)
@@ -101,7 +86,7 @@ def test_behind_surface_matches_the_numpy_depth_splat(ict, rng):
     cosine = rng.uniform(-0.2, 1.0, len(sites))
     cell_mm = depth_cell_mm(ict.neutral, ict.triangles)
     hidden = behind_surface(surface, sites, cosine, cell_mm)
-    np.testing.assert_array_equal(hidden, _behind_surface_numpy(surface, sites, cosine, cell_mm))
+    np.testing.assert_array_equal(hidden, behind_surface_numpy(surface, sites, cosine, cell_mm))
     assert 0.05 < hidden.mean() < 0.6  # the far side of the nose and the cheek's silhouette
     # a point's answer does not depend on which other points are asked about
     some = rng.choice(len(sites), 50, replace=False)

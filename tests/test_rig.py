@@ -7,6 +7,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from geometry_reference import behind_surface_numpy
 
 from livebridge.capture.frame import Frame, FrameSet
 from livebridge.capture.sources import CameraSource, open_source, open_sources
@@ -323,21 +324,10 @@ def _reference_visible(rig, seq, c):
     visible = (cosine >= np.cos(np.radians(rig.config.max_view_deg))) & (marker_cam[:, 2] > 0)
     visible &= (pixels[:, 0] >= -0.5) & (pixels[:, 0] < width - 0.5) & (pixels[:, 1] >= -0.5) & \
         (pixels[:, 1] < height - 0.5)
-    sites = marker_cam[visible]
-    surface = apply(camera.world2cam, state.vertices)
-    surface = surface[surface[:, 2] > 1.0]
-    cell_mm = depth_cell_mm(rig.basis.neutral, rig.basis.triangles)
-    face_depth = float(np.median(surface[:, 2]))
-    cell = cell_mm / face_depth  # normalised image plane
-    site_cells = np.floor(sites[:, :2] / sites[:, 2:] / cell).astype(np.int64)
-    surface_cells = np.floor(surface[:, :2] / surface[:, 2:] / cell).astype(np.int64)
-    low, high = site_cells.min(axis=0), site_cells.max(axis=0)
-    inside = ((surface_cells >= low) & (surface_cells <= high)).all(axis=1)
-    nearest = np.full(tuple(high - low + 1), np.inf)
-    np.minimum.at(nearest, tuple((surface_cells[inside] - low).T), surface[inside, 2])
-    facing = np.clip(cosine[visible], 0.17, 1.0)
-    own_patch = 1.5 * cell_mm * sites[:, 2] / face_depth * (np.sqrt(1.0 - facing ** 2) / facing)
-    visible[np.flatnonzero(visible)] &= ~(sites[:, 2] > nearest[tuple((site_cells - low).T)] + own_patch + 3.0)
+    if visible.any():
+        cell_mm = depth_cell_mm(rig.basis.neutral, rig.basis.triangles)
+        surface = apply(camera.world2cam, state.vertices)
+        visible[visible] = ~behind_surface_numpy(surface, marker_cam[visible], cosine[visible], cell_mm)
     return visible
 
 

@@ -42,8 +42,8 @@ def face_and_markers(count: int = 64, n_head: int = 5):
     The layout is designed for :func:`rig_cameras` (:data:`RIG_MIN_VIEWS` views of every marker at the
     neutral pose, with the layout's margin for head motion), as a face-capture rig's layout is.
     """
+    from livebridge.bench.data import ict_basis
     from livebridge.face.layout import RigVisibility, design_markers
-    from livebridge.face.reference import ict_basis
 
     basis = ict_basis()
     if basis is None:

@@ -9,8 +9,8 @@ import numpy as np
 
 def bench_setup(n_frames: int, seed: int = 0, script: str = "mixed"):
     """(name of the basis, basis, 64 designed markers, performance) for the solver benchmarks."""
+    from livebridge.bench.data import ict_basis
     from livebridge.face.layout import design_markers
-    from livebridge.face.reference import ict_basis
     from livebridge.simulators.performer import perform
 
     basis = ict_basis()
