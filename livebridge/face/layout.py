@@ -69,7 +69,8 @@ class RigVisibility:
     A camera sees a site, at the neutral pose placed in the cameras' world by ``model2world``, when the
     site is in front of the camera and inside its image, the face surface is not in front of it, and its
     normal is within ``max_view_deg - margin_deg`` of the direction to the camera. The margin keeps the
-    site seen while the head turns and moves.
+    site seen while the head turns and moves. This is the visibility model of
+    :mod:`livebridge.geometry.visibility`, by which the simulated rig draws markers too.
 
     Attributes
     ----------
