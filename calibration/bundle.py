@@ -16,6 +16,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 
 from livebridge.calibration.boards import Board
+from livebridge.geometry.transforms import apply, rotation_matrices, rotation_vector
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,36 +51,6 @@ class BundleResult:
         flat = errors.reshape(len(errors), -1)
         count = np.isfinite(flat).sum(axis=1)
         return np.sqrt(np.nansum(flat ** 2, axis=1) / np.maximum(count, 1)) + np.where(count, 0.0, np.nan)
-
-
-def rodrigues(rvecs: np.ndarray) -> np.ndarray:
-    """Rotation matrices from Rodrigues vectors, (n, 3) -> (n, 3, 3)."""
-    rvecs = np.asarray(rvecs, dtype=np.float64).reshape(-1, 3)
-    theta = np.linalg.norm(rvecs, axis=1)
-    small = theta < 1e-12
-    safe = np.where(small, 1.0, theta)
-    k = rvecs / safe[:, None]
-    skew = np.zeros((len(rvecs), 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    sin = np.where(small, 0.0, np.sin(theta))[:, None, None]
-    cos = np.where(small, 1.0, np.cos(theta))[:, None, None]
-    rotation = np.eye(3) + sin * skew + (1 - cos) * skew @ skew
-    # first-order term for tiny angles (skew of the raw vector)
-    if small.any():
-        raw = np.zeros((small.sum(), 3, 3))
-        r = rvecs[small]
-        raw[:, 0, 1], raw[:, 0, 2], raw[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
-        raw[:, 1, 0], raw[:, 2, 0], raw[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
-        rotation[small] = np.eye(3) + raw
-    return rotation
-
-
-def rotation_vector(rotation: np.ndarray) -> np.ndarray:
-    """Rodrigues vector (3,) of a rotation matrix (3, 3)."""
-    import cv2
-
-    return cv2.Rodrigues(np.asarray(rotation, dtype=np.float64))[0].ravel()
 
 
 def distort(normalised: np.ndarray, matrix_params: np.ndarray, distortions: np.ndarray,
@@ -165,10 +136,10 @@ class _Problem:
     def project(self, params: np.ndarray) -> np.ndarray:
         """Pixels of every observation, shape (n_obs, 2)."""
         extr, intr, boards = self.unpack(params)
-        board_rot = rodrigues(boards[:, :3])
+        board_rot = rotation_matrices(boards[:, :3])
         world = np.einsum("vij,nj->vni", board_rot, self.object_points) + boards[:, None, 3:]
         points = world[self.view, self.corner]
-        cam_rot = rodrigues(extr[:, :3])
+        cam_rot = rotation_matrices(extr[:, :3])
         in_cam = np.einsum("nij,nj->ni", cam_rot[self.cam], points - extr[self.cam, 3:])
         z = in_cam[:, 2:3]
         normalised = in_cam[:, :2] / np.where(np.abs(z) > 1e-9, z, 1e-9)
@@ -313,11 +284,11 @@ def _unpack_all(problem: _Problem, params: np.ndarray, n_views: int):
     matrices = np.tile(np.eye(3), (n_cams, 1, 1))
     matrices[:, 0, 0], matrices[:, 1, 1], matrices[:, 0, 2], matrices[:, 1, 2] = intr[:, :4].T
     world2cam = np.tile(np.eye(4), (n_cams, 1, 1))
-    world2cam[:, :3, :3] = rodrigues(extr[:, :3])
+    world2cam[:, :3, :3] = rotation_matrices(extr[:, :3])
     world2cam[:, :3, 3] = -np.einsum("cij,cj->ci", world2cam[:, :3, :3], extr[:, 3:])
     board2world = np.full((n_views, 4, 4), np.nan)
     board2world[problem.views] = np.eye(4)
-    board2world[problem.views, :3, :3] = rodrigues(boards[:, :3])
+    board2world[problem.views, :3, :3] = rotation_matrices(boards[:, :3])
     board2world[problem.views, :3, 3] = boards[:, 3:] - board2world[problem.views, :3, :3] @ problem.middle
     return matrices, intr[:, 4:].copy(), world2cam, board2world
 
@@ -328,7 +299,7 @@ def _errors(board, corners, matrices, distortions, world2cam, board2world, fishe
     world = np.einsum("vij,nj->vni", board2world[:, :3, :3], board.object_points) + board2world[:, None, :3, 3]
     errors = np.full((n_cams, n_views, n_corners), np.nan)
     for c in range(n_cams):
-        in_cam = world @ world2cam[c, :3, :3].T + world2cam[c, :3, 3]
+        in_cam = apply(world2cam[c], world)
         normalised = in_cam[..., :2] / in_cam[..., 2:3]
         flat = normalised.reshape(-1, 2)
         k = matrices[c]

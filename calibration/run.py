@@ -22,13 +22,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from livebridge.calibration.boards import Board
-from livebridge.calibration.bundle import BundleResult, bundle_adjust, rotation_vector
+from livebridge.calibration.bundle import BundleResult, bundle_adjust
 from livebridge.calibration.cameras import Camera, CameraGroup
 from livebridge.calibration.detect import Detections
 from livebridge.calibration.extrinsics import initial_board_poses, initial_extrinsics
 from livebridge.calibration.intrinsics import board_poses, calibrate_intrinsics
 from livebridge.calibration.threads import single_threaded
 from livebridge.errors import InputError
+from livebridge.geometry.transforms import rotation_vector
 
 
 @dataclass(frozen=True, eq=False)

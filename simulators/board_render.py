@@ -18,6 +18,7 @@ import numpy as np
 
 from livebridge.calibration.boards import Board, parse_board
 from livebridge.calibration.cameras import Camera, CameraGroup, undistort_normalised
+from livebridge.geometry.transforms import apply, look_at
 
 BACKGROUND = 110.0  # grey level behind the board
 
@@ -120,28 +121,12 @@ def _rays(size: tuple[int, int], matrix: bytes, distortions: bytes, fisheye: boo
 # ---------------------------------------------------------------- synthetic calibration scenes
 
 
-def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 1.0, 0.0)) -> np.ndarray:
-    """``world2cam`` (4, 4) of a camera at ``center`` (3,) looking at ``target`` (3,), image up along ``up``."""
-    center, target, up = (np.asarray(a, dtype=np.float64) for a in (center, target, up))
-    forward = target - center
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, up)
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    world2cam = np.eye(4)
-    world2cam[:3, :3] = np.stack([right, down, forward])
-    world2cam[:3, 3] = -world2cam[:3, :3] @ center
-    return world2cam
-
-
 def example_rig(n_cams: int = 4, size: tuple[int, int] = (800, 600), distance_mm: float = 1000.0,
                 fisheye: bool = False, seed: int = 0) -> CameraGroup:
     """Cameras on an arc ``distance_mm`` from the origin, all looking at it (world +y up, +z towards them).
 
     Each camera gets its own focal length, principal point and lens distortion (seeded).
     """
-    from livebridge.calibration.bundle import rotation_vector
-
     rng = np.random.default_rng(seed)
     width, height = size
     cameras = []
@@ -158,7 +143,7 @@ def example_rig(n_cams: int = 4, size: tuple[int, int] = (800, 600), distance_mm
         else:
             distortions = np.array([rng.uniform(-0.25, -0.05), rng.uniform(0.0, 0.12), rng.uniform(-1e-3, 1e-3),
                                     rng.uniform(-1e-3, 1e-3), rng.uniform(-0.02, 0.0)])
-        cameras.append(Camera(f"cam{i}", size, matrix, distortions, rotation_vector(world2cam[:3, :3]),
+        cameras.append(Camera(f"cam{i}", size, matrix, distortions, cv2.Rodrigues(world2cam[:3, :3])[0].ravel(),
                               world2cam[:3, 3], fisheye))
     return CameraGroup(cameras)
 
@@ -198,11 +183,11 @@ def project_board(board: Board | str, group: CameraGroup, board2world: np.ndarra
     for c, camera in enumerate(group.cameras):
         for v in range(n_views):
             board2cam = camera.world2cam @ board2world[v]
-            in_cam = board.object_points @ board2cam[:3, :3].T + board2cam[:3, 3]
+            in_cam = apply(board2cam, board.object_points)
             facing = board2cam[:3, 2] @ board2cam[:3, 3] / np.linalg.norm(board2cam[:3, 3])
             if facing < 0.25 or (in_cam[:, 2] <= 0).any():
                 continue
-            world = board.object_points @ board2world[v, :3, :3].T + board2world[v, :3, 3]
+            world = apply(board2world[v], board.object_points)
             pixels = camera.project(world)
             if noise_px > 0:
                 pixels = pixels + rng.normal(0.0, noise_px, pixels.shape)

@@ -6,6 +6,7 @@ import numpy as np
 
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
+from livebridge.geometry.transforms import apply
 from livebridge.simulators.performer import Performer, PerformerFrame
 
 
@@ -52,7 +53,7 @@ class LeadIn:
             t = np.arange(seq, seq + count) / self.fps
             x, head2world = self.script(t), self.head(t)
             local = self.markers.marker_positions(self.basis, x)  # (count, n_markers, 3), model frame
-            world = np.einsum("nij,nkj->nki", head2world[:, :3, :3], local) + head2world[:, None, :3, 3]
+            world = apply(head2world, local)
             for k in range(count):
                 frame = PerformerFrame(seq + k, float(t[k]), x[k], head2world[k], world[k])
                 for array in (frame.contractions, frame.head2world, frame.marker_positions):

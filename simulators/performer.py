@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
+from livebridge.geometry.transforms import apply
 from livebridge.take.npz import Take
 
 SCRIPTS = ("training", "everyday", "mixed")
@@ -277,11 +278,6 @@ def _still(t: np.ndarray) -> np.ndarray:
     return np.tile(np.eye(4), (len(np.atleast_1d(t)), 1, 1))
 
 
-def _transform(head2world: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply poses (n, 4, 4) to points (n, k, 3)."""
-    return np.einsum("nij,nkj->nki", head2world[:, :3, :3], points) + head2world[:, None, :3, 3]
-
-
 @dataclass(frozen=True, eq=False)
 class Performance:
     """A synthetic performance with ground truth.
@@ -401,7 +397,7 @@ class Performer:
         x = self.script(t)
         head2world = self.head(t)
         displacements = np.einsum("nm,kmd->nkd", x, self._displacement)
-        world = _transform(head2world, self._neutral[None] + displacements)
+        world = apply(head2world, self._neutral[None] + displacements)
         return t, x, head2world, displacements, world
 
     def performance(self, n_frames: int) -> Performance:

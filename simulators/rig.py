@@ -5,7 +5,8 @@ distance (``f * diameter / 2 / depth``) on a dark, faintly shaded face (Lambert 
 neutral mesh lit from the camera, as by an IR ring light), rendered once per camera and cached, and
 shifted (translated) with the head. A marker is hidden when the face surface lies in front of it (a per-frame depth
 splat of the deformed, posed mesh), when it faces away from the camera (more than ``max_view_deg``), or at random
-(``occlusion_rate``: a hand, hair, a prop).
+(``occlusion_rate``: a hand, hair, a prop); the first two are the visibility model the marker-layout designer
+uses too (:mod:`livebridge.geometry.visibility`).
 Sensor noise comes from pre-generated noise tiles read at random offsets; optional motion blur smears
 each marker over the exposure, spurious highlights appear on the face, frames drop and timestamps jitter.
 Everything is seeded: frame ``seq`` of camera ``c`` depends only on ``(seed, seq, c)`` and the
@@ -40,6 +41,8 @@ from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
 from livebridge.face.meshio import triangle_normals
+from livebridge.geometry.transforms import apply, look_at
+from livebridge.geometry.visibility import depth_cell_mm, in_view, sees
 
 SYNC_MODES = ("hardware", "free")
 _EYE = np.eye(4)
@@ -188,21 +191,6 @@ def face_centre(basis: Basis) -> np.ndarray:
     return 0.5 * (basis.neutral.min(axis=0) + basis.neutral.max(axis=0))
 
 
-def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, 1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
-    """``world2cam`` (Rodrigues rotation, translation) of an OpenCV camera at ``center`` looking at ``target``.
-
-    OpenCV camera axes: x right, y down, z forward; ``up`` is the world direction that appears upwards.
-    """
-    forward = np.asarray(target, float) - np.asarray(center, float)
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, up)
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    rotation = np.stack([right, down, forward])  # rows: camera axes in world coordinates
-    translation = -rotation @ np.asarray(center, float)
-    return cv2.Rodrigues(rotation)[0].ravel(), translation
-
-
 def generate_cameras(basis: Basis, n_cameras: int = 4, config: RigConfig | None = None,
                      seed: int = 0) -> CameraGroup:
     """Cameras on an arc in front of the face (+z), looking at its centre, at 0.5–1 m.
@@ -240,11 +228,11 @@ def face_camera(basis: Basis, name: str, azimuth: float, elevation: float, dista
     width, height = config.size
     direction = np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation),
                           np.cos(azimuth) * np.cos(elevation)])
-    rotation, translation = look_at(target + distance * direction, target)
+    world2cam = look_at(target + distance * direction, target)
     focal = config.fill * height * distance / float(np.ptp(basis.neutral[:, 1]))
     matrix = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])
     return Camera(name, (width, height), matrix, np.zeros(5) if distortion is None else np.asarray(distortion),
-                  rotation, translation)
+                  cv2.Rodrigues(world2cam[:3, :3])[0].ravel(), world2cam[:3, 3])
 
 
 def generate_markers(basis: Basis, n_face: int = 40, n_head: int = 4, seed: int = 0) -> MarkerSet:
@@ -291,23 +279,10 @@ def generate_markers(basis: Basis, n_face: int = 40, n_head: int = 4, seed: int 
 
 
 def default_face() -> tuple[Basis, MarkerSet]:
-    """The built-in face and markers when available, else the ICT reference basis with generated markers."""
-    try:
-        from livebridge.face.builtin import builtin_basis, builtin_markers
-    except ImportError:
-        builtin_basis = builtin_markers = None
-    if builtin_basis is not None:
-        return builtin_basis(), builtin_markers()
-    from livebridge.face.reference import ict_basis
+    """The built-in face and its designed markers (``sim://rig?basis=PATH.npz`` films another face)."""
+    from livebridge.face.builtin import builtin_basis, builtin_markers
 
-    basis = ict_basis()
-    if basis is None:
-        raise InputError("no face basis: the built-in face is missing and the reference data is absent")
-    return basis, generate_markers(basis)
-
-
-def _apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ transform[:3, :3].T + transform[:3, 3]
+    return builtin_basis(), builtin_markers()
 
 
 # ------------------------------------------------------------------------------------------- rendering
@@ -416,70 +391,6 @@ def _add_noise(image, noise, ox, oy):
                 image[row, uint64(x)] = np.uint8(np.int8(total)) ^ np.uint8(0x80)
 
 
-@njit(cache=True, nogil=True)
-def _zbuffer(points, fx, fy, cx, cy, width, height, cell):
-    """Nearest depth of ``points`` in each ``cell`` x ``cell`` pixel block of a pinhole camera (no distortion).
-
-    Parameters
-    ----------
-    points : ndarray, shape (n, 3)
-        Camera frame, mm; points no more than 1 mm in front of the camera are left out.
-    cell : int
-        A power of two, so that ``floor(u / cell)`` is exactly numpy's ``u // cell``.
-
-    Returns
-    -------
-    ndarray, shape ((height // cell + 1) * (width // cell + 1),)
-        Row-major over the blocks; inf where no point falls.
-    """
-    grid_w = width // cell + 1
-    zbuffer = np.full((height // cell + 1) * grid_w, np.inf)
-    for i in range(points.shape[0]):
-        z = points[i, 2]
-        if not z > 1.0:
-            continue
-        u = fx * points[i, 0] / z + cx
-        v = fy * points[i, 1] / z + cy
-        if u >= 0 and u < width and v >= 0 and v < height:
-            index = int(math.floor(v / cell)) * grid_w + int(math.floor(u / cell))
-            zbuffer[index] = min(zbuffer[index], z)
-    return zbuffer
-
-
-@njit(cache=True, nogil=True)
-def _behind_surface(points, markers, cosine, visible, fx, fy, cx, cy, width, height, cell):
-    """The ``visible`` markers that lie behind the surface ``points`` splats on a coarse grid (see
-    :func:`_zbuffer`), shape (n,) bool.
-
-    Parameters
-    ----------
-    points : ndarray, shape (V, 3)
-        Mesh vertices in the camera frame, mm.
-    markers : ndarray, shape (n, 3)
-        Markers in the camera frame, mm.
-    cosine : ndarray, shape (n,)
-        Cosine of the angle between each marker's normal and its direction to the camera.
-    visible : ndarray of bool, shape (n,)
-    """
-    zbuffer = _zbuffer(points, fx, fy, cx, cy, width, height, cell)
-    grid_w = width // cell + 1
-    hidden = np.zeros(len(visible), dtype=np.bool_)
-    for m in range(len(visible)):
-        if not visible[m]:
-            continue
-        z = markers[m, 2]
-        u = fx * markers[m, 0] / z + cx
-        v = fy * markers[m, 1] / z + cy
-        if not (u >= 0 and u < width and v >= 0 and v < height):
-            continue
-        surface = zbuffer[int(math.floor(v / cell)) * grid_w + int(math.floor(u / cell))]
-        # the surface around the marker itself is closer by up to (cell size) * tan(view angle)
-        facing = min(max(cosine[m], 0.17), 1.0)
-        slope = math.sqrt(1.0 - facing * facing) / facing
-        hidden[m] = z > surface + (3.0 + 1.5 * cell * z / fx * slope)
-    return hidden
-
-
 def _render_face(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, face_level: float,
                  ambient_level: float) -> np.ndarray:
     """The dark shaded face seen by ``camera`` (painter's algorithm, Lambert lit from the camera).
@@ -491,7 +402,7 @@ def _render_face(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, fa
     width, height = camera.size
     image = np.full((height, width), ambient_level, dtype=np.float32)
     pixels = camera.project(vertices)
-    cam_points = _apply(camera.world2cam, vertices)
+    cam_points = apply(camera.world2cam, vertices)
     normals = triangle_normals(vertices, triangles)
     centroids = vertices[triangles].mean(axis=1)
     to_camera = camera.center - centroids
@@ -618,6 +529,7 @@ class SimRig:
         self._anchor_pixels = [camera.project(self._anchor[None])[0] for camera in self.cameras.cameras]
         self._world2cam = [camera.world2cam for camera in self.cameras.cameras]
         self._centers = [camera.center for camera in self.cameras.cameras]
+        self._cell_mm = depth_cell_mm(basis.neutral, basis.triangles)
 
     # ----------------------------------------------------------------------------- public API
     @property
@@ -803,14 +715,14 @@ class SimRig:
         contractions = np.asarray(frame.contractions, dtype=np.float64)
         head2world = np.asarray(frame.head2world, dtype=np.float64)
         model = self.basis.neutral + (contractions @ self._elements).reshape(-1, 3)
-        vertices = _apply(head2world, model)
+        vertices = apply(head2world, model)
         normal = triangle_normals(vertices, self._marker_triangles)  # (n, 3)
         # np.allclose(head2world, eye, atol=1e-9) written out: it costs 60 us
         moved = self.config.follow_head and not (np.abs(head2world - _EYE) <= _AT_REST).all()
         return _State(int(frame.seq), float(frame.t), contractions, head2world,
                       np.asarray(frame.marker_positions, dtype=np.float64), np.asarray(previous, dtype=np.float64),
                       vertices if self.config.occlusion else None, normal,
-                      _apply(head2world, self._anchor[None]) if moved else None)
+                      apply(head2world, self._anchor[None]) if moved else None)
 
     def _background(self, c: int, scale: float) -> np.ndarray:
         key = (c, round(scale, 3))
@@ -834,20 +746,14 @@ class SimRig:
         marker_cam : ndarray, shape (n, 3)
             The markers in the camera frame.
         """
-        camera = self.cameras.cameras[c]
         to_camera = self._centers[c] - state.markers
-        distance = np.linalg.norm(to_camera, axis=1)
-        cosine = np.einsum("nd,nd->n", state.normals, to_camera) / distance
-        visible = (cosine > math.cos(math.radians(self.config.max_view_deg))) & (marker_cam[:, 2] > 0)
-        width, height = camera.size
-        visible &= (pixels[:, 0] > -0.5) & (pixels[:, 0] < width - 0.5) & (pixels[:, 1] > -0.5) & \
-                   (pixels[:, 1] < height - 0.5)
-        if not self.config.occlusion or not visible.any():
-            return visible
-        # depth splat of the deformed mesh on a coarse grid (pinhole, no distortion: used consistently)
-        (fx, _, cx), (_, fy, cy) = camera.matrix[:2]
-        points = _apply(self._world2cam[c], state.vertices)
-        return visible & ~_behind_surface(points, marker_cam, cosine, visible, fx, fy, cx, cy, width, height, 4)
+        cosine = np.einsum("nd,nd->n", state.normals, to_camera) / np.linalg.norm(to_camera, axis=1)
+        cos_limit = math.cos(math.radians(self.config.max_view_deg))
+        size = self.cameras.cameras[c].size
+        if not self.config.occlusion:
+            return in_view(cosine, marker_cam[:, 2], pixels, size, cos_limit)
+        return sees(marker_cam, cosine, pixels, size, cos_limit, apply(self._world2cam[c], state.vertices),
+                    self._cell_mm)
 
     def _unoccluded(self, seq: int, c: int) -> np.ndarray:
         """Marker views of camera ``c`` in frame ``seq`` that ``occlusion_rate`` leaves alone, shape (n,) bool.
@@ -864,7 +770,7 @@ class SimRig:
         config = self.config
         rng = np.random.default_rng([self.seed, state.seq, c, 29])
         pixels, shift = self._project(c, state)
-        marker_cam = _apply(self._world2cam[c], state.markers)
+        marker_cam = apply(self._world2cam[c], state.markers)
         radii = float(camera.matrix[0, 0]) * config.marker_diameter_mm / 2.0 / np.maximum(marker_cam[:, 2], 1e-6)
         if config.drop_rate > 0 and rng.random() < config.drop_rate:
             return np.zeros(len(self.markers), bool), pixels, radii, True, shift, rng
@@ -950,7 +856,7 @@ class SimRig:
         if not count:
             return np.zeros((0, 2))
         pick = rng.integers(0, len(self.basis.neutral), size=count)
-        spurious = self.cameras.cameras[c].project(_apply(state.head2world, self.basis.neutral[pick]))
+        spurious = self.cameras.cameras[c].project(apply(state.head2world, self.basis.neutral[pick]))
         spurious = spurious[np.isfinite(spurious).all(axis=1)]
         render_discs(image, spurious, rng.uniform(0.8, 2.5, size=len(spurious)),
                      np.minimum(255.0, rng.uniform(0.5, 1.1, size=len(spurious)) * config.marker_level))

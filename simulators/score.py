@@ -7,6 +7,8 @@ import threading
 
 import numpy as np
 
+from livebridge.geometry.transforms import apply
+
 
 class GroundTruthScore:
     """Contraction error and label swaps of solved frames against the performer's ground truth.
@@ -41,7 +43,7 @@ class GroundTruthScore:
         x = p.script(t)[0]
         head2world = p.head(t)[0]
         local = p.markers.marker_positions(p.basis, x)
-        return x, local @ head2world[:3, :3].T + head2world[:3, 3]
+        return x, apply(head2world, local)
 
     def __call__(self, frame) -> None:
         with self._lock:

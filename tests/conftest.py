@@ -1,12 +1,13 @@
-"""Shared fixtures: the reference data and small seeded bases."""
+"""Shared fixtures: the reference data (``../shared/data`` or ``$LIVEBRIDGE_SHARED_DATA``, found by
+:mod:`livebridge.bench.data`), a face basis and a seeded RNG."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from livebridge.bench.data import ict_basis, shared_data_dir
 from livebridge.face.basis import Basis
-from livebridge.face.reference import ict_basis, shared_data_dir
 
 
 @pytest.fixture(scope="session")
@@ -22,6 +23,17 @@ def shared_data():
 def ict(shared_data) -> Basis:
     """The 16-muscle Choe-Ko basis built from ICT-FaceKit."""
     return ict_basis()
+
+
+@pytest.fixture(scope="session")
+def face_basis() -> Basis:
+    """The ICT face when the reference data is here, else the built-in face."""
+    basis = ict_basis()
+    if basis is None:
+        from livebridge.face.builtin import builtin_basis
+
+        basis = builtin_basis()
+    return basis
 
 
 @pytest.fixture

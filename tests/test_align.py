@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from livebridge.geometry.transforms import apply, transform_scale, umeyama
 from livebridge.reconstruct.align import MeshSurface, align_to_model, closest_barycentric
 from livebridge.reconstruct.label import first_labelling
-from livebridge.reconstruct.stabilize import apply, head_pose, transform_scale, umeyama
+from livebridge.reconstruct.stabilize import head_pose
 
 
 def similarity(rng, scale=1.0, degrees=20.0, shift=30.0):

@@ -23,21 +23,6 @@ CHROMIUM_ARGS = [
 BACKGROUND = np.array([29, 33, 39])  # the canvas clear colour (0.114, 0.129, 0.153)
 
 
-def _face_basis(rng):
-    """The ICT face when the reference data is here, else the built-in face, else a random grid."""
-    from livebridge.face.reference import ict_basis
-
-    basis = ict_basis()
-    if basis is None:
-        try:
-            from livebridge.face.builtin import builtin_basis
-            basis = builtin_basis()
-        except ImportError:
-            from factories import random_basis
-            basis = random_basis(rng, 400, 16)
-    return basis
-
-
 @pytest.fixture(scope="module")
 def browser():
     if not (Path(CHROMIUM).exists() or shutil.which(CHROMIUM)):
@@ -57,8 +42,8 @@ def _canvas_pixels(page) -> np.ndarray:
     return image.astype(np.int16)
 
 
-def test_page_draws_the_face_and_follows_the_contractions(browser, rng, tmp_path):
-    basis = _face_basis(rng)
+def test_page_draws_the_face_and_follows_the_contractions(browser, face_basis, tmp_path):
+    basis = face_basis
     from livebridge.face.markers import MarkerSet
 
     n = 12

@@ -7,6 +7,7 @@ import threading
 
 import numpy as np
 
+from livebridge.geometry.transforms import apply
 from livebridge.runtime.demo import build_demo
 from livebridge.runtime.pipeline import run_until_stopped
 
@@ -66,7 +67,7 @@ def test_lead_in_holds_a_still_neutral_face_then_performs():
     rest = performer.head(np.zeros(1))[0]
     for frame in frames[:30]:
         assert not frame.contractions.any() and np.allclose(frame.head2world, rest)
-        assert np.allclose(frame.marker_positions, neutral @ rest[:3, :3].T + rest[:3, 3])
+        assert np.allclose(frame.marker_positions, apply(rest, neutral))
     for frame in frames[30:]:
         before = original[frame.seq - 30]
         assert np.allclose(frame.contractions, before.contractions) and np.allclose(frame.head2world, before.head2world)

@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -20,7 +21,15 @@ from livebridge.face.layout import (
 )
 from livebridge.face.markers import MarkerSet
 from livebridge.face.meshio import triangle_normals
-from livebridge.simulators.rig import look_at
+from livebridge.geometry.transforms import look_at
+
+
+@pytest.fixture(scope="module")
+def ict_file(ict, tmp_path_factory) -> str:
+    """The ICT basis as a basis file, as `livebridge basis import choe-ko-ict` writes it."""
+    path = tmp_path_factory.mktemp("basis") / "ict.npz"
+    ict.save(path)
+    return str(path)
 
 
 @pytest.fixture(scope="module")
@@ -94,9 +103,9 @@ def test_region_boundary_separates_upper_and_lower_motion():
     assert 30 < region_boundary(basis) < 60
 
 
-def test_cli_design_writes_layout_and_prints_figures(tmp_path, ict):
+def test_cli_design_writes_layout_and_prints_figures(tmp_path, ict_file):
     out = tmp_path / "markers.toml"
-    result = CliRunner().invoke(main, ["markers", "design", "--basis", "ict", "--count", "40", "--head", "4",
+    result = CliRunner().invoke(main, ["markers", "design", "--basis", ict_file, "--count", "40", "--head", "4",
                                        "--min-spacing", "12", "--out", str(out)])
     assert result.exit_code == 0, result.output
     layout = MarkerSet.load(out)
@@ -109,6 +118,13 @@ def test_cli_design_names_a_bad_basis_file(tmp_path):
     result = CliRunner().invoke(main, ["markers", "design", "--basis", str(tmp_path / "nope.npz"),
                                        "--out", str(tmp_path / "m.toml")])
     assert result.exit_code != 0 and "nope.npz" in result.output
+
+
+def test_cli_knows_no_reference_data(tmp_path, monkeypatch):
+    """'ict' is a file name like any other: the reference data is for tests and benchmarks (import it first)."""
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(main, ["markers", "design", "--basis", "ict", "--out", str(tmp_path / "m.toml")])
+    assert result.exit_code != 0 and "ict" in result.output
 
 
 def test_face_markers_keep_the_spacing_from_head_markers(ict, ict_layouts):
@@ -146,10 +162,11 @@ def camera_ring(target, placements, distance=700.0, focal=1400.0, old2new=None):
     for k, (azimuth, elevation) in enumerate(np.deg2rad(placements)):
         direction = np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation),
                               np.cos(azimuth) * np.cos(elevation)])
-        rotation, translation = look_at(rotate @ (target + distance * direction) + shift, rotate @ target + shift,
-                                        rotate @ [0.0, 1.0, 0.0])
+        world2cam = look_at(rotate @ (target + distance * direction) + shift, rotate @ target + shift,
+                            rotate @ [0.0, 1.0, 0.0])
         matrix = np.array([[focal, 0, 639.5], [0, focal, 399.5], [0, 0, 1]])
-        cameras.append(Camera(f"cam{k}", (1280, 800), matrix, np.array([-0.08, 0, 0, 0, 0.0]), rotation, translation))
+        cameras.append(Camera(f"cam{k}", (1280, 800), matrix, np.array([-0.08, 0, 0, 0, 0.0]),
+                              cv2.Rodrigues(world2cam[:3, :3])[0].ravel(), world2cam[:3, 3]))
     return CameraGroup(cameras)
 
 
@@ -247,13 +264,13 @@ def test_sites_behind_the_surface_are_not_seen():
     assert rig.seen(basis, sites[1:2], np.array([[0.0, 0.0, -1.0]])).tolist() == [[False]]
 
 
-def test_cli_design_for_a_calibrated_rig(tmp_path, ict):
+def test_cli_design_for_a_calibrated_rig(tmp_path, ict, ict_file):
     from livebridge.calibration.calibfile import save_calibration
 
     calibration = tmp_path / "calibration.toml"
     save_calibration(calibration, camera_ring(centre_of(ict), ARC))
     out = tmp_path / "markers.toml"
-    result = CliRunner().invoke(main, ["markers", "design", "--basis", "ict", "--count", "40", "--head", "4",
+    result = CliRunner().invoke(main, ["markers", "design", "--basis", ict_file, "--count", "40", "--head", "4",
                                        "--cameras", str(calibration), "--min-views", "3", "--out", str(out),
                                        "--no-baseline"])
     assert result.exit_code == 0, result.output
@@ -261,11 +278,11 @@ def test_cli_design_for_a_calibrated_rig(tmp_path, ict):
     layout = MarkerSet.load(out)
     rig = RigVisibility(camera_ring(centre_of(ict), ARC), min_views=3)
     assert layout_report(ict, layout, rig)["fewest_views"] >= 3
-    result = CliRunner().invoke(main, ["markers", "report", str(out), "--basis", "ict", "--cameras", str(calibration),
-                                       "--min-views", "4"])
+    result = CliRunner().invoke(main, ["markers", "report", str(out), "--basis", ict_file,
+                                       "--cameras", str(calibration), "--min-views", "4"])
     assert result.exit_code == 0 and "seen by fewer than 4 cameras:" in result.output
-    result = CliRunner().invoke(main, ["markers", "design", "--basis", "ict", "--cameras", str(calibration),
+    result = CliRunner().invoke(main, ["markers", "design", "--basis", ict_file, "--cameras", str(calibration),
                                        "--min-views", "5", "--out", str(out)])
     assert result.exit_code != 0 and "between 1 and the rig's 4 cameras, got 5" in result.output
-    result = CliRunner().invoke(main, ["markers", "design", "--basis", "ict", "--min-views", "3", "--out", str(out)])
+    result = CliRunner().invoke(main, ["markers", "design", "--basis", ict_file, "--min-views", "3", "--out", str(out)])
     assert result.exit_code != 0 and "--cameras is needed by --min-views" in result.output

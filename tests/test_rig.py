@@ -7,11 +7,14 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from geometry_reference import behind_surface_numpy
 
 from livebridge.capture.frame import Frame, FrameSet
 from livebridge.capture.sources import CameraSource
 from livebridge.devices.registry import open_camera, open_cameras
 from livebridge.errors import InputError
+from livebridge.geometry.transforms import apply
+from livebridge.geometry.visibility import depth_cell_mm
 from livebridge.simulators.rig import RigConfig, SimRig, generate_cameras, generate_markers, render_discs
 
 
@@ -268,7 +271,7 @@ def test_rig_renders_calibration_boards(face, spec):
     board2world[:3, 3] = face_centre(basis) + [-width / 2, height / 2, 60.0]
     images = rig.render_board(board, board2world, blur_px=0.5)
     assert len(images) == 3
-    corners_world = board.object_points @ board2world[:3, :3].T + board2world[:3, 3]
+    corners_world = apply(board2world, board.object_points)
     for camera, image in zip(rig.cameras.cameras, images):
         assert image.shape == (400, 640) and image.dtype == np.uint8
         found = detect_board(board, image)
@@ -310,36 +313,22 @@ def _reference_discs(image, centers, radii, levels):
             region[...] = np.clip(region + alpha * (levels[k] - region) + 0.5, 0, 255).astype(np.uint8)
 
 
-def _apply(transform, points):
-    return points @ transform[:3, :3].T + transform[:3, 3]
-
-
 def _reference_visible(rig, seq, c):
-    """Markers camera ``c`` sees in frame ``seq``: facing it, in the image, not behind a depth splat of the mesh."""
+    """Markers camera ``c`` sees in frame ``seq``: facing it, in the image, not behind a depth splat of the mesh
+    (numpy, for the compiled :func:`livebridge.geometry.visibility.behind_surface`)."""
     camera, state = rig.cameras.cameras[c], rig._state(seq)
     to_camera = camera.center - state.markers
     cosine = np.einsum("nd,nd->n", state.normals, to_camera) / np.linalg.norm(to_camera, axis=1)
-    marker_cam = _apply(camera.world2cam, state.markers)
+    marker_cam = apply(camera.world2cam, state.markers)
     pixels = camera.project(state.markers)
     width, height = camera.size
-    visible = (cosine > np.cos(np.radians(rig.config.max_view_deg))) & (marker_cam[:, 2] > 0)
-    visible &= (pixels[:, 0] > -0.5) & (pixels[:, 0] < width - 0.5) & (pixels[:, 1] > -0.5) & \
+    visible = (cosine >= np.cos(np.radians(rig.config.max_view_deg))) & (marker_cam[:, 2] > 0)
+    visible &= (pixels[:, 0] >= -0.5) & (pixels[:, 0] < width - 0.5) & (pixels[:, 1] >= -0.5) & \
         (pixels[:, 1] < height - 0.5)
-    cell, (fx, fy), (cx, cy) = 4, np.diag(camera.matrix)[:2], camera.matrix[:2, 2]
-    points = _apply(camera.world2cam, state.vertices)
-    points = points[points[:, 2] > 1.0]
-    u, v = fx * points[:, 0] / points[:, 2] + cx, fy * points[:, 1] / points[:, 2] + cy
-    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
-    zbuffer = np.full((width // cell + 1) * (height // cell + 1), np.inf)
-    np.minimum.at(zbuffer, (v[inside] // cell).astype(int) * (width // cell + 1) + (u[inside] // cell).astype(int),
-                  points[inside, 2])
-    mu = fx * marker_cam[:, 0] / marker_cam[:, 2] + cx
-    mv = fy * marker_cam[:, 1] / marker_cam[:, 2] + cy
-    ok = visible & (mu >= 0) & (mu < width) & (mv >= 0) & (mv < height)
-    surface = zbuffer[(mv[ok] // cell).astype(int) * (width // cell + 1) + (mu[ok] // cell).astype(int)]
-    facing = np.clip(cosine[ok], 0.17, 1.0)
-    margin = 3.0 + 1.5 * cell * marker_cam[ok, 2] / fx * (np.sqrt(1.0 - facing ** 2) / facing)
-    visible[np.flatnonzero(ok)] &= ~(marker_cam[ok, 2] > surface + margin)
+    if visible.any():
+        cell_mm = depth_cell_mm(rig.basis.neutral, rig.basis.triangles)
+        surface = apply(camera.world2cam, state.vertices)
+        visible[visible] = ~behind_surface_numpy(surface, marker_cam[visible], cosine[visible], cell_mm)
     return visible
 
 
@@ -359,7 +348,7 @@ def _reference_image(rig, seq, c, truth, tiles):
     dx = dy = 0
     if config.follow_head and not np.allclose(state.head2world, np.eye(4), atol=1e-9):
         anchor = face_centre(rig.basis)[None]
-        dx, dy = np.rint(camera.project(_apply(state.head2world, anchor))[0] - camera.project(anchor)[0]).astype(int)
+        dx, dy = np.rint(camera.project(apply(state.head2world, anchor))[0] - camera.project(anchor)[0]).astype(int)
     height, width = background.shape
     image = np.full_like(background, int(round(config.ambient_level)))
     image[max(dy, 0):height + min(dy, 0), max(dx, 0):width + min(dx, 0)] = \
@@ -367,7 +356,7 @@ def _reference_image(rig, seq, c, truth, tiles):
     count = int(rng.poisson(config.spurious_rate)) if config.spurious_rate > 0 else 0
     if count:
         pick = rng.integers(0, len(rig.basis.neutral), size=count)
-        spurious = camera.project(_apply(state.head2world, rig.basis.neutral[pick]))
+        spurious = camera.project(apply(state.head2world, rig.basis.neutral[pick]))
         spurious = spurious[np.isfinite(spurious).all(axis=1)]
         np.testing.assert_array_equal(spurious, truth.spurious_2d[c])
         _reference_discs(image, spurious, rng.uniform(0.8, 2.5, size=len(spurious)),

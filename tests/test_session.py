@@ -79,6 +79,7 @@ def test_minimal_simulated_session_defaults(tmp_path):
     ('[cameras]\nurls = ["sim://rig"]\nsync_tolerance = 0.9\n', "cameras.sync_tolerance"),
     ('[cameras]\nurls = ["sim://rig"]\nurl = "x"\n', "cameras.url"),
     ('[cameras]\nurls = ["sim://rig"]\n[face]\nbasis = "missing.npz"\n', "face.basis"),
+    ('[cameras]\nurls = ["sim://rig"]\n[face]\nbasis = "ict"\n', "face.basis"),  # reference data: tests' only
     ('[cameras]\nurls = ["sim://rig"]\n[face]\nmarkers = "missing.toml"\n', "face.markers"),
     ('[cameras]\nurls = ["sim://rig"]\n[solver]\nmode = "fast"\n', "solver.mode"),
     ('[cameras]\nurls = ["sim://rig"]\n[solver]\nsweeps = "two"\n', "solver.sweeps"),

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import lsq_linear
 
-from livebridge.solve.qp import AT_LOWER, AT_UPPER, FREE, BoxQP
+from livebridge.qp import AT_LOWER, AT_UPPER, FREE, BoxQP
 
 
 def _problem(seed: int, n_rows: int, n_vars: int, scale: float = 3.0):

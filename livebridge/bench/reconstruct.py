@@ -42,8 +42,8 @@ def face_and_markers(count: int = 64, n_head: int = 5):
     The layout is designed for :func:`rig_cameras` (:data:`RIG_MIN_VIEWS` views of every marker at the
     neutral pose, with the layout's margin for head motion), as a face-capture rig's layout is.
     """
+    from livebridge.bench.data import ict_basis
     from livebridge.face.layout import RigVisibility, design_markers
-    from livebridge.face.reference import ict_basis
 
     basis = ict_basis()
     if basis is None:
@@ -97,6 +97,7 @@ def simulate(basis, markers, cameras, n_frames: int, seed: int = 0, noise_px: fl
     from scipy.spatial.transform import Rotation
 
     from livebridge.face.meshio import triangle_normals
+    from livebridge.geometry.transforms import apply
     from livebridge.simulators.performer import perform
     from livebridge.simulators.rig import face_centre
 
@@ -109,7 +110,7 @@ def simulate(basis, markers, cameras, n_frames: int, seed: int = 0, noise_px: fl
         centre = face_centre(basis)
         turn[:3, 3] = centre - turn[:3, :3] @ centre
     head2world = turn @ performance.head2world
-    points = performance.marker_positions @ turn[:3, :3].T + turn[:3, 3]
+    points = apply(turn, performance.marker_positions)
     # marker normals: neutral triangle normals carried by the head pose
     normals = triangle_normals(basis.neutral, basis.triangles[markers.triangles])
     normals_world = np.einsum("fij,nj->fni", head2world[:, :3, :3], normals)

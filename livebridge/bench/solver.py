@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from livebridge.solve.qp import RANK_TOLERANCE, SINGULAR, box_qp_kernel
+from livebridge.qp import RANK_TOLERANCE, SINGULAR, box_qp_kernel
 from livebridge.solve.solver import ALL_MARKERS, ContractionSolver, _block_system, _errors, _prepare
 
 
@@ -65,8 +65,8 @@ def _reference_unconstrained(gram: np.ndarray, rhs: np.ndarray, scale: float) ->
 
 def bench_setup(n_frames: int, seed: int = 0, script: str = "mixed"):
     """(name of the basis, basis, 64 designed markers, performance) for the solver benchmarks."""
+    from livebridge.bench.data import ict_basis
     from livebridge.face.layout import design_markers
-    from livebridge.face.reference import ict_basis
     from livebridge.simulators.performer import perform
 
     basis = ict_basis()

@@ -146,7 +146,7 @@ def render_basis(basis, path: str | Path, markers=None, yaw_deg: float = 15.0, p
               help="Frame only this range of heights of the neutral face (mm), e.g. -100 90.")
 def show(basis_spec: str, out: Path, markers_spec: str | None, yaw: float, dpi: int, muscles: tuple[str, ...],
          panel_size: float, crop_y: tuple[float, float] | None) -> None:
-    """Render BASIS (a basis file, 'builtin' or 'ict'): the neutral face and each element, one panel each."""
+    """Render BASIS (a basis file or 'builtin'): the neutral face and each element, one panel each."""
     from livebridge.errors import InputError
     from livebridge.face.markers import MarkerSet
 

@@ -9,11 +9,11 @@ import numpy as np
 
 from livebridge.face.layout import MAX_VIEW_DEG, VIEW_MARGIN_DEG
 
-BASIS_HELP = "Basis file (.npz), 'builtin' (the procedural face) or 'ict' (ICT-FaceKit from ../shared/data)."
+BASIS_HELP = "Basis file (.npz, from `livebridge basis import`) or 'builtin' (the procedural face)."
 
 
 def load_basis(spec: str):
-    """The basis named by a command-line value: a ``.npz`` file, ``builtin`` or ``ict``.
+    """The basis named by a command-line value: a ``.npz`` file or ``builtin``.
 
     Raises
     ------
@@ -27,13 +27,6 @@ def load_basis(spec: str):
         from livebridge.face.builtin import builtin_basis
 
         return builtin_basis()
-    if spec == "ict":
-        from livebridge.face.reference import ict_basis
-
-        basis = ict_basis()
-        if basis is None:
-            raise click.ClickException("ict: the reference data ../shared/data/ict-facekit is not on this machine")
-        return basis
     try:
         return Basis.load(spec)
     except InputError as error:

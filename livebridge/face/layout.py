@@ -44,6 +44,8 @@ from livebridge.errors import InputError
 from livebridge.face.basis import REGIONS, Basis
 from livebridge.face.markers import MarkerSet
 from livebridge.face.meshio import triangle_normals
+from livebridge.geometry.transforms import apply
+from livebridge.geometry.visibility import depth_cell_mm, sees
 
 if TYPE_CHECKING:
     from livebridge.calibration.cameras import Camera, CameraGroup
@@ -58,7 +60,6 @@ POOL = 256  # candidates (largest D-optimal gains) scored in full at each step
 EXCHANGE_PASSES = 3  # sweeps of single-marker exchanges after the greedy design
 MAX_VIEW_DEG = 75.0  # a camera finds a marker whose normal is within this angle of it (more oblique: a smear)
 VIEW_MARGIN_DEG = 10.0  # a seated performer turns the head ~6 deg per axis and moves it a few cm: keep this spare
-SURFACE_SLACK_MM = 3.0  # the depth test hides a site only behind surface this much nearer than its own patch
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,7 +69,8 @@ class RigVisibility:
     A camera sees a site, at the neutral pose placed in the cameras' world by ``model2world``, when the
     site is in front of the camera and inside its image, the face surface is not in front of it, and its
     normal is within ``max_view_deg - margin_deg`` of the direction to the camera. The margin keeps the
-    site seen while the head turns and moves.
+    site seen while the head turns and moves. This is the visibility model of
+    :mod:`livebridge.geometry.visibility`, by which the simulated rig draws markers too.
 
     Attributes
     ----------
@@ -136,13 +138,9 @@ class RigVisibility:
             Their unit surface normals, model frame.
         """
         model2world = facing_pose(basis, self.cameras) if self.model2world is None else self.model2world
-        rotation, shift = model2world[:3, :3], model2world[:3, 3]
-        points, normals = points @ rotation.T + shift, normals @ rotation.T
-        vertices = basis.neutral @ rotation.T + shift
-        edges = np.linalg.norm(basis.neutral[basis.triangles] - basis.neutral[np.roll(basis.triangles, 1, axis=1)],
-                               axis=2)
-        # a depth-test cell this size at the face holds a vertex of any surface in front (few holes)
-        cell_mm = float(np.quantile(edges, 0.75))
+        rotation = model2world[:3, :3]
+        points, normals, vertices = apply(model2world, points), normals @ rotation.T, apply(model2world, basis.neutral)
+        cell_mm = depth_cell_mm(basis.neutral, basis.triangles)
         cos_limit = np.cos(np.deg2rad(self.view_limit_deg))
         return np.stack([_seen_by(camera, points, normals, cos_limit, vertices, cell_mm)
                          for camera in self.cameras.cameras])
@@ -205,7 +203,7 @@ def facing_pose(basis: Basis, cameras: CameraGroup) -> np.ndarray:
 
 def _seen_by(camera: Camera, points: np.ndarray, normals: np.ndarray, cos_limit: float, vertices: np.ndarray,
              cell_mm: float) -> np.ndarray:
-    """Sites ``camera`` sees: facing it within the limit, in front of it, inside its image, not behind the surface.
+    """Sites ``camera`` sees (:func:`livebridge.geometry.visibility.sees`).
 
     Parameters
     ----------
@@ -214,7 +212,7 @@ def _seen_by(camera: Camera, points: np.ndarray, normals: np.ndarray, cos_limit:
     vertices : ndarray, shape (n_vertices, 3)
         The face surface, world frame.
     cell_mm : float
-        Cell of the depth test at the face (about a mesh edge).
+        Cell of the depth test at the face.
 
     Returns
     -------
@@ -223,54 +221,8 @@ def _seen_by(camera: Camera, points: np.ndarray, normals: np.ndarray, cos_limit:
     to_camera = camera.center - points
     cosine = np.einsum("nd,nd->n", normals, to_camera) / np.linalg.norm(to_camera, axis=1)
     world2cam = camera.world2cam
-    depth = points @ world2cam[2, :3] + world2cam[2, 3]
-    seen = (cosine >= cos_limit) & (depth > 0)
-    pixels = camera.project(points[seen])
-    width, height = camera.size
-    seen[seen] = ((pixels >= -0.5) & (pixels < np.array([width, height]) - 0.5)).all(axis=1)
-    if seen.any():
-        seen[seen] = ~_behind_surface(world2cam, points[seen], cosine[seen], vertices, cell_mm)
-    return seen
-
-
-def _behind_surface(world2cam: np.ndarray, points: np.ndarray, cosine: np.ndarray, vertices: np.ndarray,
-                    cell_mm: float) -> np.ndarray:
-    """Sites with the face surface in front of them, by a depth splat of the surface's vertices.
-
-    The nearest vertex depth is kept per cell of a grid on the (pinhole) image plane, a cell about ``cell_mm``
-    wide at the face (so a site's answer does not depend on which other sites are asked about). A site is
-    hidden when that depth is nearer than its own surface patch can be: the cell seen at the site's angle
-    (with half again for the patch's curvature), plus :data:`SURFACE_SLACK_MM`.
-
-    Parameters
-    ----------
-    world2cam : ndarray, shape (4, 4)
-    points : ndarray, shape (n_sites, 3)
-        World frame, in front of the camera.
-    cosine : ndarray, shape (n_sites,)
-        Cosine of the angle between each site's normal and its direction to the camera.
-    vertices : ndarray, shape (n_vertices, 3)
-        World frame.
-
-    Returns
-    -------
-    ndarray of bool, shape (n_sites,)
-    """
-    sites = points @ world2cam[:3, :3].T + world2cam[:3, 3]
-    surface = vertices @ world2cam[:3, :3].T + world2cam[:3, 3]
-    surface = surface[surface[:, 2] > 1.0]
-    face_depth = float(np.median(surface[:, 2]))
-    cell = cell_mm / face_depth  # normalised image plane
-    site_cells = np.floor(sites[:, :2] / sites[:, 2:] / cell).astype(np.int64)
-    surface_cells = np.floor(surface[:, :2] / surface[:, 2:] / cell).astype(np.int64)
-    low, high = site_cells.min(axis=0), site_cells.max(axis=0)
-    inside = ((surface_cells >= low) & (surface_cells <= high)).all(axis=1)  # others hide no site
-    nearest = np.full(tuple(high - low + 1), np.inf)
-    np.minimum.at(nearest, tuple((surface_cells[inside] - low).T), surface[inside, 2])
-    facing = np.clip(cosine, 0.17, 1.0)
-    slope = np.sqrt(1.0 - facing**2) / facing
-    own_patch = 1.5 * cell_mm * sites[:, 2] / face_depth * slope
-    return sites[:, 2] > nearest[tuple((site_cells - low).T)] + own_patch + SURFACE_SLACK_MM
+    return sees(apply(world2cam, points), cosine, camera.project(points), camera.size, cos_limit,
+                apply(world2cam, vertices), cell_mm)
 
 
 def region_boundary(basis: Basis) -> float:

@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
-from livebridge.reconstruct.stabilize import apply, umeyama
+from livebridge.geometry.transforms import apply, umeyama
 
 
 @dataclass(frozen=True, eq=False)

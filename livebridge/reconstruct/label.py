@@ -29,7 +29,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from livebridge.reconstruct.stabilize import apply, umeyama
+from livebridge.geometry.transforms import apply, umeyama
 
 UNMATCHED_COST = 1e6
 

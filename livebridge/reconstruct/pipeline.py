@@ -26,12 +26,12 @@ import numpy as np
 from livebridge.calibration.cameras import CameraGroup
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
+from livebridge.geometry.transforms import apply, transform_scale
 from livebridge.reconstruct.align import Alignment, align_to_model
 from livebridge.reconstruct.correspond import Correspondence, Correspondence3D
 from livebridge.reconstruct.detect import DetectConfig, detect_markers
 from livebridge.reconstruct.label import guided_first_labelling
 from livebridge.reconstruct.predicted import PredictedMatcher
-from livebridge.reconstruct.stabilize import apply, transform_scale
 from livebridge.reconstruct.track import TrackConfig, Tracker, TrackState
 from livebridge.reconstruct.triangulate import Triangulator
 from livebridge.take.npz import Take

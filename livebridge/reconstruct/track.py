@@ -26,9 +26,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numba import njit
 
+from livebridge.geometry.transforms import apply, invert, rotation_matrix, rotation_vector
+from livebridge.qp import nonnegative_least_squares
 from livebridge.reconstruct.label import gated_assignment
-from livebridge.reconstruct.stabilize import apply, head_pose
-from livebridge.solve.qp import nonnegative_least_squares
+from livebridge.reconstruct.stabilize import head_pose
 
 
 @dataclass(frozen=True)
@@ -130,32 +131,10 @@ class TrackFrame:
 
 
 @njit(cache=True, nogil=True)
-def _rotation(rotvec: np.ndarray) -> np.ndarray:
-    """Rotation matrix ``(3, 3)`` of a rotation vector ``(3,)`` (Rodrigues' formula)."""
-    angle = np.sqrt(rotvec[0] ** 2 + rotvec[1] ** 2 + rotvec[2] ** 2)
-    if angle < 1e-12:
-        return np.eye(3)
-    kx, ky, kz = rotvec[0] / angle, rotvec[1] / angle, rotvec[2] / angle
-    cross = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
-    return np.eye(3) + np.sin(angle) * cross + (1.0 - np.cos(angle)) * (cross @ cross)
-
-
-@njit(cache=True, nogil=True)
-def _rotation_vector(rotation: np.ndarray) -> np.ndarray:
-    """Rotation vector ``(3,)`` of a rotation matrix ``(3, 3)`` (angle below pi, as between two frames)."""
-    cosine = min(1.0, max(-1.0, (rotation[0, 0] + rotation[1, 1] + rotation[2, 2] - 1.0) / 2.0))
-    angle = np.arccos(cosine)
-    axis = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]])
-    if angle < 1e-7:
-        return axis / 2.0  # first order: R ~ I + [w]x
-    return axis * (angle / (2.0 * np.sin(angle)))
-
-
-@njit(cache=True, nogil=True)
 def _pose_step(head2world: np.ndarray, motion: np.ndarray, dt: float) -> np.ndarray:
     """``head2world`` advanced by ``dt`` seconds of constant motion (rotation about the pose's origin)."""
     out = head2world.copy()
-    out[:3, :3] = _rotation(motion[:3] * dt) @ np.ascontiguousarray(head2world[:3, :3])
+    out[:3, :3] = rotation_matrix(motion[:3] * dt) @ np.ascontiguousarray(head2world[:3, :3])
     out[:3, 3] = head2world[:3, 3] + motion[3:] * dt
     return out
 
@@ -167,7 +146,7 @@ def _pose_motion(before: np.ndarray, after: np.ndarray, dt: float) -> np.ndarray
     scale_squared = np.cbrt(np.linalg.det(before[:3, :3])) ** 2
     out = np.empty(6)
     relative = np.ascontiguousarray(after[:3, :3]) @ np.ascontiguousarray(before[:3, :3].T)
-    out[:3] = _rotation_vector(relative / scale_squared) / dt
+    out[:3] = rotation_vector(relative / scale_squared) / dt
     out[3:] = (after[:3, 3] - before[:3, 3]) / dt
     return out
 
@@ -325,7 +304,7 @@ class Tracker:
         head2world = self.pose(state, world)
         if not np.isfinite(head2world).all():
             head2world = predicted_pose
-        world2head = np.linalg.inv(head2world)
+        world2head = invert(head2world)
         model = apply(world2head, world)
         seen = np.isfinite(model).all(axis=1)
         if self.displacement is not None and config.consistency_mm is not None:
@@ -409,7 +388,7 @@ class Tracker:
         pose = self.head_pose(world)
         if not np.isfinite(pose).all():
             pose = predicted_pose
-        model = apply(np.linalg.inv(pose), world)
+        model = apply(invert(pose), world)
         seen = np.isfinite(model).all(axis=1)
         contractions = self._contractions(model, seen & ~self.head_mask)
         if contractions is None:

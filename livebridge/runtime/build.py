@@ -24,12 +24,6 @@ def load_face(session: Session):
         from livebridge.face.builtin import builtin_basis
 
         basis = builtin_basis()
-    elif session.basis == "ict":
-        from livebridge.face.reference import ict_basis
-
-        basis = ict_basis()
-        if basis is None:
-            raise InputError("the ICT reference data is not on this machine", session.path, "face.basis")
     else:
         basis = Basis.load(session.basis)
     if session.markers is None:

@@ -13,7 +13,7 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
     sync_tolerance = 0.5          # frame periods, for cameras in different sync domains
 
     [face]
-    basis = "basis.npz"           # or "builtin" (the built-in face), "ict" (reference data)
+    basis = "basis.npz"           # or "builtin" (the built-in face)
     markers = "markers.toml"      # or "builtin"
 
     [reconstruct]
@@ -68,7 +68,7 @@ if TYPE_CHECKING:
     from livebridge.servo.rig import Rig
     from livebridge.solve.solver import SolverConfig
 
-BUILTIN_NAMES = ("builtin", "ict")
+BUILTIN_NAMES = ("builtin",)
 _TOP_KEYS = {"cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime"}
 
 
@@ -124,7 +124,7 @@ class Session:
     sync_tolerance : float
         Frame periods.
     basis : Path or str
-        A ``.npz`` path, or ``"builtin"`` / ``"ict"``.
+        A ``.npz`` path, or ``"builtin"``.
     markers : Path or str or None
         A marker-set TOML path, ``"builtin"``, or None (the rig's / built-in markers).
     calibration : Path or None
@@ -236,7 +236,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     face = top.table("face")
     basis = face.path_value("basis", BUILTIN_NAMES, default="builtin")
     if isinstance(basis, Path) and basis.suffix != ".npz":
-        raise InputError("a basis .npz file (from `livebridge basis import`), 'builtin' or 'ict'", path, "face.basis")
+        raise InputError("a basis .npz file (from `livebridge basis import`) or 'builtin'", path, "face.basis")
     markers = face.path_value("markers", ("builtin",))
     face.check_known()
 

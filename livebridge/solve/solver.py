@@ -19,7 +19,7 @@ value and the result flags them (:attr:`SolveResult.held`); their unconstrained 
 
 Cost of a frame. One compiled kernel (numba, :func:`_frame`) does the whole frame: ``c = D^T d_hat`` per
 marker set, the Gram matrices of the visible markers, the active-set steps of every region and sweep
-(:func:`livebridge.solve.qp.box_qp_kernel`, warm-started from the previous frame's working set) and the
+(:func:`livebridge.qp.box_qp_kernel`, warm-started from the previous frame's working set) and the
 marker errors. The Gram matrices with every marker visible are precomputed, so a frame with the usual
 visibility costs one matrix-vector product plus the active-set steps. Any other visibility pattern costs
 a rank-3 downdate per missing marker (``M x M`` flops each), which is cheaper than looking a cached
@@ -31,7 +31,7 @@ caches them on disk; a later process loads them in well under a second), never i
 
 Rank-deficient blocks (a muscle that no visible marker moves): each block's Gram matrix is factored once
 per frame and sweep; when a Cholesky pivot ``L_ii^2`` falls below ``1e-9`` times the trace of the block's
-all-visible Gram matrix, the block gets the Tikhonov term of :mod:`livebridge.solve.qp` for the frame.
+all-visible Gram matrix, the block gets the Tikhonov term of :mod:`livebridge.qp` for the frame.
 Every free-set pivot is at least the corresponding pivot of the whole matrix (conditioning on fewer
 variables leaves more variance), so the one test up front covers every working set the active-set
 method can visit, and the decision does not depend on the warm start.
@@ -58,7 +58,7 @@ from numba import njit
 from livebridge.errors import InputError
 from livebridge.face.basis import REGIONS, Basis
 from livebridge.face.markers import MarkerSet
-from livebridge.solve.qp import FREE, KKT_TOLERANCE, RANK_TOLERANCE, SINGULAR, box_qp_kernel
+from livebridge.qp import FREE, KKT_TOLERANCE, RANK_TOLERANCE, SINGULAR, box_qp_kernel
 
 MODES = ("split-compensated", "split", "joint")
 
@@ -386,7 +386,7 @@ class ContractionSolver:
         marker displacements that no mesh has yet).
     """
 
-    # One frame: compiled, with the active-set QP of :mod:`livebridge.solve.qp` (see :func:`_frame` for the
+    # One frame: compiled, with the active-set QP of :mod:`livebridge.qp` (see :func:`_frame` for the
     # arguments); the benchmarks' reference solver replaces it with one that solves each QP with scipy.
     frame_kernel = staticmethod(_frame)
 

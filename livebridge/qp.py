@@ -9,7 +9,9 @@ convex quadratic programme
 ``Q`` depends only on the basis and on which markers are visible; a frame supplies ``c`` and the
 previous frame's working set. :class:`BoxQP` is the checked Python interface for one ``Q``; the
 contraction solver calls the compiled kernel :func:`box_qp_kernel` directly from its own per-frame
-kernel (:mod:`livebridge.solve.solver`).
+kernel (:mod:`livebridge.solve.solver`), and the label tracker's face-model check calls
+:func:`nonnegative_least_squares` (:mod:`livebridge.reconstruct.track`): the module sits at the top of the
+package so that neither stage imports the other.
 
 Algorithm (primal active set, exact KKT termination)
 ----------------------------------------------------

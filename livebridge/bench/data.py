@@ -1,7 +1,8 @@
-"""The real third-party reference data (ICT-FaceKit) for tests and benchmarks.
+"""The real third-party reference data (ICT-FaceKit, a stereo chessboard) for benchmarks and tests.
 
-The data is never copied into the package: it is read from ``../shared/data``
-beside the checkout, or from ``$LIVEBRIDGE_SHARED_DATA``.
+The data is never copied into the package, and the product never looks for it: it is read from
+``../shared/data`` beside the checkout, or from ``$LIVEBRIDGE_SHARED_DATA``. Tests reach it through the
+``shared_data`` and ``ict`` fixtures of ``tests/conftest.py``.
 """
 
 from __future__ import annotations
