@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import socket
 import struct
@@ -206,8 +207,15 @@ def test_stop_closes_the_port_and_publish_after_stop_is_harmless(rng):
 
 
 def test_port_in_use_raises_on_start(rng, server):
-    with pytest.raises(OSError):
+    with pytest.raises(OSError) as info:
         RenderServer(random_basis(rng, 16, 2), port=server.port).start()
+    assert info.value.errno == errno.EADDRINUSE and info.value.filename == f"render server 127.0.0.1:{server.port}"
+
+
+def test_an_address_not_on_this_machine_raises_naming_it(rng):
+    with pytest.raises(OSError) as info:
+        RenderServer(random_basis(rng, 16, 2), host="192.0.2.7", port=0).start()
+    assert info.value.errno == errno.EADDRNOTAVAIL and info.value.filename == "render server 192.0.2.7:0"
 
 
 def _wait(condition, timeout=5.0):

@@ -247,7 +247,12 @@ class RenderServer:
         if self._startup_error is not None:
             self._thread.join()
             self._thread = None
-            raise self._startup_error
+            error = self._startup_error
+            if isinstance(error, OSError):  # port in use, address not on this machine: name the address
+                host = f"[{self.host}]" if ":" in self.host else self.host
+                raise OSError(error.errno, error.strerror or str(error), f"render server {host}:{self.port}") \
+                    from None
+            raise error
         return self
 
     def stop(self, timeout: float = 5.0) -> None:
