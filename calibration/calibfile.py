@@ -132,8 +132,10 @@ def _camera(table: dict[str, Any], path, key: str) -> Camera:
 def _array(table, field: str, path, key: str, shape: tuple[int, ...] | None) -> np.ndarray:
     value = require(table, field, list, path, key)
     try:
+        if not _all_numbers(value):
+            raise ValueError
         array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError):  # text ("640" would convert), booleans, ragged rows
         raise InputError(f"expected numbers, got {value!r}", path, f"{key}.{field}") from None
     if shape is not None and array.shape != shape:
         want = "x".join(map(str, shape))
@@ -141,6 +143,13 @@ def _array(table, field: str, path, key: str, shape: tuple[int, ...] | None) -> 
     if not np.isfinite(array).all():
         raise InputError("contains NaN or infinity", path, f"{key}.{field}")
     return array
+
+
+def _all_numbers(value: Any) -> bool:
+    """True when every leaf of nested lists is an int or a float (not a bool, not text)."""
+    if isinstance(value, list):
+        return all(_all_numbers(v) for v in value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _plain(value: Any) -> Any:

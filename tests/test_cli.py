@@ -122,4 +122,4 @@ def test_python_dash_m_livebridge_runs_the_same_command_line(tmp_path):
     result = subprocess.run([sys.executable, "-m", "livebridge", "basis", "show", str(missing), "--out",
                              str(tmp_path / "f.png")], capture_output=True, text=True, timeout=120)
     assert result.returncode == 1 and "Traceback" not in result.stderr
-    assert _error_lines(result.stderr) == [f"Error: {missing}: basis file not found"]
+    assert _error_lines(result.stderr) == [f"Error: {missing}: file not found"]

@@ -204,10 +204,13 @@ def _read_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
         missing = [key for key in keys if key not in data.files]
         if missing:
             raise InputError(f"missing array {missing[0]!r}", path, missing[0])
-        try:
-            return {key: data[key] for key in keys}
-        except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error) as error:
-            raise InputError(f"damaged .npz file ({error})", path) from None
+        arrays = {}
+        for key in keys:
+            try:
+                arrays[key] = data[key]
+            except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error) as error:
+                raise InputError(f"damaged or not a plain array ({error})", path, key) from None
+        return arrays
 
 
 def _read_manifest(array: np.ndarray, path: Path) -> tuple[Muscle, ...]:
