@@ -67,10 +67,38 @@ def load_metadata(path: str | Path) -> dict[str, Any]:
     metadata = load_toml(path).get("metadata", {})
     if not isinstance(metadata, dict):
         raise InputError("must be a table", path, "metadata")
+    for key, kind in _METADATA_KINDS.items():
+        if key in metadata:
+            _check_metadata(metadata[key], kind, path, f"metadata.{key}")
     return metadata
 
 
+# The metadata livebridge itself reads back (other keys are free-form notes): a per-camera table of numbers.
+_METADATA_KINDS = {"rms_px": float, "rms_all_px": float, "views_used": int, "outliers": int, "world_frame": str}
+
+
+def _check_metadata(value, kind: type, path, field: str) -> None:
+    if kind is str:
+        if not isinstance(value, str):
+            raise InputError(f"expected text, got {value!r}", path, field)
+        return
+    if not isinstance(value, dict):
+        raise InputError(f"expected a table of camera name = number, got {value!r}", path, field)
+    kinds = (int, float) if kind is float else (int,)
+    for name, number in value.items():
+        if isinstance(number, bool) or not isinstance(number, kinds) or not np.isfinite(number) or number < 0:
+            raise InputError(f"expected a finite number >= 0, got {number!r}", path, f"{field}.{name}")
+
+
+_CAMERA_KEYS = ("name", "size", "matrix", "distortions", "rotation", "translation", "fisheye")
+MAX_ROTATION_RAD = 2 * np.pi  # a Rodrigues vector's length is its angle; OpenCV writes at most pi
+
+
 def _camera(table: dict[str, Any], path, key: str) -> Camera:
+    unknown = sorted(set(table) - set(_CAMERA_KEYS))
+    if unknown:
+        raise InputError(f"unknown key {unknown[0]!r}; a camera table has {', '.join(_CAMERA_KEYS)}", path,
+                         f"{key}.{unknown[0]}")
     name = require(table, "name", (str, int), path, key)
     fisheye = table.get("fisheye", False)
     if not isinstance(fisheye, bool):
@@ -94,6 +122,9 @@ def _camera(table: dict[str, Any], path, key: str) -> Camera:
         distortions = distortions[:5]
     distortions = np.r_[distortions, np.zeros(expected - len(distortions))]
     rotation = _array(table, "rotation", path, key, (3,))
+    if not np.all(np.abs(rotation) <= MAX_ROTATION_RAD) or np.linalg.norm(rotation) > MAX_ROTATION_RAD:
+        raise InputError(f"a Rodrigues vector of at most 2 pi rad (one turn), got {table['rotation']!r}", path,
+                         f"{key}.rotation")
     translation = _array(table, "translation", path, key, (3,))
     return Camera(str(name), (int(size[0]), int(size[1])), matrix, distortions, rotation, translation, fisheye)
 
@@ -101,8 +132,10 @@ def _camera(table: dict[str, Any], path, key: str) -> Camera:
 def _array(table, field: str, path, key: str, shape: tuple[int, ...] | None) -> np.ndarray:
     value = require(table, field, list, path, key)
     try:
+        if not _all_numbers(value):
+            raise ValueError
         array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError):  # text ("640" would convert), booleans, ragged rows
         raise InputError(f"expected numbers, got {value!r}", path, f"{key}.{field}") from None
     if shape is not None and array.shape != shape:
         want = "x".join(map(str, shape))
@@ -110,6 +143,13 @@ def _array(table, field: str, path, key: str, shape: tuple[int, ...] | None) -> 
     if not np.isfinite(array).all():
         raise InputError("contains NaN or infinity", path, f"{key}.{field}")
     return array
+
+
+def _all_numbers(value: Any) -> bool:
+    """True when every leaf of nested lists is an int or a float (not a bool, not text)."""
+    if isinstance(value, list):
+        return all(_all_numbers(v) for v in value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _plain(value: Any) -> Any:

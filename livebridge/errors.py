@@ -24,3 +24,27 @@ class InputError(ValueError):
         self.field = field
         where = ": ".join(part for part in (self.path, field) if part)
         super().__init__(f"{where}: {message}" if where else message)
+
+
+def os_error_reason(error: OSError) -> str:
+    """What an :class:`OSError` about a file or address means, in a few words (no errno, no path)."""
+    import errno
+
+    reasons = {
+        errno.ENOENT: "file not found",
+        errno.EISDIR: "is a directory, not a file",
+        errno.ENOTDIR: "a part of the path is not a directory",
+        errno.EACCES: "permission denied",
+        errno.EPERM: "permission denied",
+        errno.EEXIST: "already exists",
+        errno.ENOSPC: "no space left on the device",
+        errno.EROFS: "read-only file system",
+        errno.EADDRINUSE: "address already in use (another program, or another livebridge, listens there)",
+        errno.EADDRNOTAVAIL: "address not available on this machine",
+    }
+    return reasons.get(error.errno, error.strerror or str(error))
+
+
+def file_error(error: OSError, path: str | Path | None = None) -> InputError:
+    """An :class:`InputError` for an :class:`OSError` met while opening or reading ``path``."""
+    return InputError(os_error_reason(error), path if path is not None else error.filename)

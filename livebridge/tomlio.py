@@ -8,7 +8,7 @@ from typing import Any
 
 import tomli_w
 
-from livebridge.errors import InputError
+from livebridge.errors import InputError, file_error
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -17,13 +17,16 @@ else:  # pragma: no cover - Python 3.10
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
-    """Read a TOML file; a missing or malformed file raises :class:`InputError`."""
+    """Read a TOML file; a missing, unreadable, non-UTF-8 or malformed file raises :class:`InputError`."""
     path = Path(path)
     try:
         with path.open("rb") as stream:
             return tomllib.load(stream)
-    except FileNotFoundError:
-        raise InputError("file not found", path) from None
+    except OSError as error:
+        raise file_error(error, path) from None
+    except UnicodeDecodeError as error:
+        raise InputError(f"not UTF-8 text (byte {error.object[error.start:error.start + 1]!r} at offset "
+                         f"{error.start})", path) from None
     except tomllib.TOMLDecodeError as error:
         raise InputError(f"not valid TOML ({error})", path) from None
 

@@ -97,6 +97,11 @@ def test_calibration_file_round_trip_and_aniposelib_format(tmp_path):
     ('[cam_0]\nname = "a"\nsize = [640, 480]\nmatrix = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]\n'
      'distortions = [0, 0, 0, 0, 0]\nrotation = [0, 0, 0]\ntranslation = [0, 0, nan]\n', "cam_0.translation"),
     ('[camera]\nname = "a"\n', "camera"),
+    ('[cam_0]\nname = "a"\nsize = [640, 480]\nmatrix = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]\n'
+     'distortions = [0, 0, 0, 0, 0]\nrotation = [1e308, 0, 0]\ntranslation = [0, 0, 0]\n', "cam_0.rotation"),
+    ('[cam_0]\nname = "a"\nsize = [640, 480]\nmatrix = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]\n'
+     'distortions = [0, 0, 0, 0, 0]\nrotation = [0, 0, 0]\ntranslation = [0, 0, 0]\nfishey = true\n',
+     "cam_0.fishey"),
 ])
 def test_bad_calibration_files_name_the_field(tmp_path, text, field):
     path = tmp_path / "bad.toml"

@@ -1,4 +1,12 @@
+import errno
+import json
+import subprocess
+import sys
+import tempfile
+import zipfile
+
 import click
+import pytest
 from click.testing import CliRunner
 from factories import random_basis
 
@@ -45,11 +53,82 @@ def test_basis_show_renders_a_png(tmp_path, rng):
 
 
 def test_a_command_module_that_fails_to_import_is_an_error():
-    import pytest
-
     from livebridge.cli._attach import attach
 
     group = click.Group("test")
     with pytest.raises(ModuleNotFoundError, match="livebridge.cli.not_written"):
         attach(group, (("livebridge.cli.not_written", "command"),))
     assert not group.commands
+
+
+def _error_lines(output: str) -> list[str]:
+    return [line for line in output.splitlines() if line.startswith("Error:")]
+
+
+@pytest.fixture
+def crash_dir(tmp_path, monkeypatch):
+    folder = tmp_path / "crashes"
+    folder.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(folder))
+    return folder
+
+
+def _failing_render(error):
+    def render_basis(*args, **kwargs):
+        raise error
+    return render_basis
+
+
+def test_a_bug_prints_one_line_and_writes_the_traceback_to_a_file(tmp_path, rng, monkeypatch, crash_dir):
+    import livebridge.cli.basis_show as basis_show
+
+    random_basis(rng, n_vertices=25, n_muscles=2).save(tmp_path / "b.npz")
+    monkeypatch.setattr(basis_show, "render_basis", _failing_render(RuntimeError("boom\nsecond line")))
+    result = CliRunner().invoke(main, ["basis", "show", str(tmp_path / "b.npz"), "--out", str(tmp_path / "f.png")])
+    assert result.exit_code == 1 and "Traceback" not in result.output and "Aborted" not in result.output
+    (line,) = _error_lines(result.output)
+    reports = list(crash_dir.iterdir())
+    assert len(reports) == 1
+    assert line == f"Error: internal error (RuntimeError: boom second line); full traceback written to {reports[0]}"
+    text = reports[0].read_text()
+    assert "Traceback" in text and "RuntimeError: boom" in text and "render_basis" in text
+
+
+@pytest.mark.parametrize("error,words", [
+    (PermissionError(errno.EACCES, "Permission denied", "/x/face.png"), "/x/face.png: permission denied"),
+    (IsADirectoryError(errno.EISDIR, "Is a directory", "/x/out"), "/x/out: is a directory"),
+    (FileNotFoundError(errno.ENOENT, "No such file", "/x/y"), "/x/y: file not found"),
+    (OSError(errno.EADDRINUSE, "Address already in use"), "address already in use"),
+    (OSError(errno.EADDRNOTAVAIL, "Cannot assign requested address"), "address not available"),
+    (UnicodeDecodeError("utf-8", b"\xff", 0, 1, "invalid start byte"), "not UTF-8 text"),
+    (zipfile.BadZipFile("File is not a zip file"), "not a zip (.npz) file"),
+    (json.JSONDecodeError("Expecting value", "{", 1), "not valid JSON"),
+])
+def test_errors_a_user_causes_print_one_line_without_a_traceback_file(tmp_path, rng, monkeypatch, crash_dir,
+                                                                      error, words):
+    import livebridge.cli.basis_show as basis_show
+
+    random_basis(rng, n_vertices=25, n_muscles=2).save(tmp_path / "b.npz")
+    monkeypatch.setattr(basis_show, "render_basis", _failing_render(error))
+    result = CliRunner().invoke(main, ["basis", "show", str(tmp_path / "b.npz"), "--out", str(tmp_path / "f.png")])
+    assert result.exit_code == 1 and "Traceback" not in result.output
+    (line,) = _error_lines(result.output)
+    assert words in line and not list(crash_dir.iterdir())
+
+
+def test_ctrl_c_before_the_pipeline_runs_exits_130_without_aborted(tmp_path, rng, monkeypatch, crash_dir):
+    import livebridge.cli.basis_show as basis_show
+
+    random_basis(rng, n_vertices=25, n_muscles=2).save(tmp_path / "b.npz")
+    monkeypatch.setattr(basis_show, "render_basis", _failing_render(KeyboardInterrupt()))
+    result = CliRunner().invoke(main, ["basis", "show", str(tmp_path / "b.npz"), "--out", str(tmp_path / "f.png")])
+    assert result.exit_code == 130 and "Aborted" not in result.output and "Traceback" not in result.output
+    assert not _error_lines(result.output) and not list(crash_dir.iterdir())
+
+
+def test_python_dash_m_livebridge_runs_the_same_command_line(tmp_path):
+    missing = tmp_path / "nothing.npz"
+    result = subprocess.run([sys.executable, "-m", "livebridge", "basis", "show", str(missing), "--out",
+                             str(tmp_path / "f.png")], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert _error_lines(result.stderr) == [f"Error: {missing}: file not found"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import socket
 import struct
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 from factories import random_basis
 
+from livebridge.errors import InputError
 from livebridge.face.markers import MarkerSet
 from livebridge.face.meshio import vertex_normals
 from livebridge.output.render_server import (
@@ -205,8 +207,15 @@ def test_stop_closes_the_port_and_publish_after_stop_is_harmless(rng):
 
 
 def test_port_in_use_raises_on_start(rng, server):
-    with pytest.raises(OSError):
+    with pytest.raises(OSError) as info:
         RenderServer(random_basis(rng, 16, 2), port=server.port).start()
+    assert info.value.errno == errno.EADDRINUSE and info.value.filename == f"render server 127.0.0.1:{server.port}"
+
+
+def test_an_address_not_on_this_machine_raises_naming_it(rng):
+    with pytest.raises(OSError) as info:
+        RenderServer(random_basis(rng, 16, 2), host="192.0.2.7", port=0).start()
+    assert info.value.errno == errno.EADDRNOTAVAIL and info.value.filename == "render server 192.0.2.7:0"
 
 
 def _wait(condition, timeout=5.0):
@@ -215,3 +224,101 @@ def _wait(condition, timeout=5.0):
         if time.monotonic() > deadline:
             raise AssertionError("condition not reached in time")
         time.sleep(0.01)
+
+
+def _handshake_status(port: int, host: str | None, origin: str | None = None, path: str = "/ws") -> int:
+    """Status of a raw HTTP/1.1 WebSocket handshake with these ``Host`` and ``Origin`` headers."""
+    lines = [f"GET {path} HTTP/1.1", "Upgrade: websocket", "Connection: Upgrade",
+             "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==", "Sec-WebSocket-Version: 13"]
+    lines += [f"Host: {host}"] if host is not None else []
+    lines += [f"Origin: {origin}"] if origin is not None else []
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as conn:
+        conn.sendall(("\r\n".join(lines) + "\r\n\r\n").encode())
+        reply = b""
+        while b"\r\n" not in reply:
+            chunk = conn.recv(4096)
+            if not chunk:
+                break
+            reply += chunk
+    return int(reply.split()[1])
+
+
+@pytest.mark.parametrize("host,origin,status", [
+    ("127.0.0.1:{port}", "http://127.0.0.1:{port}", 101),  # the page's own origin
+    ("127.0.0.1:{port}", "http://localhost:{port}", 101),  # loopback names are one machine
+    ("localhost:{port}", "http://[::1]:{port}", 101),
+    ("LOCALHOST:{port}", "HTTP://LocalHost:{port}", 101),
+    ("127.0.0.1:{port}", None, 101),  # not a browser: no page to hijack
+    ("127.0.0.1:{port}", "https://studio.example:8443", 101),  # listed by the user
+    ("127.0.0.1:{port}", "http://evil.example", 403),  # cross-site WebSocket hijacking
+    ("127.0.0.1:{port}", "http://evil.example:{port}", 403),
+    ("127.0.0.1:{port}", "http://127.0.0.1:1", 403),  # another local page, another port
+    ("127.0.0.1:{port}", "https://127.0.0.1:{port}", 403),
+    ("127.0.0.1:{port}", "null", 403),  # sandboxed iframe, file:// page
+    ("127.0.0.1:{port}", "http://127.0.0.1:{port}/", 403),
+    ("evil.example:{port}", "http://evil.example:{port}", 403),  # DNS rebinding: the page's own origin, foreign Host
+    ("evil.example:{port}", None, 403),
+    ("127.0.0.1.evil.example:{port}", None, 403),
+    ("evil.example@127.0.0.1:{port}", None, 403),
+    ("127.0.0.1:1", None, 403),
+    ("192.0.2.7:{port}", None, 403),
+    (None, None, 403),
+])
+def test_websocket_accepts_only_its_own_page_and_listed_origins(rng, host, origin, status):
+    basis = random_basis(rng, 16, 2)
+    with RenderServer(basis, allowed_origins=["https://studio.example:8443"]) as srv:
+        fill = {"port": srv.port}
+        assert _handshake_status(srv.port, host and host.format(**fill), origin and origin.format(**fill)) == status
+
+
+def test_a_foreign_host_gets_no_page_either(server):
+    assert _handshake_status(server.port, f"evil.example:{server.port}", path="/") == 403
+    assert _handshake_status(server.port, f"127.0.0.1:{server.port}", path="/") == 200
+
+
+@pytest.mark.parametrize("origin", ["127.0.0.1:8765", "ftp://x", "http://", "http://a/b", "http://a:99999", 5])
+def test_a_malformed_allowed_origin_is_an_input_error(rng, origin):
+    with pytest.raises(InputError) as info:
+        RenderServer(random_basis(rng, 16, 2), allowed_origins=[origin])
+    assert info.value.field == "allowed_origins"
+
+
+def test_a_client_that_never_reads_is_dropped_within_ping_interval_plus_timeout(rng):
+    """A raw socket completes the handshake and then never reads while frames are broadcast: the server
+    cuts it off after one unanswered ping, while a client that reads stays connected."""
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    basis = random_basis(rng, 49, 4)
+    interval, timeout = 0.5, 1.0
+    with RenderServer(basis, ping_interval=interval, ping_timeout=timeout) as srv:
+        stalled = socket.socket()
+        stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        stalled.connect(("127.0.0.1", srv.port))
+        stalled.sendall(_HANDSHAKE.encode())
+        with connect(f"ws://127.0.0.1:{srv.port}/ws") as live:
+            received = []
+
+            def read():
+                try:
+                    while True:
+                        received.append(live.recv())
+                except ConnectionClosed:
+                    pass
+
+            reader = threading.Thread(target=read, daemon=True)
+            reader.start()
+            _wait(lambda: srv.n_clients == 2)
+            start, seq, dropped = time.monotonic(), 0, None
+            while time.monotonic() - start < 2 * (interval + timeout) + 1:
+                srv.publish(RenderFrame(seq, time.monotonic(), np.full(4, seq % 7 / 7)))
+                seq += 1
+                time.sleep(0.01)
+                if dropped is None and srv.n_clients == 1:
+                    dropped = time.monotonic() - start
+            assert dropped is not None and dropped <= interval + timeout + 0.5, dropped
+            assert srv.n_clients == 1 and reader.is_alive()  # the reading client answers its pings
+        reader.join(5)
+        kind, last_seq = struct.unpack_from("<2I", received[-1])
+        assert kind == 2 and last_seq >= seq - 50  # the newest frames kept arriving
+        stalled.close()

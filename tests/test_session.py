@@ -69,6 +69,21 @@ def test_minimal_simulated_session_defaults(tmp_path):
     assert session.basis == "builtin" and session.markers is None and session.calibration is None
     assert session.render.enabled and session.render.port == 8765
     assert not session.vmc.enabled and not session.recording.enabled and session.servo_rig is None
+    assert session.render.allowed_origins == ()
+
+
+def test_render_allowed_origins_reach_the_server(tmp_path):
+    from livebridge.runtime.build import build_pipeline
+
+    session = load_session(_write(tmp_path, '[cameras]\nurls = ["sim://rig?cameras=2&realtime=0&size=160x100"]\n'
+                                            '[outputs.render]\nport = 0\n'
+                                            'allowed_origins = ["https://studio.example:8443"]\n'))
+    assert session.render.allowed_origins == ("https://studio.example:8443",)
+    pipeline = build_pipeline(session, log=lambda message: None)
+    try:
+        assert pipeline.render.allowed_origins == {("https", "studio.example", 8443)}
+    finally:
+        pipeline.stop()
 
 
 @pytest.mark.parametrize("text,field", [
@@ -92,6 +107,10 @@ def test_minimal_simulated_session_defaults(tmp_path):
     ('[cameras]\nurls = ["sim://rig"]\n[recording]\nframe_format = "jpg"\n', "recording.frame_format"),
     ('[cameras]\nurls = ["sim://rig"]\n[runtime]\nframes = -3\n', "runtime.frames"),
     ('[cameras]\nurls = ["sim://rig"]\n[camera]\nurls = []\n', "camera"),
+    ('[cameras]\nurls = ["sim://rig"]\n[outputs.render]\nallowed_origins = ["evil.example"]\n',
+     "outputs.render.allowed_origins[0]"),
+    ('[cameras]\nurls = ["sim://rig"]\n[outputs.render]\nallowed_origins = "http://a:1"\n',
+     "outputs.render.allowed_origins"),
 ])
 def test_errors_name_file_and_field(tmp_path, text, field):
     path = _write(tmp_path, text)

@@ -143,3 +143,60 @@ def test_defaults():
     out = VMCOutput(NAMES)
     assert out.address == ("127.0.0.1", DEFAULT_PORT)
     out.close()
+
+
+@pytest.mark.parametrize("port", [0, -1, 65536, 99999, True, "39539", 1.5])
+def test_a_port_outside_1_to_65535_is_an_error_naming_the_port(port):
+    with pytest.raises(InputError) as info:
+        VMCOutput(NAMES, port=port)
+    assert info.value.field == "port" and "1..65535" in info.value.message
+
+
+@pytest.mark.parametrize("host", ["", "   ", "0.0.0.0", "::", "255.255.255.255", "no such host.invalid"])
+def test_a_host_that_is_not_one_receiver_is_an_error_naming_the_host(host):
+    with pytest.raises(InputError) as info:
+        VMCOutput(NAMES, host=host)
+    assert info.value.field == "host"
+
+
+def test_loopback_by_default_and_another_machine_only_when_named_and_announced(capsys):
+    from types import SimpleNamespace
+
+    from livebridge.cli.runtime import _announce_vmc
+
+    with VMCOutput(NAMES) as local, VMCOutput(NAMES, host="192.0.2.7", port=9000) as remote, \
+            VMCOutput(NAMES, host="localhost") as named:
+        assert local.is_local and named.is_local and not remote.is_local
+        assert local.describe() == f"VMC/OSC: sending to 127.0.0.1:{DEFAULT_PORT} on this machine"
+        assert named.describe().endswith("(localhost) on this machine")
+        assert "192.0.2.7:9000" in remote.describe() and "ANOTHER MACHINE" in remote.describe()
+        _announce_vmc(SimpleNamespace(vmc=remote))
+        _announce_vmc(SimpleNamespace(vmc=None))
+    assert capsys.readouterr().out == remote.describe() + "\n"
+
+
+def test_a_send_the_network_refuses_is_dropped_and_kept_not_raised():
+    class Refusing:
+        def sendto(self, data, address):
+            raise OSError(22, "Invalid argument")
+
+        def close(self):
+            pass
+
+    out = VMCOutput(NAMES)
+    out._socket.close()
+    out._socket = Refusing()
+    assert out.send(np.zeros(len(NAMES))) == 0
+    assert out.dropped == 1 and out.last_error.errno == 22
+
+
+@pytest.mark.parametrize("value,words", [("127.0.0.1:99999", "port"), ("127.0.0.1:0", "port"),
+                                         ("0.0.0.0:39539", "host")])
+def test_demo_vmc_option_is_checked_before_anything_starts(value, words):
+    from click.testing import CliRunner
+
+    from livebridge.cli import main
+
+    result = CliRunner().invoke(main, ["demo", "--vmc", value, "--frames", "1", "--no-servo", "--no-render",
+                                       "--size", "320x200", "--unpaced"])
+    assert result.exit_code == 2 and "--vmc" in result.output and words in result.output

@@ -161,7 +161,7 @@ def show(basis_spec: str, out: Path, markers_spec: str | None, yaw: float, dpi: 
             markers = MarkerSet.load(markers_spec)
             markers.check_mesh(len(basis.triangles))
         except InputError as error:
-            raise click.ClickException(str(error)) from None
+            raise InputError(error.message, error.path or markers_spec, error.field) from None
     try:
         render_basis(basis, out, markers=markers, yaw_deg=yaw, dpi=dpi, muscles=muscles or None,
                      panel_inches=panel_size, crop_y=crop_y)

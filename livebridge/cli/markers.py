@@ -176,7 +176,10 @@ def report(layout_file: Path, basis_spec: str, calibration: Path | None, min_vie
     rig = load_rig(calibration, min_views, max_view_deg, view_margin)
     try:
         layout = MarkerSet.load(layout_file)
-        layout.check_mesh(len(basis.triangles))
+        try:
+            layout.check_mesh(len(basis.triangles))
+        except InputError as error:
+            raise InputError(error.message, layout_file, error.field) from None
         if rig is not None:
             click.echo(describe_rig(rig))
         figures = layout_report(basis, layout, rig)

@@ -11,6 +11,12 @@ def _log(message: str) -> None:
     click.echo(message, err=True)
 
 
+def _announce_vmc(pipeline) -> None:
+    """The start-up banner's VMC line: where the datagrams go (says so when they leave this machine)."""
+    if pipeline.vmc is not None:
+        click.echo(pipeline.vmc.describe())
+
+
 def _print_summary(summary, score=None) -> None:
     click.echo(f"frame sets solved: {summary.solved} ({summary.framesets} reconstructed), "
                f"{summary.fps:.1f} per second, {summary.drops} dropped")
@@ -45,6 +51,7 @@ def run(session: str, frames: int | None) -> None:
     def started(p):
         if p.render is not None:
             click.echo(f"render client: {p.render.url}")
+        _announce_vmc(p)
         sys.stdout.flush()
 
     summary = run_until_stopped(pipeline, frames if frames is not None else loaded.frames, log=_log,
@@ -90,7 +97,13 @@ def demo(frames, cameras, seed, fps, size, host, port, unpaced, no_servo, no_ren
         vmc_host, _, vmc_port = vmc.rpartition(":")
         if not vmc_host or not vmc_port.isdigit():
             raise click.BadParameter("expected HOST:PORT", param_hint="--vmc")
-        vmc_target = (vmc_host, int(vmc_port))
+        from livebridge.output.vmc import resolve_destination
+
+        vmc_target = (vmc_host.removeprefix("[").removesuffix("]"), int(vmc_port))
+        try:
+            resolve_destination(*vmc_target)
+        except InputError as error:
+            raise click.BadParameter(f"{error.field}: {error.message}", param_hint="--vmc") from None
     try:
         parts = build_demo(cameras=cameras, seed=seed, fps=fps, size=(width, height), realtime=not unpaced,
                            servo=not no_servo, render=not no_render, host=host, port=port, vmc=vmc_target,
@@ -103,6 +116,7 @@ def demo(frames, cameras, seed, fps, size, host, port, unpaced, no_servo, no_ren
             click.echo(f"livebridge demo: open {p.render.url} in a browser (Ctrl-C to stop)")
         else:
             click.echo("livebridge demo running (Ctrl-C to stop)")
+        _announce_vmc(p)
         sys.stdout.flush()
 
     summary = run_until_stopped(parts.pipeline, frames, log=_log, on_start=started)

@@ -9,12 +9,14 @@ and stored as one versioned ``.npz`` file with an embedded JSON manifest.
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from livebridge.errors import InputError
+from livebridge.errors import InputError, file_error
 
 BASIS_FORMAT = "livebridge-basis"
 BASIS_VERSION = 1
@@ -94,8 +96,9 @@ class Basis:
                 f"elements must have shape {(len(self.muscles),) + neutral.shape}, got {elements.shape}",
                 field="elements",
             )
-        if not (np.isfinite(neutral).all() and np.isfinite(elements).all()):
-            raise InputError("the basis contains non-finite coordinates", field="elements")
+        for name, array in (("neutral", neutral), ("elements", elements)):
+            if not np.isfinite(array).all():
+                raise InputError("contains NaN or infinity", field=name)
         names = [m.name for m in self.muscles]
         if len(set(names)) != len(names):
             raise InputError(f"muscle names repeat: {names}", field="muscles")
@@ -173,28 +176,81 @@ class Basis:
 
     @classmethod
     def load(cls, path: str | Path) -> Basis:
-        """Read a basis written by :meth:`save`; a wrong file names what is missing."""
+        """Read a basis written by :meth:`save`; anything wrong raises :class:`InputError` naming the field."""
         path = Path(path)
-        if not path.is_file():
-            raise InputError("basis file not found", path)
+        arrays = _read_npz(path, ("manifest", "neutral", "triangles", "elements"))
+        muscles = _read_manifest(arrays["manifest"], path)
+        for key, kinds, what in (("neutral", "fiu", "numbers"), ("elements", "fiu", "numbers"),
+                                 ("triangles", "iu", "whole numbers")):
+            if arrays[key].dtype.kind not in kinds:
+                raise InputError(f"expected {what}, got dtype {arrays[key].dtype}", path, key)
         try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {key: data[key] for key in data.files}
-        except (OSError, ValueError) as error:
-            raise InputError(f"not a livebridge basis .npz file ({error})", path) from None
-        for key in ("manifest", "neutral", "triangles", "elements"):
-            if key not in arrays:
-                raise InputError(f"missing array {key!r}", path, key)
-        manifest = json.loads(str(arrays["manifest"]))
-        if manifest.get("format") != BASIS_FORMAT:
-            raise InputError(f"format is {manifest.get('format')!r}, expected {BASIS_FORMAT!r}", path, "format")
-        if manifest.get("version", 0) > BASIS_VERSION:
-            raise InputError(f"version {manifest['version']} is newer than this livebridge reads", path, "version")
-        try:
-            muscles = tuple(
-                Muscle(m["name"], m["region"], m.get("side"), m.get("description", ""))
-                for m in manifest["muscles"]
-            )
             return cls(arrays["neutral"], arrays["triangles"], arrays["elements"], muscles)
         except InputError as error:
             raise InputError(error.message, path, error.field) from None
+
+
+def _read_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The arrays ``keys`` of a ``.npz`` file; an unreadable, damaged or incomplete file raises InputError."""
+    try:
+        data = np.load(path, allow_pickle=False)
+    except OSError as error:
+        raise file_error(error, path) from None
+    except (ValueError, EOFError, zipfile.BadZipFile) as error:
+        raise InputError(f"not a livebridge basis .npz file ({error})", path) from None
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise InputError("a single .npy array, not a livebridge basis .npz file", path)
+    with data:
+        missing = [key for key in keys if key not in data.files]
+        if missing:
+            raise InputError(f"missing array {missing[0]!r}", path, missing[0])
+        arrays = {}
+        for key in keys:
+            try:
+                arrays[key] = data[key]
+            except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error) as error:
+                raise InputError(f"damaged or not a plain array ({error})", path, key) from None
+        return arrays
+
+
+def _read_manifest(array: np.ndarray, path: Path) -> tuple[Muscle, ...]:
+    """The muscles of the JSON manifest embedded in a basis file, every field checked."""
+    if array.shape != () or array.dtype.kind != "U":
+        raise InputError(f"expected one JSON text, got an array of {array.dtype} shape {array.shape}", path,
+                         "manifest")
+    try:
+        manifest = json.loads(str(array))
+    except json.JSONDecodeError as error:
+        raise InputError(f"not valid JSON ({error})", path, "manifest") from None
+    if not isinstance(manifest, dict):
+        raise InputError(f"expected a JSON object, got {type(manifest).__name__}", path, "manifest")
+    if manifest.get("format") != BASIS_FORMAT:
+        raise InputError(f"format is {manifest.get('format')!r}, expected {BASIS_FORMAT!r}", path, "format")
+    version = manifest.get("version", BASIS_VERSION)
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise InputError(f"expected a whole number >= 1, got {version!r}", path, "version")
+    if version > BASIS_VERSION:
+        raise InputError(f"version {version} is newer than this livebridge reads", path, "version")
+    if manifest.get("units", "mm") != "mm":
+        raise InputError(f"expected 'mm', got {manifest['units']!r}", path, "units")
+    rows = manifest.get("muscles")
+    if not isinstance(rows, list) or not rows:
+        raise InputError(f"expected a non-empty list of muscles, got {rows!r}", path, "muscles")
+    return tuple(_muscle(row, path, f"muscles[{k}]") for k, row in enumerate(rows))
+
+
+def _muscle(row, path: Path, field: str) -> Muscle:
+    if not isinstance(row, dict):
+        raise InputError(f"expected an object, got {row!r}", path, field)
+    for key, kinds, required in (("name", (str,), True), ("region", (str,), True),
+                                 ("side", (str, type(None)), False), ("description", (str,), False)):
+        if required and key not in row:
+            raise InputError("missing", path, f"{field}.{key}")
+        if key in row and not isinstance(row[key], kinds):
+            raise InputError(f"expected text, got {row[key]!r}", path, f"{field}.{key}")
+    if not row["name"]:
+        raise InputError("empty muscle name", path, f"{field}.name")
+    try:
+        return Muscle(row["name"], row["region"], row.get("side"), row.get("description", ""))
+    except InputError as error:
+        raise InputError(error.message, path, f"{field} ({row['name']})") from None

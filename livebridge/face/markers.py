@@ -60,7 +60,8 @@ class MarkerSet:
         bad = ~(np.all(barycentric >= -1e-9, axis=1) & (np.abs(barycentric.sum(axis=1) - 1) < 1e-6))
         if bad.any():
             name = self.names[int(np.flatnonzero(bad)[0])]
-            raise InputError("barycentric coordinates must be >= 0 and sum to 1", field=f"marker {name}")
+            raise InputError(f"barycentric coordinates must be finite, >= 0 and sum to 1, got "
+                             f"{barycentric[bad][0].tolist()}", field=f"marker {name}")
         for array in (triangles, barycentric):
             array.setflags(write=False)
         object.__setattr__(self, "triangles", triangles)
@@ -158,25 +159,50 @@ class MarkerSet:
 
     @classmethod
     def load(cls, path: str | Path) -> MarkerSet:
-        """Read a marker set written by :meth:`save`; errors name the file and marker."""
+        """Read a marker set written by :meth:`save`; every error names the file and the marker's field."""
         data = load_toml(path)
+        unknown = sorted(set(data) - {"format", "version", "marker"})
+        if unknown:
+            raise InputError(f"unknown key {unknown[0]!r}", path, unknown[0])
         if data.get("format") != MARKERS_FORMAT:
             raise InputError(f"format must be {MARKERS_FORMAT!r}", path, "format")
-        if data.get("version", 0) > MARKERS_VERSION:
-            raise InputError(f"version {data['version']} is newer than this livebridge reads", path, "version")
+        version = data.get("version", MARKERS_VERSION)
+        if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+            raise InputError(f"expected a whole number >= 1, got {version!r}", path, "version")
+        if version > MARKERS_VERSION:
+            raise InputError(f"version {version} is newer than this livebridge reads", path, "version")
         rows = require(data, "marker", list, path)
+        if not rows:
+            raise InputError("no markers ([[marker]] tables)", path, "marker")
         fields = {"names": [], "triangles": [], "barycentric": [], "regions": [], "roles": []}
         for k, row in enumerate(rows):
-            prefix = f"marker[{k}]"
-            fields["names"].append(require(row, "name", str, path, prefix))
-            fields["triangles"].append(require(row, "triangle", int, path, prefix))
-            bary = require(row, "barycentric", list, path, prefix)
-            if len(bary) != 3:
-                raise InputError("needs 3 barycentric coordinates", path, f"{prefix}.barycentric")
-            fields["barycentric"].append(bary)
-            fields["regions"].append(require(row, "region", str, path, prefix))
-            fields["roles"].append(row.get("role", "face"))
+            for key, value in zip(fields, _marker_row(row, path, f"marker[{k}]")):
+                fields[key].append(value)
         try:
             return cls(**fields)
         except InputError as error:
             raise InputError(error.message, path, error.field) from None
+
+
+_MARKER_KEYS = {"name", "triangle", "barycentric", "region", "role"}
+
+
+def _marker_row(row, path, prefix: str) -> tuple[str, int, list[float], str, str]:
+    """One ``[[marker]]`` table checked: (name, triangle, barycentric, region, role)."""
+    if not isinstance(row, dict):
+        raise InputError(f"expected a table, got {row!r}", path, prefix)
+    unknown = sorted(set(row) - _MARKER_KEYS)
+    if unknown:
+        raise InputError(f"unknown key {unknown[0]!r}", path, f"{prefix}.{unknown[0]}")
+    name = require(row, "name", str, path, prefix)
+    triangle = require(row, "triangle", int, path, prefix)
+    if triangle < 0:
+        raise InputError(f"expected a triangle index >= 0, got {triangle}", path, f"{prefix}.triangle")
+    bary = require(row, "barycentric", list, path, prefix)
+    if len(bary) != 3 or not all(isinstance(b, (int, float)) and not isinstance(b, bool) for b in bary):
+        raise InputError(f"needs 3 barycentric coordinates (numbers), got {bary!r}", path, f"{prefix}.barycentric")
+    region = require(row, "region", str, path, prefix)
+    role = row.get("role", "face")
+    if not isinstance(role, str):
+        raise InputError(f"expected str, got {type(role).__name__} {role!r}", path, f"{prefix}.role")
+    return name, triangle, [float(b) for b in bary], region, role

@@ -28,6 +28,19 @@ seen), ``float32 servo_targets (n_servos,)`` normalised to [0, 1] between
 each servo's limits (NaN: unknown). And now and then a text JSON
 ``{"type": "status", ...}`` with the runtime's live status line.
 
+Only the page itself may connect (cross-site WebSocket hijacking, DNS
+rebinding): every request's ``Host`` must name the bound address (for a
+loopback bind, any of ``127.0.0.1``, ``localhost``, ``[::1]``; for a
+wildcard bind, an IP address or this machine's name), and a WebSocket's
+``Origin``, when the client sends one (browsers always do), must be the
+page's own origin (``http://`` + that host + the port; loopback names are
+equivalent) or one the user listed in ``allowed_origins``. Anything else
+answers 403.
+
+A client that stops reading is dropped: every ``ping_interval`` seconds the
+server pings each client and closes the connection if the pong (which
+follows everything sent before it) does not arrive within ``ping_timeout``.
+
 Slow or vanished clients never slow the publisher: :meth:`RenderServer.publish`
 only stores the newest frame and wakes the server's event loop (at most once
 until it runs); each client has a one-slot buffer that the newest frame
@@ -38,7 +51,10 @@ from __future__ import annotations
 
 import asyncio
 import email.utils
+import ipaddress
 import json
+import re
+import socket
 import threading
 import time
 from collections import deque
@@ -48,6 +64,7 @@ from pathlib import Path
 
 import numpy as np
 
+from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
 from livebridge.face.meshio import vertex_normals
@@ -64,6 +81,10 @@ _CONTENT_TYPES = {
 }
 MESH_KIND = 1
 FRAME_KIND = 2
+LOOPBACK_NAMES = frozenset({"127.0.0.1", "localhost", "::1"})
+WILDCARD_HOSTS = frozenset({"", "0.0.0.0", "::"})
+_AUTHORITY = re.compile(r"(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+)(?::(\d{1,5}))?")
+_DEFAULT_PORTS = {"http": 80, "https": 443}
 
 
 @dataclass(frozen=True, eq=False)
@@ -190,14 +211,22 @@ class RenderServer:
         Names of the servo targets carried by each frame.
     static_dir : Path, optional
         Folder of the page's files (default: the one shipped in the package).
+    allowed_origins : sequence of str
+        Other origins whose pages may connect, e.g. ``https://studio.example:8443`` (a page behind a
+        proxy); their host names are accepted in ``Host`` too.
+    ping_interval, ping_timeout : float
+        Seconds between keepalive pings, and how long a client may take to answer one before it is dropped.
     """
 
     def __init__(self, basis: Basis, markers: MarkerSet | None = None, host: str = "127.0.0.1", port: int = 0,
-                 servo_names=(), static_dir: Path | None = None):
+                 servo_names=(), static_dir: Path | None = None, allowed_origins=(), ping_interval: float = 5.0,
+                 ping_timeout: float = 10.0):
         self.basis = basis
         self.markers = markers
         self.host = host
         self.port = port
+        self.allowed_origins = frozenset(parse_origin(origin) for origin in allowed_origins)
+        self.ping_interval, self.ping_timeout = ping_interval, ping_timeout
         self.servo_names = tuple(servo_names)
         self._static = _static_files(Path(static_dir) if static_dir else STATIC_DIR)
         self._init_text = json.dumps({
@@ -241,7 +270,12 @@ class RenderServer:
         if self._startup_error is not None:
             self._thread.join()
             self._thread = None
-            raise self._startup_error
+            error = self._startup_error
+            if isinstance(error, OSError):  # port in use, address not on this machine: name the address
+                host = f"[{self.host}]" if ":" in self.host else self.host
+                raise OSError(error.errno, error.strerror or str(error), f"render server {host}:{self.port}") \
+                    from None
+            raise error
         return self
 
     def stop(self, timeout: float = 5.0) -> None:
@@ -337,8 +371,8 @@ class RenderServer:
 
         self._stop_future = asyncio.get_running_loop().create_future()
         async with serve(self._handler, self.host, self.port, process_request=self._process_request,
-                         compression=None, max_size=2**16, ping_interval=5, ping_timeout=10,
-                         close_timeout=1, write_limit=2**16, server_header=None) as server:
+                         compression=None, max_size=2**16, ping_interval=None, close_timeout=1,
+                         write_limit=2**16, server_header=None) as server:
             self.port = server.sockets[0].getsockname()[1]
             self._started.set()
             await self._stop_future
@@ -350,10 +384,14 @@ class RenderServer:
         from websockets.http11 import Response
 
         path = request.path.split("?", 1)[0].split("#", 1)[0]
-        if path == WS_PATH:
-            return None  # let the WebSocket handshake proceed
+        refusal = self._refusal(request.headers, websocket=path == WS_PATH)
         target = self._static.get(path)
-        if target is None:
+        if refusal is not None:
+            body = f"403 forbidden: {refusal}\n".encode()
+            status, content_type = HTTPStatus.FORBIDDEN, "text/plain; charset=utf-8"
+        elif path == WS_PATH:
+            return None  # let the WebSocket handshake proceed
+        elif target is None:
             body = b"404 not found\n"
             status, content_type = HTTPStatus.NOT_FOUND, "text/plain; charset=utf-8"
         else:
@@ -368,6 +406,44 @@ class RenderServer:
             ("X-Content-Type-Options", "nosniff"),
         ])
         return Response(status.value, status.phrase, headers, body)
+
+    def _refusal(self, headers, websocket: bool) -> str | None:
+        """Why a request is refused (a foreign ``Host``, or a WebSocket from a foreign ``Origin``), or None."""
+        hosts = headers.get_all("Host")
+        try:
+            host, port = _parse_authority(hosts[0]) if len(hosts) == 1 else (None, None)
+        except ValueError:
+            host = None
+        if host is None or not self._host_allowed(host, port):
+            return "Host does not name this server"
+        origins = headers.get_all("Origin")
+        if not websocket or not origins:
+            return None  # only browsers send Origin, and they send it on every WebSocket handshake
+        if len(origins) > 1:
+            return "more than one Origin"
+        try:
+            origin = parse_origin(origins[0])
+        except InputError:
+            return "Origin is not an http(s) origin"
+        if origin in self.allowed_origins:
+            return None
+        scheme, origin_host, origin_port = origin
+        same_host = origin_host == host or origin_host in LOOPBACK_NAMES and host in LOOPBACK_NAMES
+        if scheme == "http" and same_host and origin_port == self.port:
+            return None
+        return "Origin is not this page's origin (add it to allowed_origins to let that page connect)"
+
+    def _host_allowed(self, host: str, port: int | None) -> bool:
+        if port is not None and port != self.port and all(port != p for _, _, p in self.allowed_origins):
+            return False
+        if any(host == h for _, h, _ in self.allowed_origins):
+            return True
+        bound = self.host.strip("[]").lower()
+        if bound in WILDCARD_HOSTS:
+            return _is_ip(host) or host in ("localhost", socket.gethostname().lower())
+        if bound in LOOPBACK_NAMES or _is_ip(bound) and ipaddress.ip_address(bound).is_loopback:
+            return host == bound or host in LOOPBACK_NAMES
+        return host == bound
 
     def _distribute(self) -> None:
         with self._lock:
@@ -393,6 +469,7 @@ class RenderServer:
         client = _Client(connection)
         self.connections_total += 1
         sender = None
+        keepalive = asyncio.create_task(self._keepalive(connection))
         try:
             await connection.send(self._init_text)
             await connection.send(self._mesh)
@@ -404,12 +481,35 @@ class RenderServer:
             pass
         finally:
             self._clients.discard(client)
+            keepalive.cancel()
             if sender is not None:
                 sender.cancel()
                 try:
                     await sender
                 except (asyncio.CancelledError, ConnectionClosed):
                     pass
+
+    async def _keepalive(self, connection) -> None:
+        """Ping every ``ping_interval``; a client whose pong is ``ping_timeout`` late is cut off.
+
+        The pong follows everything sent before the ping, so a client that stopped reading never answers,
+        and the ping itself may wait behind its full socket: the timeout covers both (websockets' own
+        keepalive starts its clock only once the ping is written, which a stalled client never allows).
+        """
+        from websockets.exceptions import ConnectionClosed
+
+        async def ping_pong():
+            pong = await connection.ping()
+            await pong
+
+        try:
+            while True:
+                await asyncio.sleep(self.ping_interval)
+                await asyncio.wait_for(ping_pong(), self.ping_timeout)
+        except asyncio.TimeoutError:
+            connection.transport.abort()
+        except ConnectionClosed:
+            pass
 
     async def _sender(self, client: _Client) -> None:
         connection = client.connection
@@ -442,3 +542,41 @@ def _static_files(folder: Path) -> dict[str, Path]:
     if "/index.html" in files:
         files["/"] = files["/index.html"]
     return files
+
+
+def parse_origin(text: str) -> tuple[str, str, int]:
+    """``(scheme, host, port)`` of a web origin such as ``http://127.0.0.1:8765``; anything else raises.
+
+    Raises
+    ------
+    InputError
+        Naming ``allowed_origins``: not ``http(s)://host[:port]`` with nothing after it.
+    """
+    scheme, sep, authority = text.partition("://") if isinstance(text, str) else ("", "", "")
+    scheme = scheme.lower()
+    try:
+        host, port = _parse_authority(authority)
+    except ValueError:
+        host = None
+    if not sep or scheme not in _DEFAULT_PORTS or host is None:
+        raise InputError(f"expected an origin like http://host:port, got {text!r}", field="allowed_origins")
+    return scheme, host, _DEFAULT_PORTS[scheme] if port is None else port
+
+
+def _parse_authority(text: str) -> tuple[str, int | None]:
+    """``(lower-case host without brackets, port or None)`` of ``host[:port]``; no user info, no path."""
+    match = _AUTHORITY.fullmatch(text)
+    if match is None:
+        raise ValueError(f"not host[:port]: {text!r}")
+    port = None if match.group(2) is None else int(match.group(2))
+    if port is not None and not 0 < port < 65536:
+        raise ValueError(f"port out of range: {port}")
+    return match.group(1).strip("[]").lower(), port
+
+
+def _is_ip(host: str) -> bool:
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    return True

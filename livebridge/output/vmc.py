@@ -18,6 +18,7 @@ receivers differ in case, so the names can be written ``camel``
 
 from __future__ import annotations
 
+import ipaddress
 import re
 import socket
 import struct
@@ -193,29 +194,39 @@ class VMCOutput:
     ----------
     muscle_names : sequence of str
     host, port : str, int
-        The receiver (default ``127.0.0.1:39539``, the VMC performer port).
+        The receiver (default ``127.0.0.1:39539``, the VMC performer port). Another machine is reached only
+        when its host is given here; :meth:`describe` says so, for the start-up banner.
     mapping, case : see :class:`BlendshapeMap`
     max_datagram : int
         Largest datagram sent, bytes.
 
-    Sending never blocks: a datagram the OS cannot take at once is dropped
-    and counted in :attr:`dropped`.
+    Sending never blocks: a datagram the OS cannot take at once (or that it
+    refuses, e.g. the network went down) is dropped and counted in
+    :attr:`dropped`; the last such error is kept in :attr:`last_error`.
     """
 
     def __init__(self, muscle_names: Sequence[str], host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
                  mapping: Mapping | str | None = None, case: str = "camel", max_datagram: int = MAX_DATAGRAM):
         self.map = BlendshapeMap(muscle_names, mapping, case)
         self.encoder = VMCEncoder(self.map.names, max_datagram)
-        try:
-            family, _, _, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
-        except socket.gaierror as error:
-            raise InputError(f"cannot resolve VMC host {host!r} ({error})", field="host") from None
-        self.address = address
+        family, self.address = resolve_destination(host, port)
+        self.host = host
+        self.is_local = ipaddress.ip_address(self.address[0].split("%")[0]).is_loopback
         self._socket = socket.socket(family, socket.SOCK_DGRAM)
         self._socket.setblocking(False)
         self.sent = 0
         self.dropped = 0
         self.bytes_sent = 0
+        self.last_error: OSError | None = None
+
+    def describe(self) -> str:
+        """One line for the start-up banner: where the datagrams go, and whether they leave this machine."""
+        ip, port = self.address[:2]
+        where = f"[{ip}]:{port}" if ":" in ip else f"{ip}:{port}"
+        named = "" if self.host == ip else f" ({self.host})"
+        if self.is_local:
+            return f"VMC/OSC: sending to {where}{named} on this machine"
+        return f"VMC/OSC: sending to {where}{named}, ANOTHER MACHINE: the face's contractions leave this computer"
 
     def send(self, contractions: np.ndarray) -> int:
         """Send one frame; returns the number of datagrams sent."""
@@ -224,8 +235,9 @@ class VMCOutput:
             try:
                 self.bytes_sent += self._socket.sendto(datagram, self.address)
                 count += 1
-            except (BlockingIOError, ConnectionRefusedError):
+            except OSError as error:  # full buffer, nobody listening, network down: drop, never stall
                 self.dropped += 1
+                self.last_error = error
         self.sent += count
         return count
 
@@ -237,3 +249,19 @@ class VMCOutput:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def resolve_destination(host: str, port: int) -> tuple[int, tuple]:
+    """``(address family, socket address)`` of a UDP receiver; a bad host or port raises InputError naming it."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
+        raise InputError(f"must be a port number 1..65535, got {port!r}", field="port")
+    if not isinstance(host, str) or not host.strip():
+        raise InputError(f"must name the receiving machine, got {host!r}", field="host")
+    try:
+        family, _, _, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
+    except (socket.gaierror, UnicodeError) as error:
+        raise InputError(f"cannot resolve VMC host {host!r} ({error})", field="host") from None
+    ip = ipaddress.ip_address(address[0].split("%")[0])
+    if ip.is_unspecified or ip == ipaddress.ip_address("255.255.255.255"):
+        raise InputError(f"{host!r} is not one receiver (unspecified or broadcast address)", field="host")
+    return family, address

@@ -150,7 +150,8 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             from livebridge.output.render_server import RenderServer
 
             render = RenderServer(basis, markers, session.render.host, session.render.port,
-                                  servo_names=servo.servo_names if servo is not None else ())
+                                  servo_names=servo.servo_names if servo is not None else (),
+                                  allowed_origins=session.render.allowed_origins)
         vmc = None
         if session.vmc.enabled:
             from livebridge.output.vmc import VMCOutput

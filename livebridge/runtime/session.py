@@ -32,6 +32,7 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
     enabled = true
     host = "127.0.0.1"
     port = 8765                   # 0: any free port
+    allowed_origins = []          # other pages that may connect, e.g. ["https://studio.example:8443"]
 
     [outputs.vmc]
     enabled = false
@@ -77,6 +78,7 @@ class RenderOptions:
     enabled: bool = True
     host: str = "127.0.0.1"
     port: int = 8765
+    allowed_origins: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -218,6 +220,17 @@ def _port(value, path, name):
     return value
 
 
+def _origins(values: list, path) -> tuple[str, ...]:
+    from livebridge.output.render_server import parse_origin
+
+    for k, value in enumerate(values):
+        try:
+            parse_origin(value)
+        except InputError as error:
+            raise InputError(error.message, path, f"outputs.render.allowed_origins[{k}]") from None
+    return tuple(values)
+
+
 def session_from_dict(data: dict, path: Path | None = None) -> Session:
     """Validate a parsed session table (``path`` names the file in errors and anchors relative paths)."""
     path = Path(path) if path is not None else None
@@ -255,7 +268,8 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     outputs.check_known({"render", "vmc"})
     r = outputs.table("render")
     render = RenderOptions(r.get("enabled", bool, True), r.get("host", str, "127.0.0.1"),
-                           _port(r.get("port", int, 8765), path, "outputs.render.port"))
+                           _port(r.get("port", int, 8765), path, "outputs.render.port"),
+                           _origins(r.get("allowed_origins", list, []), path))
     r.check_known()
     v = outputs.table("vmc")
     mapping = v.get("mapping", (dict, str))

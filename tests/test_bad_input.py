@@ -1,0 +1,431 @@
+"""The bad-input corpus: malformed files through the real command line.
+
+Every case writes a malformed input (generated here, never stored), runs the ``livebridge`` command that
+reads it, and asserts what a user must see: a non-zero exit, exactly one ``Error:`` line that names the
+file and the field (or what is wrong with the file), no traceback, no crash report (nothing was a bug),
+and every file in the work folder left as it was (nothing written, nothing changed).
+
+To cover another format, add a :class:`Format` (the command that reads it and its table of cases) to
+:data:`FORMATS`; a case is a name, a function that writes the input, and the words the error must contain.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from factories import random_basis
+
+from livebridge.cli import main
+
+
+@dataclass(frozen=True)
+class Case:
+    """One malformed input.
+
+    ``write(path)`` creates it (and may return something to ``close()`` after the command, such as a socket
+    it holds); the error line must contain every word of ``expect``, and the input's file name unless the
+    error is about a companion file the input points at (``names_input=False``, ``expect`` names that one).
+    """
+
+    name: str
+    write: Callable[[Path], object]
+    expect: tuple[str, ...] = ()
+    names_input: bool = True
+
+
+@dataclass(frozen=True)
+class Format:
+    """A file format: the file name, the command that reads it, the files it needs beside it, its cases."""
+
+    name: str
+    filename: str
+    command: Callable[[Path, Path], list[str]]  # (input file, work folder) -> arguments of `livebridge`
+    cases: tuple[Case, ...]
+    setup: Callable[[Path], None] = lambda folder: None
+
+
+def _text(text: str) -> Callable[[Path], None]:
+    return _bytes(text.encode())
+
+
+def _bytes(data: bytes) -> Callable[[Path], None]:
+    def write(path: Path) -> None:
+        path.write_bytes(data)
+    return write
+
+
+def _nothing(path: Path) -> None:
+    pass
+
+
+def _directory(path: Path) -> None:
+    path.mkdir()
+
+
+def _unreadable(path: Path) -> None:
+    if os.geteuid() == 0:
+        pytest.skip("root reads files without read permission")
+    path.write_text("x = 1\n")
+    path.chmod(0)
+
+
+def _common_cases(missing: str = "file not found", directory: str = "is a directory") -> tuple[Case, ...]:
+    """What can go wrong with any file, whatever its format."""
+    return (
+        Case("missing", _nothing, (missing,)),
+        Case("directory", _directory, (directory,)),
+        Case("unreadable", _unreadable, ("permission denied",)),
+    )
+
+
+def _toml_cases(**common) -> tuple[Case, ...]:
+    return _common_cases(**common) + (
+        Case("not utf-8", _bytes(b"x = \"\xff\xfe\"\n"), ("not UTF-8",)),
+        Case("binary", _bytes(bytes(range(256))), ("not UTF-8",)),
+        Case("bad toml", _text("[cameras\nurls = \n"), ("not valid TOML",)),
+        Case("duplicate key", _text("a = 1\na = 2\n"), ("not valid TOML",)),
+    )
+
+
+# ------------------------------------------------------------------------------------------------ basis .npz
+_BASIS = random_basis(np.random.default_rng(0), n_vertices=25, n_muscles=2)
+_MANIFEST = {"format": "livebridge-basis", "version": 1, "units": "mm",
+             "muscles": [{"name": "m0", "region": "upper", "side": None, "description": ""},
+                         {"name": "m1", "region": "lower", "side": None, "description": ""}]}
+
+
+def _npz(**changes) -> Callable[[Path], None]:
+    """A basis file with some arrays replaced (``None``: left out); ``manifest=dict`` is written as JSON."""
+    def write(path: Path) -> None:
+        arrays = {"manifest": np.array(json.dumps(_MANIFEST)), "neutral": _BASIS.neutral,
+                  "triangles": _BASIS.triangles.astype(np.int32), "elements": _BASIS.elements}
+        for key, value in changes.items():
+            if value is None:
+                arrays.pop(key)
+            else:
+                arrays[key] = np.array(json.dumps(value)) if isinstance(value, (dict, list)) else value
+        with path.open("wb") as stream:
+            np.savez(stream, **arrays)
+    return write
+
+
+def _manifest(**changes) -> Callable[[Path], None]:
+    return _npz(manifest={**_MANIFEST, **changes})
+
+
+def _muscle(**changes) -> Callable[[Path], None]:
+    return _manifest(muscles=[{**_MANIFEST["muscles"][0], **changes}, _MANIFEST["muscles"][1]])
+
+
+def _damaged(cut: Callable[[bytes], bytes]) -> Callable[[Path], None]:
+    def write(path: Path) -> None:
+        _npz()(path)
+        path.write_bytes(cut(path.read_bytes()))
+    return write
+
+
+def _flip_inside_first_array(data: bytes) -> bytes:
+    start = data.index(b"\x93NUMPY") + 200  # inside the first member's array data
+    return data[:start] + bytes([data[start] ^ 0xFF]) + data[start + 1:]
+
+
+def _npy(path: Path) -> None:
+    with path.open("wb") as stream:
+        np.save(stream, _BASIS.neutral)
+
+
+def _neutral_with(value) -> Callable[[Path], None]:
+    neutral = _BASIS.neutral.copy()
+    neutral[3, 1] = value
+    return _npz(neutral=neutral)
+
+
+BASIS_CASES = _common_cases() + (
+    Case("empty file", _bytes(b""), ("not a livebridge basis",)),
+    Case("text file", _text("neutral = 1\n"), ("not a livebridge basis",)),
+    Case("truncated", _damaged(lambda data: data[:len(data) // 2]), ("not a livebridge basis",)),
+    Case("one byte short", _damaged(lambda data: data[:-1]), ("not a livebridge basis",)),
+    Case("bit flip in an array", _damaged(_flip_inside_first_array), ("damaged",)),
+    Case("a .npy array", _npy, (".npy",)),
+    Case("manifest missing", _npz(manifest=None), ("manifest",)),
+    Case("elements missing", _npz(elements=None), ("elements",)),
+    Case("manifest not JSON", _npz(manifest=np.array("{format: basis")), ("manifest", "JSON")),
+    Case("manifest a JSON list", _npz(manifest=np.array("[1, 2]")), ("manifest", "object")),
+    Case("manifest a JSON string", _npz(manifest=np.array('"basis"')), ("manifest", "object")),
+    Case("manifest numbers", _npz(manifest=np.arange(3)), ("manifest",)),
+    Case("manifest pickled", _npz(manifest=np.array([{"a": 1}], dtype=object)), ("manifest",)),
+    Case("wrong format", _manifest(format="livebridge-markers"), ("format",)),
+    Case("version a string", _manifest(version="1"), ("version",)),
+    Case("version from the future", _manifest(version=99), ("version", "newer")),
+    Case("units in cm", _manifest(units="cm"), ("units",)),
+    Case("no muscles", _manifest(muscles=[]), ("muscles",)),
+    Case("muscles missing", _npz(manifest={k: v for k, v in _MANIFEST.items() if k != "muscles"}), ("muscles",)),
+    Case("muscles an object", _manifest(muscles={"m0": "upper"}), ("muscles",)),
+    Case("muscle a string", _manifest(muscles=["m0", "m1"]), ("muscles[0]",)),
+    Case("muscle without region", _npz(manifest={**_MANIFEST, "muscles": [{"name": "m0"}, _MANIFEST["muscles"][1]]}),
+         ("muscles[0].region", "missing")),
+    Case("muscle region unknown", _muscle(region="middle"), ("muscles[0]", "region")),
+    Case("muscle region a number", _muscle(region=1), ("muscles[0].region",)),
+    Case("muscle name a number", _muscle(name=5), ("muscles[0].name",)),
+    Case("muscle name empty", _muscle(name=""), ("muscles[0].name",)),
+    Case("muscle side unknown", _muscle(side="X"), ("muscles[0]", "side")),
+    Case("muscle names repeat", _muscle(name="m1"), ("muscles", "repeat")),
+    Case("neutral text", _npz(neutral=_BASIS.neutral.astype(str)), ("neutral", "numbers")),
+    Case("neutral booleans", _npz(neutral=_BASIS.neutral > 0), ("neutral", "numbers")),
+    Case("neutral complex", _npz(neutral=_BASIS.neutral + 1j), ("neutral", "numbers")),
+    Case("neutral pickled", _npz(neutral=np.array([None, 1], dtype=object)), ("neutral",)),
+    Case("neutral 2D points", _npz(neutral=_BASIS.neutral[:, :2]), ("neutral", "shape")),
+    Case("neutral a scalar", _npz(neutral=np.float64(1)), ("neutral", "shape")),
+    Case("neutral NaN", _neutral_with(np.nan), ("neutral", "NaN")),
+    Case("neutral infinite", _neutral_with(np.inf), ("neutral", "NaN")),
+    Case("elements infinite", _npz(elements=np.where(_BASIS.elements > 1, np.inf, _BASIS.elements)),
+         ("elements", "NaN")),
+    Case("elements of 3 muscles", _npz(elements=np.zeros((3, 25, 3))), ("elements", "shape")),
+    Case("elements of other vertices", _npz(elements=np.zeros((2, 24, 3))), ("elements", "shape")),
+    Case("triangles fractional", _npz(triangles=_BASIS.triangles + 0.5), ("triangles", "whole numbers")),
+    Case("triangles past the vertices", _npz(triangles=_BASIS.triangles + 25), ("triangles", "do not exist")),
+    Case("triangles negative", _npz(triangles=_BASIS.triangles - 1), ("triangles", "do not exist")),
+    Case("triangles huge unsigned", _npz(triangles=_BASIS.triangles.astype(np.uint64) + np.uint64(2**63)),
+         ("triangles",)),
+    Case("triangles of 4 corners", _npz(triangles=np.zeros((5, 4), np.int32)), ("triangles", "shape")),
+)
+
+
+def _write_basis(folder: Path) -> None:
+    _npz()(folder / "basis.npz")
+
+
+# ------------------------------------------------------------------------------------------------ markers .toml
+_MARKER = {"name": '"a"', "triangle": "3", "barycentric": "[0.2, 0.3, 0.5]", "region": '"upper"', "role": '"face"'}
+_HEADER = 'format = "livebridge-markers"\nversion = 1\n'
+
+
+def _markers(header: str = _HEADER, **changes) -> Callable[[Path], None]:
+    """A marker file whose first marker has some keys changed (``None``: left out)."""
+    first = {**_MARKER, **changes}
+    rows = [first, {**_MARKER, "name": '"b"'}]
+    body = "".join("[[marker]]\n" + "".join(f"{k} = {v}\n" for k, v in row.items() if v is not None) for row in rows)
+    return _text(header + body)
+
+
+MARKER_CASES = _toml_cases() + (
+    Case("empty file", _text(""), ("format",)),
+    Case("wrong format", _markers('format = "livebridge-basis"\nversion = 1\n'), ("format",)),
+    Case("version a string", _markers('format = "livebridge-markers"\nversion = "1"\n'), ("version",)),
+    Case("version from the future", _markers('format = "livebridge-markers"\nversion = 7\n'), ("version", "newer")),
+    Case("unknown top-level key", _markers(_HEADER + "markers_per_region = 3\n"), ("markers_per_region", "unknown")),
+    Case("no markers", _text(_HEADER), ("marker", "missing")),
+    Case("empty marker list", _text(_HEADER + "marker = []\n"), ("marker", "no markers")),
+    Case("marker a number", _text(_HEADER + "marker = 5\n"), ("marker",)),
+    Case("marker a list of names", _text(_HEADER + 'marker = ["a", "b"]\n'), ("marker[0]",)),
+    Case("unknown marker key", _markers(triangel="3"), ("marker[0].triangel", "unknown")),
+    Case("name missing", _markers(name=None), ("marker[0].name", "missing")),
+    Case("name a number", _markers(name="5"), ("marker[0].name",)),
+    Case("triangle a string", _markers(triangle='"3"'), ("marker[0].triangle",)),
+    Case("triangle fractional", _markers(triangle="1.5"), ("marker[0].triangle",)),
+    Case("triangle a boolean", _markers(triangle="true"), ("marker[0].triangle",)),
+    Case("triangle negative", _markers(triangle="-1"), ("marker[0].triangle",)),
+    Case("triangle not on the mesh", _markers(triangle="99999"), ("marker a", "does not exist")),
+    Case("triangle missing", _markers(triangle=None), ("marker[0].triangle", "missing")),
+    Case("barycentric strings", _markers(barycentric='["0.2", "0.3", "0.5"]'), ("marker[0].barycentric",)),
+    Case("barycentric two values", _markers(barycentric="[0.5, 0.5]"), ("marker[0].barycentric",)),
+    Case("barycentric a number", _markers(barycentric="1.0"), ("marker[0].barycentric",)),
+    Case("barycentric nested", _markers(barycentric="[[0.2], [0.3], [0.5]]"), ("marker[0].barycentric",)),
+    Case("barycentric NaN", _markers(barycentric="[nan, 0.5, 0.5]"), ("marker a", "barycentric")),
+    Case("barycentric infinite", _markers(barycentric="[inf, 0.0, 0.0]"), ("marker a", "barycentric")),
+    Case("barycentric negative", _markers(barycentric="[-0.5, 1.0, 0.5]"), ("marker a", "barycentric")),
+    Case("barycentric not summing to 1", _markers(barycentric="[0.2, 0.2, 0.2]"), ("marker a", "barycentric")),
+    Case("region unknown", _markers(region='"middle"'), ("marker a", "region")),
+    Case("region a number", _markers(region="1"), ("marker[0].region",)),
+    Case("role unknown", _markers(role='"tail"'), ("marker a", "role")),
+    Case("role a number", _markers(role="1"), ("marker[0].role",)),
+    Case("names repeat", _markers(name='"b"'), ("names", "repeat")),
+)
+
+
+# ------------------------------------------------------------------------------------------------ calibration .toml
+_CAMERA = {"name": '"cam0"', "size": "[640, 480]", "matrix": "[[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0, 0, 1]]",
+           "distortions": "[0.0, 0.0, 0.0, 0.0, 0.0]", "rotation": "[0.0, 0.1, 0.0]",
+           "translation": "[10.0, 0.0, 500.0]"}
+
+
+def _calibration(extra: str = "", **changes) -> Callable[[Path], None]:
+    """A two-camera calibration whose first camera has some keys changed (``None``: left out)."""
+    first = {**_CAMERA, **changes}
+    second = {**_CAMERA, "name": '"cam1"'}
+    tables = [f"[cam_{i}]\n" + "".join(f"{k} = {v}\n" for k, v in cam.items() if v is not None)
+              for i, cam in enumerate((first, second))]
+    return _text("\n".join(tables) + extra)
+
+
+CALIBRATION_CASES = _toml_cases(missing="does not exist") + (  # click checks that the file exists
+    Case("empty file", _text(""), ("no [cam_N] tables",)),
+    Case("rotation 1e308", _calibration(rotation="[1e308, 0.0, 0.0]"), ("cam_0.rotation",)),
+    Case("rotation beyond one turn", _calibration(rotation="[0.0, 0.0, 7.0]"), ("cam_0.rotation",)),
+    Case("rotation NaN", _calibration(rotation="[nan, 0.0, 0.0]"), ("cam_0.rotation", "NaN")),
+    Case("rotation infinite", _calibration(rotation="[0.0, -inf, 0.0]"), ("cam_0.rotation",)),
+    Case("rotation text", _calibration(rotation='["x", 0, 0]'), ("cam_0.rotation",)),
+    Case("rotation of 2 values", _calibration(rotation="[0.0, 0.1]"), ("cam_0.rotation", "shape")),
+    Case("translation 1e309", _calibration(translation="[1e309, 0.0, 0.0]"), ("cam_0.translation",)),
+    Case("translation missing", _calibration(translation=None), ("cam_0.translation", "missing")),
+    Case("typo fishey", _calibration(fishey="true"), ("cam_0.fishey", "unknown")),
+    Case("fisheye a string", _calibration(fisheye='"yes"'), ("cam_0.fisheye",)),
+    Case("name missing", _calibration(name=None), ("cam_0.name", "missing")),
+    Case("name a list", _calibration(name="[1]"), ("cam_0.name",)),
+    Case("names repeat", _calibration(name='"cam1"'), ("cam_1.name", "twice")),
+    Case("size zero", _calibration(size="[0, 480]"), ("cam_0.size",)),
+    Case("size fractional", _calibration(size="[640.5, 480]"), ("cam_0.size",)),
+    Case("size text", _calibration(size='["640", "480"]'), ("cam_0.size",)),
+    Case("size one number", _calibration(size="640"), ("cam_0.size",)),
+    Case("matrix 2x2", _calibration(matrix="[[1, 0], [0, 1]]"), ("cam_0.matrix",)),
+    Case("matrix ragged", _calibration(matrix="[[1, 0, 0], [0, 1], [0, 0, 1]]"), ("cam_0.matrix",)),
+    Case("matrix negative focal", _calibration(matrix="[[-500.0, 0, 320], [0, 500, 240], [0, 0, 1]]"),
+         ("cam_0.matrix",)),
+    Case("matrix last row", _calibration(matrix="[[500.0, 0, 320], [0, 500, 240], [0, 1, 1]]"), ("cam_0.matrix",)),
+    Case("distortions 9 values", _calibration(distortions="[0, 0, 0, 0, 0, 0, 0, 0, 0]"), ("cam_0.distortions",)),
+    Case("distortions empty", _calibration(distortions="[]"), ("cam_0.distortions",)),
+    Case("distortions rational terms", _calibration(distortions="[0, 0, 0, 0, 0, 0.1, 0, 0]"),
+         ("cam_0.distortions",)),
+    Case("camera table a number", _text("cam_0 = 5\n"), ("cam_0",)),
+    Case("table with another name", _text("[camera]\nname = 'a'\n"), ("camera",)),
+    Case("metadata a number", _calibration("metadata = 5\n"), ("metadata",)),
+    Case("metadata rms a string", _calibration('[metadata]\nrms_px = "low"\n'), ("metadata.rms_px",)),
+    Case("metadata rms negative", _calibration("[metadata.rms_px]\ncam0 = -1.0\n"), ("metadata.rms_px.cam0",)),
+    Case("metadata rms NaN", _calibration("[metadata.rms_px]\ncam0 = nan\n"), ("metadata.rms_px.cam0",)),
+    Case("metadata world frame a number", _calibration("[metadata]\nworld_frame = 5\n"), ("metadata.world_frame",)),
+)
+
+
+# ------------------------------------------------------------------------------------------------ session .toml
+_SIM = '[cameras]\nurls = ["sim://rig?cameras=2&realtime=0&size=160x100"]\n'
+
+
+def _session(extra: str, top: str = "") -> Callable[[Path], None]:
+    return _text(top + _SIM + extra)
+
+
+def _session_with_bad(name: str, write: Callable[[Path], None], text: str) -> Callable[[Path], None]:
+    """A session that points at a malformed companion file ``name``."""
+    def write_both(path: Path) -> None:
+        write(path.parent / name)
+        path.write_text(text)
+    return write_both
+
+
+def _render_port_in_use(path: Path):
+    import socket
+
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    path.write_text(_SIM + f"[outputs.render]\nport = {busy.getsockname()[1]}\n")
+    return busy  # held until the command has run
+
+
+SESSION_CASES = _toml_cases() + (
+    Case("empty file", _text(""), ("cameras.urls", "missing")),
+    Case("unknown top-level key", _session("", top="calibraton = 'x.toml'\n"), ("calibraton",)),
+    Case("unknown table", _session("[camera]\nurls = []\n"), ("camera",)),
+    Case("no camera URLs", _text("[cameras]\nurls = []\n"), ("cameras.urls",)),
+    Case("camera URL a number", _text("[cameras]\nurls = [5]\n"), ("cameras.urls",)),
+    Case("camera URL without scheme", _text('[cameras]\nurls = ["webcam0"]\n'), ("cameras.urls",)),
+    Case("sync tolerance text", _text('[cameras]\nurls = ["sim://rig"]\nsync_tolerance = "half"\n'),
+         ("cameras.sync_tolerance",)),
+    Case("real cameras without calibration", _text('[cameras]\nurls = ["v4l2:///dev/video0"]\n'), ("calibration",)),
+    Case("calibration missing", _session("", top='calibration = "nowhere.toml"\n'), ("calibration", "not found")),
+    Case("basis missing", _session('[face]\nbasis = "nowhere.npz"\n'), ("face.basis", "not found")),
+    Case("basis not .npz", _session('[face]\nbasis = "."\n'), ("face.basis",)),
+    Case("markers missing", _session('[face]\nmarkers = "nowhere.toml"\n'), ("face.markers", "not found")),
+    Case("solver mode unknown", _session('[solver]\nmode = "fast"\n'), ("solver.mode",)),
+    Case("solver sweeps text", _session('[solver]\nsweeps = "two"\n'), ("solver.sweeps",)),
+    Case("reconstruct tolerance NaN", _session("[reconstruct]\ntolerance_px = nan\n"), ("reconstruct.tolerance_px",)),
+    Case("render port 70000", _session("[outputs.render]\nport = 70000\n"), ("outputs.render.port",)),
+    Case("render port negative", _session("[outputs.render]\nport = -1\n"), ("outputs.render.port",)),
+    Case("render enabled text", _session('[outputs.render]\nenabled = "yes"\n'), ("outputs.render.enabled",)),
+    Case("render host a number", _session("[outputs.render]\nhost = 127\n"), ("outputs.render.host",)),
+    Case("render foreign origin", _session('[outputs.render]\nallowed_origins = ["evil.example"]\n'),
+         ("outputs.render.allowed_origins[0]",)),
+    Case("render port in use", _render_port_in_use, ("render server 127.0.0.1:", "address already in use"),
+         names_input=False),
+    Case("vmc case unknown", _session('[outputs.vmc]\ncase = "SHOUT"\n'), ("outputs.vmc.case",)),
+    Case("vmc mapping unknown", _session('[outputs.vmc]\nmapping = "arkit"\n'), ("outputs.vmc.mapping",)),
+    Case("vmc port 99999", _session("[outputs.vmc]\nport = 99999\n"), ("outputs.vmc.port",)),
+    Case("vmc port 0", _session("[outputs.vmc]\nenabled = true\nport = 0\n"), ("outputs.vmc.port", "1..65535")),
+    Case("vmc host broadcast", _session('[outputs.vmc]\nenabled = true\nhost = "255.255.255.255"\n'),
+         ("outputs.vmc.host",)),
+    Case("unknown output", _session("[outputs.osc]\nport = 1\n"), ("outputs.osc",)),
+    Case("recording without folder", _session("[recording]\nenabled = true\n"), ("recording.directory",)),
+    Case("recording format", _session('[recording]\nframe_format = "jpg"\n'), ("recording.frame_format",)),
+    Case("frames negative", _session("[runtime]\nframes = -3\n"), ("runtime.frames",)),
+    Case("status interval zero", _session("[runtime]\nstatus_interval = 0\n"), ("runtime.status_interval",)),
+    Case("status interval NaN", _session("[runtime]\nstatus_interval = nan\n"), ("runtime.status_interval",)),
+    Case("a damaged basis", _session_with_bad("face.npz", _damaged(lambda data: data[:100]),
+                                              _SIM + '[face]\nbasis = "face.npz"\nmarkers = "builtin"\n'),
+         ("face.npz", "not a livebridge basis"), names_input=False),
+    Case("a marker set with an empty list", _session_with_bad("m.toml", _text(_HEADER + "marker = []\n"),
+                                                              _SIM + '[face]\nmarkers = "m.toml"\n'),
+         ("m.toml", "marker"), names_input=False),
+    Case("a calibration with 1e308", _session_with_bad("rig.toml", _calibration(rotation="[1e308, 0, 0]"),
+                                                       'calibration = "rig.toml"\n' + _SIM),
+         ("rig.toml", "cam_0.rotation"), names_input=False),
+)
+
+
+FORMATS = (
+    Format("basis", "basis.npz", lambda path, folder: ["basis", "show", str(path), "--out", str(folder / "out.png")],
+           BASIS_CASES),
+    Format("markers", "markers.toml", lambda path, folder: ["basis", "show", str(folder / "basis.npz"), "--markers",
+                                                            str(path), "--out", str(folder / "out.png")],
+           MARKER_CASES, setup=_write_basis),
+    Format("calibration", "calibration.toml", lambda path, folder: ["calibrate", "show", str(path)],
+           CALIBRATION_CASES),
+    Format("session", "session.toml", lambda path, folder: ["run", str(path)], SESSION_CASES),
+)
+CASES = [pytest.param(fmt, case, id=f"{fmt.name}: {case.name}") for fmt in FORMATS for case in fmt.cases]
+
+
+def _snapshot(folder: Path) -> dict[str, bytes | None]:
+    """Every file (its bytes) and folder (None) under ``folder``."""
+    return {str(p.relative_to(folder)): None if p.is_dir() else p.read_bytes() for p in sorted(folder.rglob("*"))
+            if not p.is_symlink() and (p.is_dir() or os.access(p, os.R_OK))}
+
+
+@pytest.fixture
+def crash_dir(tmp_path, monkeypatch):
+    folder = tmp_path / "crash-reports"
+    folder.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(folder))
+    return folder
+
+
+@pytest.mark.parametrize("fmt,case", CASES)
+def test_malformed_input_is_one_error_line(tmp_path, crash_dir, fmt, case):
+    work = tmp_path / "work"
+    work.mkdir()
+    fmt.setup(work)
+    path = work / fmt.filename
+    held = case.write(path)
+    try:
+        before = _snapshot(work)
+        result = CliRunner().invoke(main, fmt.command(path, work))
+    finally:
+        if held is not None:
+            held.close()
+    output = result.output
+    errors = [line for line in output.splitlines() if line.startswith("Error:")]
+    assert result.exit_code != 0, output
+    assert isinstance(result.exception, SystemExit), repr(result.exception)  # nothing escaped the boundary
+    assert "Traceback" not in output and "Aborted" not in output, output
+    assert len(errors) == 1, output
+    for word in (fmt.filename,) * case.names_input + case.expect:
+        assert word in errors[0], (word, errors[0])
+    assert not list(crash_dir.iterdir()), "reported as a bug: " + errors[0]
+    assert _snapshot(work) == before
