@@ -54,6 +54,7 @@ import tomlkit.exceptions
 from livebridge.devices.registry import bus_facts
 from livebridge.errors import InputError
 from livebridge.servo.bus import BusFacts
+from livebridge.servo.mapping import _CURVE_KINDS as CURVE_KINDS
 from livebridge.servo.mapping import Curve, Mapping
 from livebridge.servo.safety import Filter, SafetyMapper
 from livebridge.tomlio import load_toml, require, save_toml
@@ -350,6 +351,9 @@ def _curve(entry: _Table, servo: str) -> Curve:
         kind = spec.get("kind", str, "linear")
     else:
         spec, kind = entry, entry.get("curve", str, "linear")
+    if kind not in CURVE_KINDS:
+        raise InputError(f"servo {servo!r}: unknown curve {kind!r} ({', '.join(CURVE_KINDS)})", entry.path,
+                         spec.field("kind") if spec is not entry else entry.field("curve"))
     for key, wanted in (("gamma", "gamma"), ("points", "piecewise")):
         if key in spec and kind != wanted:
             raise InputError(f"servo {servo!r}: {key} applies to a {wanted!r} curve, this one is {kind!r}",
