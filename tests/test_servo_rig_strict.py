@@ -137,6 +137,27 @@ def test_malformed_rig_is_one_error_line_and_stays_unchanged(tmp_path, old, new,
     assert path.read_bytes() == before and not backup_path(path).exists()
 
 
+WHOLE_FILES = [
+    (b"", "buses"),
+    (b"\xff\xfe[buses]", "not UTF-8"),
+    (b"\x00\x01\x02", "not valid TOML"),
+    (RIG.encode().replace(b"[servos.jaw]", b"[[servos.jaw]]"), "servos.jaw: expected a table, got an array"),
+    (b"[[servos]]\nbus = 1\n[buses.head]\nurl = 'simssc32://'\n", "servos"),
+    (b"buses = 'head'\nservos = {}\n", "buses"),
+]
+
+
+@pytest.mark.parametrize("content, named", WHOLE_FILES)
+def test_malformed_rig_files(tmp_path, content, named):
+    path = tmp_path / "rig.toml"
+    path.write_bytes(content)
+    result = CliRunner().invoke(main, ["servo", "limits", str(path), "jaw", "--max", "2500"])
+    assert result.exit_code != 0 and isinstance(result.exception, SystemExit), result.output
+    errors = _lines_of_error(result)
+    assert len(errors) == 1 and str(path) in errors[0] and named in errors[0], result.output
+    assert path.read_bytes() == content and not backup_path(path).exists()
+
+
 def test_limits_keeps_comments_and_layout_and_a_backup(tmp_path):
     path = tmp_path / "rig.toml"
     path.write_text(RIG)

@@ -57,7 +57,7 @@ from livebridge.servo.bus import BusFacts
 from livebridge.servo.mapping import _CURVE_KINDS as CURVE_KINDS
 from livebridge.servo.mapping import Curve, Mapping
 from livebridge.servo.safety import Filter, SafetyMapper
-from livebridge.tomlio import load_toml, require, save_toml
+from livebridge.tomlio import save_toml
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -175,7 +175,12 @@ class Rig:
 
 def load_rig(path: str | Path, muscle_names=None) -> Rig:
     """Read and validate a rig file (see the module docstring)."""
-    return rig_from_dict(load_toml(path), path, muscle_names)
+    text = _decode(_read_bytes(Path(path)), path)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise InputError(f"not valid TOML ({error})", path) from None
+    return rig_from_dict(data, path, muscle_names)
 
 
 _REQUIRED = object()
@@ -202,7 +207,7 @@ class _Table:
 
     def __init__(self, data: Any, path: str, prefix: str, known: tuple[str, ...] | None):
         if not isinstance(data, dict):
-            raise InputError(f"expected a table, got {type(data).__name__} {data!r}", path, prefix or None)
+            raise InputError(f"expected a table, got {_describe(data)}", path, prefix or None)
         self.data, self.path, self.prefix = data, path, prefix
         for key in data:
             if known is not None and key not in known:
@@ -219,7 +224,12 @@ class _Table:
             if default is _REQUIRED:
                 raise InputError("missing", self.path, self.field(key))
             return default
-        return require(self.data, key, kind, self.path, self.prefix)
+        value = self.data[key]
+        kinds = kind if isinstance(kind, tuple) else (kind,)
+        if isinstance(value, bool) and bool not in kinds or not isinstance(value, kinds):
+            wanted = "a number" if float in kinds else " or ".join(_TOML_NAMES[k] for k in kinds)
+            raise InputError(f"expected {wanted}, got {_describe(value)}", self.path, self.field(key))
+        return value
 
     def number(self, key: str, default: Any = _REQUIRED, low: float = -math.inf, high: float = math.inf,
                low_open: bool = False) -> float:
@@ -231,6 +241,17 @@ class _Table:
         return _Table(self.get(key, dict, default), self.path, self.field(key), known)
 
 
+_TOML_NAMES = {dict: "a table", list: "an array", str: "a string", int: "an integer", float: "a number",
+               bool: "true or false"}
+
+
+def _describe(value: Any) -> str:
+    """A value as the error names it: its TOML kind and a short excerpt."""
+    kind = next((name for k, name in reversed(_TOML_NAMES.items()) if isinstance(value, k)), type(value).__name__)
+    text = repr(value)
+    return f"{kind} {text if len(text) <= 40 else text[:37] + '...'}"
+
+
 def _unknown_key(key: str, prefix: str, known: tuple[str, ...]) -> str:
     where = f"in table [{prefix}]" if prefix else "at the top level"
     close = difflib.get_close_matches(key, known, n=1)
@@ -240,7 +261,7 @@ def _unknown_key(key: str, prefix: str, known: tuple[str, ...]) -> str:
 
 def _in_range(value: Any, low: float, high: float, low_open: bool, path: str, field: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(f"expected a number, got {type(value).__name__} {value!r}", path, field)
+        raise InputError(f"expected a number, got {_describe(value)}", path, field)
     value = float(value)
     too_low = value <= low if low_open else value < low
     if not math.isfinite(value) or too_low or value > high:
@@ -370,7 +391,7 @@ def _points(value: list, path: str, field: str) -> tuple[tuple[float, float], ..
     points = []
     for k, point in enumerate(value):
         if not isinstance(point, list) or len(point) != 2:
-            raise InputError(f"point {k}: expected [u, y], got {point!r}", path, field)
+            raise InputError(f"point {k}: expected [u, y], got {_describe(point)}", path, field)
         points.append(tuple(_in_range(v, -math.inf, math.inf, False, path, f"{field}[{k}]") for v in point))
     return tuple(points)
 
@@ -408,9 +429,7 @@ def set_servo_limits(path: str | Path, servo: str, minimum=None, neutral=None, m
     path = Path(path)
     original = _read_bytes(path)
     try:
-        document = tomlkit.parse(original.decode("utf-8"))
-    except UnicodeDecodeError as error:
-        raise InputError(f"not UTF-8 text ({error.reason} at byte {error.start})", path) from None
+        document = tomlkit.parse(_decode(original, path))
     except tomlkit.exceptions.ParseError as error:
         raise InputError(f"not valid TOML ({error})", path) from None
     servos = document.get("servos")
@@ -439,6 +458,13 @@ def _read_bytes(path: Path) -> bytes:
         raise InputError("is a directory, not a rig file", path) from None
     except PermissionError:
         raise InputError("permission denied", path) from None
+
+
+def _decode(data: bytes, path: str | Path) -> str:
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise InputError(f"not UTF-8 text ({error.reason} at byte {error.start})", path) from None
 
 
 def _toml_number(value: float, path: Path, field: str) -> int | float:
