@@ -107,7 +107,8 @@ def jog(url: str, address: int, goal: float | None, delta: float | None, speed: 
         _ramp(bus, address, start, target, speed)
         time.sleep(JOG_SETTLE_S)
         status = bus.poll().get(address)
-        click.echo(f"id {address}: from {start:g} to {target:g}; now at "
+        stopped = " (stopped at the limit)" if goal is None and target != start + delta else ""
+        click.echo(f"id {address}: from {start:g} to {target:g}{stopped}; now at "
                    f"{status.position if status and status.position is not None else 'unknown'}")
     finally:
         try:
