@@ -13,6 +13,8 @@ import threading
 
 import click
 
+from livebridge.cli._servo_options import inside, parse_addresses, probability
+
 
 def _serve(sim, describe: str) -> None:
     path = sim.start()
@@ -30,6 +32,11 @@ def _serve(sim, describe: str) -> None:
         sim.close()
 
 
+def _fault_rates(corrupt: float, drop: float) -> None:
+    probability(corrupt, "--corrupt")
+    probability(drop, "--drop")
+
+
 @click.group()
 def sim() -> None:
     """Simulated servo buses that speak the real wire protocols on a pseudo-terminal."""
@@ -45,15 +52,18 @@ def sim() -> None:
 @click.option("--delay", type=int, default=None, help="Return delay time of every servo (2 µs units).")
 def dynamixel(ids: str, model: str, baud: int, corrupt: float, drop: float, seed: int, delay: int | None) -> None:
     """A DYNAMIXEL Protocol 2.0 bus of X-series servos."""
-    from livebridge.drivers.dynamixel_protocol import MODELS
-    from livebridge.simulators.dynamixel_bus import DynamixelSim, parse_ids
+    from livebridge.drivers.dynamixel_protocol import BAUD_CODES, MAX_ID, MODELS
+    from livebridge.simulators.dynamixel_bus import DynamixelSim
 
     if model not in MODELS:
         raise click.BadParameter(f"unknown model {model!r}; known: {', '.join(MODELS)}", param_hint="--model")
-    try:
-        id_list = parse_ids(ids)
-    except ValueError as error:
-        raise click.BadParameter(str(error), param_hint="--ids") from None
+    id_list = parse_addresses(ids, 0, MAX_ID, "--ids")
+    if baud not in BAUD_CODES.values():
+        raise click.BadParameter(f"{baud} is not a DYNAMIXEL baud rate ({', '.join(map(str, BAUD_CODES.values()))})",
+                                 param_hint="--baud")
+    _fault_rates(corrupt, drop)
+    if delay is not None:
+        inside(delay, 0, 254, "--delay", "the return delay times")
     bus = DynamixelSim(ids=id_list, model=model, baud=baud, corrupt_rate=corrupt, drop_rate=drop, seed=seed,
                        return_delay_time=delay)
     _serve(bus, f"simulated DYNAMIXEL bus: {len(id_list)} x {model} at {baud} baud (ids {ids}); Ctrl-C stops")
@@ -67,8 +77,12 @@ def dynamixel(ids: str, model: str, baud: int, corrupt: float, drop: float, seed
 @click.option("--seed", default=0, show_default=True)
 def maestro(channels: int, device: int, corrupt: float, drop: float, seed: int) -> None:
     """A Pololu Maestro (compact and Pololu protocols)."""
+    from livebridge.drivers.maestro import FACTS
     from livebridge.simulators.maestro_bus import MaestroSim
 
+    inside(channels, 1, FACTS.address_range[1] + 1, "--channels", "the Maestro sizes")
+    inside(device, 0, 127, "--device", "the Pololu device numbers")
+    _fault_rates(corrupt, drop)
     bus = MaestroSim(channels=channels, device=device, corrupt_rate=corrupt, drop_rate=drop, seed=seed)
     _serve(bus, f"simulated Maestro: {channels} channels, device {device}; Ctrl-C stops")
 
@@ -81,4 +95,5 @@ def ssc32(corrupt: float, drop: float, seed: int) -> None:
     """A Lynxmotion SSC-32U (ASCII protocol)."""
     from livebridge.simulators.ssc32_bus import SSC32Sim
 
+    _fault_rates(corrupt, drop)
     _serve(SSC32Sim(corrupt_rate=corrupt, drop_rate=drop, seed=seed), "simulated SSC-32U; Ctrl-C stops")
