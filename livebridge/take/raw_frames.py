@@ -19,6 +19,7 @@ temporary name and renamed; each timestamp row is flushed once its image is in p
 from __future__ import annotations
 
 import csv
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +28,7 @@ import numpy as np
 
 from livebridge.capture.frame import Frame
 from livebridge.errors import InputError
-from livebridge.take.directory import is_take_dir, raw_frames_folder
+from livebridge.take.directory import is_take_dir, raw_frames_folder, read_text
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 VIDEO_SUFFIXES = (".avi", ".mkv", ".mp4")
@@ -47,21 +48,54 @@ class TimestampRow:
 
 
 def read_timestamps(path: Path) -> list[TimestampRow]:
-    """Rows of a camera's timestamp file; errors name the file, the line and the column."""
-    rows = []
-    with Path(path).open(newline="") as stream:
-        reader = csv.DictReader(stream)
-        missing = [c for c in ("seq", "t_capture") if c not in (reader.fieldnames or [])]
-        if missing:
-            raise InputError(f"missing column(s) {', '.join(missing)}", path, "header")
-        for line, row in enumerate(reader, start=2):
-            try:
-                rows.append(TimestampRow(int(row["seq"]), float(row["t_capture"]),
-                                         float(row.get("exposure_us") or "nan"), float(row.get("gain") or "nan"),
-                                         row.get("sync_domain") or "", row.get("source_id") or ""))
-            except (TypeError, ValueError) as error:
-                raise InputError(f"bad value ({error})", path, f"line {line}") from None
+    """Rows of a camera's timestamp file, every field checked: errors name the file, the line and the column
+    (unknown or missing columns, ragged rows, non-numbers, non-finite times, ``seq`` not increasing,
+    ``t_capture`` going backwards)."""
+    path = Path(path)
+    lines = read_text(path).splitlines()
+    reader = csv.reader(lines)
+    header = next(reader, [])
+    unknown = [c for c in header if c not in COLUMNS]
+    if unknown:
+        raise InputError(f"unknown column(s) {', '.join(map(repr, unknown))}; known: {', '.join(COLUMNS)}", path,
+                         "line 1")
+    missing = [c for c in ("seq", "t_capture") if c not in header]
+    if missing:
+        raise InputError(f"missing column(s) {', '.join(missing)}", path, "line 1")
+    rows: list[TimestampRow] = []
+    for line, fields in enumerate(reader, start=2):
+        if not fields:
+            continue  # a blank line
+        if len(fields) != len(header):
+            raise InputError(f"{len(fields)} fields, expected {len(header)}", path, f"line {line}")
+        row = _timestamp_row(path, line, dict(zip(header, fields)), header)
+        if rows and row.seq <= rows[-1].seq:
+            raise InputError(f"seq {row.seq} does not increase (previous {rows[-1].seq})", path,
+                             f"line {line}, column {header.index('seq') + 1} (seq)")
+        if rows and row.t_capture < rows[-1].t_capture:
+            raise InputError(f"t_capture {row.t_capture} goes backwards (previous {rows[-1].t_capture})", path,
+                             f"line {line}, column {header.index('t_capture') + 1} (t_capture)")
+        rows.append(row)
     return rows
+
+
+def _timestamp_row(path: Path, line: int, values: dict[str, str], header: list[str]) -> TimestampRow:
+    def number(column: str, kind: type = float, optional: bool = False):
+        text = values.get(column, "")
+        if optional and text == "":
+            return math.nan
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or math.isinf(value) or math.isnan(value) and not optional:  # NaN: exposure unknown
+            raise InputError(f"expected a finite {'integer' if kind is int else 'number'}"
+                             f"{', nan or an empty field' if optional else ''}, got {text!r:.40}", path,
+                             f"line {line}, column {header.index(column) + 1} ({column})")
+        return value
+
+    return TimestampRow(number("seq", int), number("t_capture"), number("exposure_us", optional=True),
+                        number("gain", optional=True), values.get("sync_domain", ""), values.get("source_id", ""))
 
 
 def frames_folder(folder: str | Path) -> Path:
