@@ -119,14 +119,19 @@ def _read_arrays(path: Path) -> dict[str, np.ndarray]:
         raise InputError("take file not found", path)
     try:
         data = np.load(path, allow_pickle=False)
-        if isinstance(data, np.lib.npyio.NpzFile):
-            with data:
-                arrays = {key: data[key] for key in data.files}
     except _ZIP_ERRORS as error:
         raise InputError(f"not a livebridge take .npz: truncated, damaged or another kind of file ({error!s:.60})",
                          path) from None
     if not isinstance(data, np.lib.npyio.NpzFile):
         raise InputError("a single .npy array, not a livebridge take .npz", path)
+    arrays = {}
+    with data:
+        for key in data.files:
+            try:
+                arrays[key] = data[key]
+            except _ZIP_ERRORS as error:  # a damaged member, or an object array (pickles are never loaded)
+                raise InputError(f"cannot read the array: damaged or not plain numbers ({error!s:.60})", path,
+                                 key) from None
     missing = [name for name in ("manifest", "t") if name not in arrays]
     if missing:
         raise InputError(f"missing array(s) {', '.join(missing)}", path, missing[0])
