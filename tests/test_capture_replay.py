@@ -285,3 +285,13 @@ def test_an_unreadable_video_ends_the_source_or_is_refused_at_open(tmp_path):
     with source:
         assert source.read() is None
     assert source.ended and "left.avi" in source.error
+
+
+def test_a_timestamp_row_torn_by_a_crash_is_dropped(tmp_path):
+    folder = _small_take(tmp_path / "take", ".pgm", n=5, cameras=("cam0",))
+    with open(folder / "cam0.csv", "a") as stream:
+        stream.write("5,1.1")  # the image of row 5 was never written either
+    source = open_camera(f"replay://{folder}?realtime=0")
+    with source:
+        assert [f.seq for f in iter(source.read, None)] == list(range(5))
+    assert source.error is None and source.frames_skipped == 0

@@ -9,7 +9,8 @@ A raw-frame take is a folder with, per camera ``NAME``:
   ``sync_domain``, ``source_id`` (the camera's original name, e.g. ``DEVICE/CAM_B``, which the
   replayed frames carry so that a calibration matches them; default ``NAME``). Without the file,
   frames are numbered from 0 at a given ``fps``.
-  Images beyond the last row (a recording cut short between an image and its row) are ignored.
+  Images beyond the last row (a recording cut short between an image and its row) are ignored, and so is
+  a last row without its newline (cut short by a crash).
 
 :class:`RawFrameWriter` writes this format incrementally and crash-safely (each image is written under a
 temporary name and renamed; each timestamp row is flushed once its image is in place). A take directory
@@ -49,11 +50,12 @@ class TimestampRow:
 
 def read_timestamps(path: Path) -> list[TimestampRow]:
     """Rows of a camera's timestamp file, every field checked: errors name the file, the line and the column
-    (unknown or missing columns, ragged rows, non-numbers, non-finite times, ``seq`` not increasing,
-    ``t_capture`` going backwards)."""
+    (unknown or missing columns, ragged rows, non-numbers, non-finite values). The order is the recording's
+    (a camera's clock may step back; replay plays the rows as they are)."""
     path = Path(path)
-    lines = read_text(path).splitlines()
-    reader = csv.reader(lines)
+    text = read_text(path)
+    lines = text.split("\n")[:-1] if "\n" in text else [text]  # a last line without its newline: torn by a crash
+    reader = csv.reader(line.rstrip("\r") for line in lines)
     header = next(reader, [])
     unknown = [c for c in header if c not in COLUMNS]
     if unknown:
@@ -62,20 +64,13 @@ def read_timestamps(path: Path) -> list[TimestampRow]:
     missing = [c for c in ("seq", "t_capture") if c not in header]
     if missing:
         raise InputError(f"missing column(s) {', '.join(missing)}", path, "line 1")
-    rows: list[TimestampRow] = []
+    rows = []
     for line, fields in enumerate(reader, start=2):
         if not fields:
             continue  # a blank line
         if len(fields) != len(header):
             raise InputError(f"{len(fields)} fields, expected {len(header)}", path, f"line {line}")
-        row = _timestamp_row(path, line, dict(zip(header, fields)), header)
-        if rows and row.seq <= rows[-1].seq:
-            raise InputError(f"seq {row.seq} does not increase (previous {rows[-1].seq})", path,
-                             f"line {line}, column {header.index('seq') + 1} (seq)")
-        if rows and row.t_capture < rows[-1].t_capture:
-            raise InputError(f"t_capture {row.t_capture} goes backwards (previous {rows[-1].t_capture})", path,
-                             f"line {line}, column {header.index('t_capture') + 1} (t_capture)")
-        rows.append(row)
+        rows.append(_timestamp_row(path, line, dict(zip(header, fields)), header))
     return rows
 
 
