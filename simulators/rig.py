@@ -132,16 +132,49 @@ class RigConfig:
     def __post_init__(self):
         if self.sync not in SYNC_MODES:
             raise InputError(f"sync must be one of {SYNC_MODES}, got {self.sync!r}", field="sync")
-        if not self.fps > 0:
-            raise InputError(f"fps must be positive, got {self.fps}", field="fps")
-        for name in ("drop_rate", "occlusion_rate"):
-            if not 0.0 <= getattr(self, name) < 1.0:
-                raise InputError(f"{name} must be in [0, 1), got {getattr(self, name)}", field=name)
-        if self.buffers < 1:
-            raise InputError(f"buffers must be >= 1, got {self.buffers}", field="buffers")
-        for name in ("noise_sigma", "spurious_rate", "jitter_s", "marker_diameter_mm"):
-            if getattr(self, name) < 0:
-                raise InputError(f"{name} must be >= 0, got {getattr(self, name)}", field=name)
+        if (not isinstance(self.size, tuple) or len(self.size) != 2
+                or not all(isinstance(v, int | np.integer) and SIZE_RANGE[0] <= v <= SIZE_RANGE[1] for v in self.size)):
+            raise InputError(f"size must be (width, height), each an integer in {SIZE_RANGE[0]}..{SIZE_RANGE[1]}, "
+                             f"got {self.size}", field="size")
+        near, far = self.distance_mm
+        if not (math.isfinite(near) and math.isfinite(far) and 0 < near <= far):
+            raise InputError(f"distance_mm must be (near, far) with 0 < near <= far, got {self.distance_mm}",
+                             field="distance_mm")
+        for name, (low, high, open_low, open_high) in _CONFIG_RANGES.items():
+            _check_range(name, getattr(self, name), low, high, open_low, open_high)
+        if not 1 <= self.buffers <= 64:
+            raise InputError(f"buffers must be in 1..64, got {self.buffers}", field="buffers")
+
+
+SIZE_RANGE = (16, 4096)  # pixels, each of width and height
+MAX_CAMERAS = 16
+MAX_SEED = 2**32 - 1
+_CONFIG_RANGES = {  # field: (low, high, low excluded, high excluded)
+    "fps": (1.0, 1000.0, False, False),
+    "spread_deg": (0.0, 360.0, False, False),
+    "fill": (0.0, 1.0, True, False),
+    "marker_diameter_mm": (0.0, 50.0, True, False),
+    "marker_level": (0.0, 255.0, False, False),
+    "face_level": (0.0, 255.0, False, False),
+    "ambient_level": (0.0, 255.0, False, False),
+    "noise_sigma": (0.0, 255.0, False, False),
+    "spurious_rate": (0.0, 100.0, False, False),
+    "drop_rate": (0.0, 1.0, False, True),
+    "jitter_s": (0.0, 1.0, False, False),
+    "free_offset": (0.0, 1.0, False, False),
+    "max_view_deg": (0.0, 180.0, False, False),
+    "occlusion_rate": (0.0, 1.0, False, True),
+    "exposure_us": (0.0, 1e6, True, False),
+}
+
+
+def _check_range(name: str, value, low: float, high: float, open_low: bool, open_high: bool) -> None:
+    """Raise :class:`InputError` naming ``name`` and its range unless ``value`` is a finite number in it."""
+    ok = isinstance(value, int | float | np.number) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and (low < value if open_low else low <= value) and (value < high if open_high else value <= high)
+    if not ok:
+        interval = f"{'(' if open_low else '['}{low:g}, {high:g}{')' if open_high else ']'}"
+        raise InputError(f"{name} must be a finite number in {interval}, got {value!r}", field=name)
 
 
 @dataclass(frozen=True, eq=False)
@@ -980,30 +1013,7 @@ def rig_from_url(url: DeviceURL | str) -> SimRig:
 
     if isinstance(url, str):
         url = DeviceURL.parse(url)
-    if url.netloc != "rig":
-        raise InputError(f"unknown simulator {url.netloc!r}; known: rig", url.url)
-    url.check_known(_URL_KEYS)
-    changes = {}
-    for key, name, kind in (("fps", "fps", float), ("noise", "noise_sigma", float), ("drop", "drop_rate", float),
-                            ("spurious", "spurious_rate", float), ("blur", "motion_blur", bool),
-                            ("sync", "sync", str), ("occlusion", "occlusion", bool),
-                            ("occlusion_rate", "occlusion_rate", float),
-                            ("diameter_mm", "marker_diameter_mm", float)):
-        value = url.take(key, kind)
-        if value is not None:
-            changes[name] = value
-    if "jitter_ms" in url.query:
-        changes["jitter_s"] = url.take("jitter_ms", float) / 1000.0
-    if "size" in url.query:
-        try:
-            width, height = (int(v) for v in url.query["size"].lower().split("x"))
-        except ValueError:
-            raise InputError("size must look like 1280x800", url.url, "size") from None
-        changes["size"] = (width, height)
-    try:
-        config = replace(RigConfig(), **changes)
-    except InputError as error:
-        raise InputError(error.message, url.url, error.field) from None
+    config, counts = _rig_options(url)
     if "basis" in url.query:
         basis = Basis.load(url.query["basis"])
         markers = MarkerSet.load(url.query["markers"]) if "markers" in url.query else generate_markers(basis)
@@ -1017,24 +1027,71 @@ def rig_from_url(url: DeviceURL | str) -> SimRig:
 
         cameras = load_calibration(url.query["calibration"])
         cameras = getattr(cameras, "cameras", cameras) if not isinstance(cameras, CameraGroup) else cameras
-    seed = url.take("seed", int, 0)
-    lead_in_s = url.take("lead_in_s", float, 0.0)
-    if lead_in_s < 0:
-        raise InputError(f"lead_in_s must be >= 0, got {lead_in_s}", url.url, "lead_in_s")
-    performer = scripted_performer(basis, markers, config.fps, seed, url.query.get("script", "mixed"), lead_in_s)
-    return SimRig(basis, markers, cameras=cameras, n_cameras=url.take("cameras", int, 4), config=config, seed=seed,
+        if "cameras" in url.query and len(cameras) != counts["cameras"]:
+            raise InputError(f"cameras={counts['cameras']} but the calibration has {len(cameras)} cameras",
+                             url.url, "cameras")
+    performer = scripted_performer(basis, markers, config.fps, counts["seed"], counts["script"], counts["lead_in_s"])
+    return SimRig(basis, markers, cameras=cameras, n_cameras=counts["cameras"], config=config, seed=counts["seed"],
                   performer=performer)
+
+
+def _rig_options(url: DeviceURL) -> tuple[RigConfig, dict]:
+    """The rig's configuration and its ``cameras``, ``seed``, ``script`` and ``frames`` from a ``sim://rig``
+    URL, every value checked against its range before anything is built (an :class:`InputError` names the
+    parameter and the range)."""
+    from livebridge.simulators.performer import SCRIPTS
+
+    if url.netloc != "rig":
+        raise InputError(f"unknown simulator {url.netloc!r}; known: rig", url.url)
+    url.check_known(_URL_KEYS)
+    changes = {}
+    for key, name, kind in (("fps", "fps", float), ("noise", "noise_sigma", float), ("drop", "drop_rate", float),
+                            ("spurious", "spurious_rate", float), ("blur", "motion_blur", bool),
+                            ("sync", "sync", str), ("occlusion", "occlusion", bool),
+                            ("occlusion_rate", "occlusion_rate", float),
+                            ("diameter_mm", "marker_diameter_mm", float)):
+        value = url.take(key, kind)
+        if value is not None:
+            changes[name] = value
+    if "jitter_ms" in url.query:
+        jitter_ms = url.take("jitter_ms", float)
+        if not 0.0 <= jitter_ms <= 1000.0:  # also refuses NaN
+            raise InputError(f"jitter_ms must be a finite number in [0, 1000], got {jitter_ms}", url.url, "jitter_ms")
+        changes["jitter_s"] = jitter_ms / 1000.0
+    if "size" in url.query:
+        try:
+            width, height = (int(v) for v in url.query["size"].lower().split("x"))
+        except ValueError:
+            raise InputError("size must look like 1280x800", url.url, "size") from None
+        changes["size"] = (width, height)
+    counts = {"cameras": url.take("cameras", int, 4), "seed": url.take("seed", int, 0),
+              "frames": url.take("frames", int), "script": url.query.get("script", "mixed")}
+    for key, low, high in (("cameras", 1, MAX_CAMERAS), ("seed", 0, MAX_SEED), ("frames", 1, 10**9)):
+        if counts[key] is not None and not low <= counts[key] <= high:
+            raise InputError(f"{key} must be an integer in {low}..{high}, got {counts[key]}", url.url, key)
+    counts["lead_in_s"] = url.take("lead_in_s", float, 0.0)
+    if not 0.0 <= counts["lead_in_s"] <= 3600.0:  # also refuses NaN
+        raise InputError(f"lead_in_s must be a number of seconds in [0, 3600], got {counts['lead_in_s']}", url.url,
+                         "lead_in_s")
+    if counts["script"] not in SCRIPTS:
+        raise InputError(f"script must be one of {', '.join(SCRIPTS)}, got {counts['script']!r}", url.url, "script")
+    try:
+        config = replace(RigConfig(), **changes)
+    except InputError as error:  # named by the URL's parameter, not the config field
+        field = {"noise_sigma": "noise", "drop_rate": "drop", "spurious_rate": "spurious",
+                 "marker_diameter_mm": "diameter_mm"}.get(error.field, error.field)
+        raise InputError(error.message.replace(error.field, field, 1), url.url, field) from None
+    return config, counts
 
 
 def open_url(url: DeviceURL) -> list[SimCameraSource]:
     """The registry hook: one source per camera of the rig the URL describes (``frames=N``: the cameras end,
     like a finished take, after rig frame ``N - 1``; default: never)."""
-    rig = rig_from_url(url)
-    sources = rig.sources(realtime=url.take("realtime", bool, True))
+    realtime = url.take("realtime", bool, True)
+    rig = rig_from_url(url)  # checks frames too, before building the rig
+    sources = rig.sources(realtime=realtime)
     frames = url.take("frames", int)
     if frames is not None:
-        if frames < 1:
-            raise InputError(f"frames must be >= 1, got {frames}", url.url, "frames")
         for source in sources:
             source.n_frames = frames
     return sources

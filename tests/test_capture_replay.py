@@ -192,3 +192,106 @@ def test_a_replayed_take_declares_the_calibration_recorded_with_it(tmp_path, rec
     folder, _ = recorded  # raw frames alone, not a take directory: no calibration to know
     assert all(s.calibration is None for s in open_cameras(f"replay://{folder}?realtime=0"))
     assert SourceBase().calibration is None  # the default of every source
+
+
+def _small_take(folder, suffix: str, n: int = 8, cameras=("cam0", "cam1")):
+    """A raw-frame take of ``n`` distinct frames per camera (frame k is filled with 10 * k + camera, mod 256)."""
+    from livebridge.take.raw_frames import RawFrameWriter
+
+    with RawFrameWriter(folder, suffix) as writer:
+        for c, name in enumerate(cameras):
+            for k in range(n):
+                writer.write(Frame(np.full((24, 32), (10 * k + c) % 256, np.uint8), 1.0 + k / 30, k, name, 1000.0, 1.0,
+                                   "sync"))
+    return folder
+
+
+def _damage(path, how: str) -> None:
+    if how == "truncate":
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif how == "garbage":
+        path.write_bytes(b"\x00garbage\xff" * 40)
+    elif how == "empty":
+        path.write_bytes(b"")
+    elif how == "delete":
+        path.unlink()
+
+
+@pytest.mark.parametrize("suffix", [".pgm", ".png"])
+@pytest.mark.parametrize("realtime", [False, True])
+def test_a_damaged_take_skips_and_counts_the_frames_it_cannot_read(tmp_path, caplog, suffix, realtime):
+    folder = _small_take(tmp_path / "take", suffix)
+    damaged = {1: "truncate", 3: "delete", 4: "garbage", 6: "empty"}
+    for k, how in damaged.items():
+        _damage(folder / "cam0" / f"{k:06d}{suffix}", how)
+    sources = open_cameras(f"replay://{folder}?realtime={int(realtime)}")
+    got = {}
+    for source in sources:
+        with source:
+            got[source.source_id] = [f for f in iter(lambda s=source: s.read(timeout=1.0), None)]
+            assert source.ended and source.error is None
+    assert [f.seq for f in got["cam0"]] == [k for k in range(8) if k not in damaged]
+    assert [int(f.image[0, 0]) for f in got["cam0"]] == [10 * k for k in range(8) if k not in damaged]
+    assert [f.seq for f in got["cam1"]] == list(range(8))
+    assert [s.frames_skipped for s in sources] == [4, 0]
+    skipped = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
+    assert len(skipped) == 1 and f"000001{suffix}" in skipped[0]  # logged once, naming the first file
+
+
+def test_skipped_frames_are_logged_once_per_hundred(tmp_path, caplog):
+    folder = _small_take(tmp_path / "take", ".pgm", n=250, cameras=("cam0",))
+    for k in range(0, 250, 2):
+        _damage(folder / "cam0" / f"{k:06d}.pgm", "garbage")
+    source = open_camera(f"replay://{folder}?realtime=0")
+    with source:
+        frames = list(iter(source.read, None))
+    assert [f.seq for f in frames] == list(range(1, 250, 2))
+    assert source.frames_skipped == 125 and source.error is None
+    assert len([r for r in caplog.records if "skipped" in r.getMessage()]) == 2  # the 1st and the 101st
+
+
+@pytest.mark.parametrize("loop", [0, 1])
+def test_a_take_with_no_readable_image_ends_with_an_error_naming_it(tmp_path, loop):
+    folder = _small_take(tmp_path / "take", ".png", n=4, cameras=("cam0",))
+    for path in (folder / "cam0").iterdir():
+        _damage(path, "truncate")
+    source = open_camera(f"replay://{folder}?realtime=0&loop={loop}")
+    with source:
+        assert source.read() is None and source.read() is None
+    assert source.ended and "none of the 4 images" in source.error and "cam0" in source.error
+    assert source.frames_skipped == 4
+
+
+def test_a_camera_folder_vanishing_during_replay_ends_that_source(tmp_path):
+    import shutil
+
+    folder = _small_take(tmp_path / "take", ".pgm", n=6)
+    sources = open_cameras(f"replay://{folder}?realtime=0")
+    for source in sources:
+        source.start()
+    assert sources[0].read().seq == 0
+    shutil.rmtree(folder / "cam0")
+    assert sources[0].read() is None and sources[0].ended
+    assert "vanished" in sources[0].error and str(folder / "cam0") in sources[0].error
+    assert [f.seq for f in iter(sources[1].read, None)] == list(range(6))  # the other camera plays on
+
+
+def test_an_unreadable_video_ends_the_source_or_is_refused_at_open(tmp_path):
+    (tmp_path / "left.avi").write_bytes(b"RIFF not really a video" * 10)
+    with pytest.raises(InputError, match="left.avi.*cannot open"):
+        open_camera(f"replay://{tmp_path}?realtime=0")
+    (tmp_path / "left.csv").write_text("seq,t_capture\n0,0.0\n1,0.1\n")  # timestamps: opened, fails at start
+    source = open_camera(f"replay://{tmp_path}?realtime=0")
+    with source:
+        assert source.read() is None
+    assert source.ended and "left.avi" in source.error
+
+
+def test_a_timestamp_row_torn_by_a_crash_is_dropped(tmp_path):
+    folder = _small_take(tmp_path / "take", ".pgm", n=5, cameras=("cam0",))
+    with open(folder / "cam0.csv", "a") as stream:
+        stream.write("5,1.1")  # the image of row 5 was never written either
+    source = open_camera(f"replay://{folder}?realtime=0")
+    with source:
+        assert [f.seq for f in iter(source.read, None)] == list(range(5))
+    assert source.error is None and source.frames_skipped == 0

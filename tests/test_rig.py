@@ -466,3 +466,54 @@ def test_sim_url_takes_the_occlusion_rate():
     with pytest.raises(InputError, match="occlusion_rate") as error:
         rig_from_url("sim://rig?cameras=1&occlusion_rate=1.5")
     assert error.value.field == "occlusion_rate" and "sim://rig" in error.value.path
+
+
+_BAD_RIG_URLS = [  # (query, the parameter the error names, a piece of the range it quotes)
+    ("cameras=1000", "cameras", "1..16"), ("cameras=0", "cameras", "1..16"), ("cameras=-3", "cameras", "1..16"),
+    ("size=0x0", "size", "16..4096"), ("size=-5x10", "size", "16..4096"),
+    ("size=100000x100000", "size", "16..4096"), ("size=640x5", "size", "16..4096"),
+    ("fps=nan", "fps", "[1, 1000]"), ("fps=inf", "fps", "[1, 1000]"), ("fps=0", "fps", "[1, 1000]"),
+    ("fps=-1", "fps", "[1, 1000]"), ("fps=100000", "fps", "[1, 1000]"),
+    ("noise=-1", "noise", "[0, 255]"), ("noise=nan", "noise", "[0, 255]"), ("noise=inf", "noise", "[0, 255]"),
+    ("seed=-1", "seed", "0..4294967295"), ("seed=99999999999", "seed", "0..4294967295"),
+    ("drop=1", "drop", "[0, 1)"), ("drop=nan", "drop", "[0, 1)"),
+    ("occlusion_rate=1.5", "occlusion_rate", "[0, 1)"), ("occlusion_rate=nan", "occlusion_rate", "[0, 1)"),
+    ("spurious=inf", "spurious", "[0, 100]"), ("spurious=1e9", "spurious", "[0, 100]"),
+    ("jitter_ms=inf", "jitter_ms", "[0, 1000]"), ("jitter_ms=-1", "jitter_ms", "[0, 1000]"),
+    ("diameter_mm=0", "diameter_mm", "(0, 50]"), ("diameter_mm=nan", "diameter_mm", "(0, 50]"),
+    ("frames=0", "frames", "1..1000000000"), ("script=dance", "script", "training"),
+]
+
+
+@pytest.mark.parametrize("query, field, allowed", _BAD_RIG_URLS)
+def test_sim_url_values_are_bounded_before_anything_is_built(monkeypatch, query, field, allowed):
+    import livebridge.simulators.rig as rig
+
+    def built(*args, **kwargs):
+        raise AssertionError("the rig was built before its URL was checked")
+
+    monkeypatch.setattr(rig, "default_face", built)
+    with pytest.raises(InputError) as error:
+        open_cameras(f"sim://rig?{query}&realtime=0")
+    assert error.value.field == field and allowed in error.value.message and field in error.value.message
+    assert "sim://rig" in error.value.path
+
+
+@pytest.mark.parametrize("changes", [{"fps": float("inf")}, {"size": (8, 8)}, {"fill": 0.0},
+                                     {"distance_mm": (800.0, 600.0)}, {"exposure_us": float("nan")},
+                                     {"max_view_deg": 270.0}, {"buffers": 0}, {"marker_level": 300.0}])
+def test_rig_config_values_are_bounded(changes):
+    with pytest.raises(InputError) as error:
+        RigConfig(**changes)
+    assert error.value.field == next(iter(changes))
+
+
+def test_sim_url_cameras_must_match_its_calibration(tmp_path, face):
+    from livebridge.calibration.calibfile import save_calibration
+
+    basis, _ = face
+    save_calibration(tmp_path / "calib.toml", generate_cameras(basis, 3, RigConfig(size=(64, 40))))
+    with pytest.raises(InputError, match="cameras=4 but the calibration has 3") as error:
+        open_cameras(f"sim://rig?cameras=4&calibration={tmp_path / 'calib.toml'}&realtime=0")
+    assert error.value.field == "cameras"
+    assert len(open_cameras(f"sim://rig?cameras=3&calibration={tmp_path / 'calib.toml'}&realtime=0")) == 3

@@ -3,7 +3,9 @@
 One C3D point per marker, labelled with the marker name, one frame per row of the take's
 ``markers.csv``, at the take's ``fps`` (or the rate of its timestamps), units mm, float storage; a
 marker not seen in a frame is an invalid point (residual -1). Written with ``c3d.Writer`` to a
-temporary name and renamed, so a crash never leaves half a file.
+temporary name and renamed, so a crash never leaves half a file, and a failed write leaves no temporary
+file. :func:`export_c3d` checks the rate and the output path before it reads the take: the output's folder
+must exist, an existing file is overwritten only when asked, and never one of the take's own records.
 """
 
 from __future__ import annotations
@@ -15,7 +17,18 @@ from pathlib import Path
 import numpy as np
 
 from livebridge.errors import InputError
-from livebridge.take.directory import C3D_NAME, MANIFEST, MARKERS, frame_rate, load_manifest, read_markers
+from livebridge.take.directory import (
+    C3D_NAME,
+    CONTRACTIONS,
+    DISPLACEMENTS,
+    MANIFEST,
+    MARKERS,
+    frame_rate,
+    load_manifest,
+    read_markers,
+)
+
+MAX_RATE = 100_000.0  # Hz; C3D stores the rate as a float32, and no capture runs faster
 
 
 def c3d_points(markers: np.ndarray) -> np.ndarray:
@@ -71,16 +84,45 @@ def write_c3d(out: str | Path, marker_names, markers: np.ndarray, rate: float) -
     no_analog = np.zeros((0, 0))
     writer.add_frames([(frame, no_analog) for frame in points])
     partial = out.with_name(out.name + ".partial")
-    with open(partial, "wb") as handle, warnings.catch_warnings():
-        warnings.filterwarnings("ignore", "No analog data", UserWarning)  # markers only, by design
-        writer.write(handle)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(partial, out)
+    try:
+        with open(partial, "wb") as handle, warnings.catch_warnings():
+            warnings.filterwarnings("ignore", "No analog data", UserWarning)  # markers only, by design
+            writer.write(handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(partial, out)
+    except OSError as error:
+        raise InputError(f"cannot write the C3D file ({error.strerror or error})", out) from None
+    finally:
+        partial.unlink(missing_ok=True)  # after a failure; gone already after the rename
     return out
 
 
-def export_c3d(path: str | Path, out: str | Path | None = None, rate: float | None = None) -> Path:
+def check_rate(rate: float, field: str = "rate") -> float:
+    """``rate`` (frames per second) as a float, finite and in ``(0, MAX_RATE]``, else :class:`InputError`."""
+    if not 0.0 < float(rate) <= MAX_RATE:  # also refuses NaN
+        raise InputError(f"must be a frame rate in (0, {MAX_RATE:g}] Hz, got {rate}", field=field)
+    return float(rate)
+
+
+def check_output(out: Path, take: Path, force: bool) -> Path:
+    """``out`` if a C3D file may be written there: its folder exists, it is not a folder, not one of the
+    take's own records, and not an existing file unless ``force``."""
+    out = Path(out)
+    if not out.parent.is_dir():
+        raise InputError(f"the folder {str(out.parent)!r} does not exist; create it first", out)
+    if out.is_dir():
+        raise InputError("is a folder; give a file name", out)
+    records = {(take / name).resolve() for name in (MANIFEST, CONTRACTIONS, MARKERS, DISPLACEMENTS)}
+    if out.resolve() in records:
+        raise InputError("is one of the take's own records; choose another file", out)
+    if out.exists() and not force:
+        raise InputError("exists; not overwritten without force (livebridge take export-c3d --force)", out)
+    return out
+
+
+def export_c3d(path: str | Path, out: str | Path | None = None, rate: float | None = None,
+               force: bool = False) -> Path:
     """Write the markers of the take directory ``path`` as C3D (see the module docstring).
 
     For a take whose recorder was never closed (a crash), or to re-export one.
@@ -90,9 +132,11 @@ def export_c3d(path: str | Path, out: str | Path | None = None, rate: float | No
     path : Path
         The take directory.
     out : Path, optional
-        The C3D file; default ``<path>/markers.c3d``.
+        The C3D file; default ``<path>/markers.c3d``. Its folder must exist.
     rate : float, optional
-        Frames per second; default the take's ``fps``, else the rate of its timestamps.
+        Frames per second, in (0, :data:`MAX_RATE`]; default the take's ``fps``, else the rate of its timestamps.
+    force : bool
+        Overwrite ``out`` when it exists.
 
     Returns
     -------
@@ -100,15 +144,23 @@ def export_c3d(path: str | Path, out: str | Path | None = None, rate: float | No
         The file written.
     """
     path = Path(path)
+    if rate is not None:
+        rate = check_rate(rate)
+    manifest = load_manifest(path)
+    out = check_output(path / C3D_NAME if out is None else Path(out), path, force)
     names, markers, t = read_markers(path)
     if not names:
         raise InputError("the take has no markers", path / MANIFEST, "marker_names")
     if not len(markers):
         raise InputError("no frames recorded", path / MARKERS)
-    rate = rate or frame_rate(load_manifest(path).get("fps"), t)
-    if rate is None or not rate > 0:
-        raise InputError("the frame rate is unknown (one frame and no fps); give it", path / MANIFEST, "fps")
-    return write_c3d(path / C3D_NAME if out is None else out, names, markers, rate)
+    if rate is None:
+        rate = frame_rate(manifest.get("fps"), t)
+        if rate is None:
+            raise InputError("the frame rate is unknown (one frame and no fps); give it", path / MANIFEST, "fps")
+        if not rate <= MAX_RATE:
+            raise InputError(f"the take's frame rate, {rate:g} Hz, is above {MAX_RATE:g} Hz; give it",
+                             path / MANIFEST, "fps")
+    return write_c3d(out, names, markers, rate)
 
 
 def export_closed_take(path: str | Path, fps: float | None) -> None:

@@ -52,6 +52,7 @@ file (which :func:`load_take_dir` drops).
 from __future__ import annotations
 
 import datetime
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -94,14 +95,71 @@ def save_manifest(path: str | Path, manifest: dict) -> None:
 
 
 def load_manifest(path: str | Path) -> dict:
-    """``take.toml`` of the take directory ``path``, format and version checked."""
-    file = Path(path) / MANIFEST
-    manifest = load_toml(file)
-    if manifest.get("format") != TAKE_DIR_FORMAT:
-        raise InputError(f"format must be {TAKE_DIR_FORMAT!r}", file, "format")
-    if manifest.get("version", 0) > TAKE_DIR_VERSION:
-        raise InputError(f"version {manifest['version']} is newer than this livebridge reads", file, "version")
+    """``take.toml`` of the take directory ``path``, every key checked (:data:`MANIFEST_KEYS`): an unknown or
+    missing key or a wrong type raises :class:`InputError` naming the file and the key."""
+    path = Path(path)
+    file = path / MANIFEST
+    if not path.is_dir():
+        raise InputError("no such take directory", path)
+    if not file.is_file():
+        raise InputError(f"not a take directory (no {MANIFEST})", path)
+    try:
+        manifest = load_toml(file)
+    except UnicodeDecodeError:
+        raise InputError("not UTF-8 text", file) from None
+    except OSError as error:
+        raise InputError(f"cannot read ({error.strerror})", file) from None
+    _check_manifest(file, manifest)
     return manifest
+
+
+def _is_names(value) -> bool:
+    return isinstance(value, list) and all(isinstance(n, str) and n for n in value) and len(set(value)) == len(value)
+
+
+def _is_count(value) -> bool:
+    return type(value) is int and value >= 0
+
+
+def _is_file_name(value) -> bool:
+    """A plain file name inside the take (no folders, nothing outside it)."""
+    return isinstance(value, str) and value not in ("", ".", "..") and "/" not in value and "\\" not in value
+
+
+def _is_number(value) -> bool:
+    return type(value) in (int, float) and math.isfinite(value)
+
+
+MANIFEST_KEYS = {  # key: (required, check, what the check wants)
+    "format": (True, lambda v: v == TAKE_DIR_FORMAT, repr(TAKE_DIR_FORMAT)),
+    "version": (True, lambda v: type(v) is int and 1 <= v <= TAKE_DIR_VERSION,
+                f"an integer from 1 to {TAKE_DIR_VERSION} (a newer version needs a newer livebridge)"),
+    "created": (False, lambda v: isinstance(v, str), "an ISO date-time string"),
+    "units": (False, lambda v: v == "mm", '"mm"'),
+    "muscle_names": (True, _is_names, "a list of distinct non-empty names"),
+    "marker_names": (True, _is_names, "a list of distinct non-empty names"),
+    "fps": (False, lambda v: _is_number(v) and v > 0, "a positive finite number"),
+    "session": (False, _is_file_name, "a file name inside the take"),
+    "calibration": (False, _is_file_name, "a file name inside the take"),
+    "raw_frames": (False, _is_file_name, "a folder name inside the take"),
+    "frames_written": (False, lambda v: isinstance(v, dict) and all(map(_is_count, v.values())),
+                       "a table of camera = frame count"),
+    "frames_dropped": (False, _is_count, "a count (integer >= 0)"),
+    "t0": (False, _is_number, "a finite number of seconds"),
+    "frames": (False, _is_count, "a count (integer >= 0)"),
+}
+
+
+def _check_manifest(file: Path, manifest: dict) -> None:
+    unknown = sorted(set(manifest) - set(MANIFEST_KEYS))
+    if unknown:
+        raise InputError(f"unknown key(s) {', '.join(unknown)}; known: {', '.join(MANIFEST_KEYS)}", file, unknown[0])
+    for key, (required, check, wanted) in MANIFEST_KEYS.items():
+        if key not in manifest:
+            if required:
+                raise InputError(f"missing (expected {wanted})", file, key)
+        elif not check(manifest[key]):
+            raise InputError(f"expected {wanted}, got {manifest[key]!r:.80}", file, key)
 
 
 def contractions_header(muscle_names) -> list[str]:
@@ -176,27 +234,59 @@ class RecordedTake:
                     contractions=self.contractions, muscle_names=self.muscle_names, fps=self.manifest.get("fps"))
 
 
-def _read_csv(path: Path, n_columns: int) -> tuple[list[str], np.ndarray, bool]:
-    """Header and float rows of a recorder CSV; a torn or malformed last line is dropped."""
-    text = path.read_text()
+def read_text(path: Path) -> str:
+    """The UTF-8 text of a take's file; a missing, unreadable or non-UTF-8 file raises :class:`InputError`."""
+    try:
+        return path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise InputError("file not found", path) from None
+    except UnicodeDecodeError as error:
+        raise InputError(f"not UTF-8 text (byte {error.start})", path) from None
+    except OSError as error:
+        raise InputError(f"cannot read ({error.strerror})", path) from None
+
+
+def _read_csv(path: Path, header: list[str]) -> tuple[np.ndarray, bool]:
+    """Float rows ``(n_rows, len(header))`` of a recorder CSV with exactly this header, and whether its last
+    line was torn (cut short by a crash: dropped). An empty field is NaN, except in ``frame``, ``seq`` and
+    ``t``; anything else malformed raises naming the file, the line and the column."""
+    text = read_text(path)
     lines = text.split("\n")
     torn = not text.endswith("\n")
     lines = lines[:-1]  # the empty string after the last newline, or a line a crash cut short
     if not lines:
         raise InputError("empty file (no header)", path)
-    header = lines[0].split(",")
-    if len(header) != n_columns:
-        raise InputError(f"header has {len(header)} columns, expected {n_columns}", path)
-    rows = []
-    for number, line in enumerate(lines[1:], start=2):
-        fields = line.split(",")
-        if len(fields) != n_columns:
-            raise InputError(f"line {number} has {len(fields)} fields, expected {n_columns}", path)
+    found = lines[0].split(",")
+    if found != header:
+        column = next((k for k, (a, b) in enumerate(zip(found, header)) if a != b), min(len(found), len(header)))
+        raise InputError(f"header column {column + 1}: expected {_at(header, column)!r}, got {_at(found, column)!r} "
+                         f"(the header must match take.toml's names)", path, "line 1")
+    rows = [_csv_row(path, number, line, header) for number, line in enumerate(lines[1:], start=2)]
+    return np.array(rows, dtype=np.float64).reshape(len(rows), len(header)), torn
+
+
+def _at(names: list[str], k: int) -> str:
+    return names[k] if k < len(names) else "(end of line)"
+
+
+def _csv_row(path: Path, number: int, line: str, header: list[str]) -> list[float]:
+    fields = line.split(",")
+    if len(fields) != len(header):
+        raise InputError(f"{len(fields)} fields, expected {len(header)}", path, f"line {number}")
+    row = []
+    for column, (name, field) in enumerate(zip(header, fields), start=1):
+        if not field and column > 3:
+            row.append(np.nan)  # not seen
+            continue
         try:
-            rows.append([float(f) if f else np.nan for f in fields])
-        except ValueError as error:
-            raise InputError(f"line {number}: {error}", path) from None
-    return header, np.array(rows, dtype=np.float64).reshape(len(rows), n_columns), torn
+            value = float(field)
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value):
+            raise InputError(f"expected a finite number{' or an empty field' if column > 3 else ''}, got {field!r:.40}",
+                             path, f"line {number}, column {column} ({name})")
+        row.append(value)
+    return row
 
 
 def load_take_dir(path: str | Path) -> RecordedTake:
@@ -209,11 +299,11 @@ def load_take_dir(path: str | Path) -> RecordedTake:
     manifest = load_manifest(path)
     muscles = tuple(manifest.get("muscle_names", ()))
     markers = tuple(manifest.get("marker_names", ()))
-    _, c_rows, torn_c = _read_csv(path / CONTRACTIONS, len(contractions_header(muscles)))
-    _, m_rows, torn_m = _read_csv(path / MARKERS, len(markers_header(markers)))
+    c_rows, torn_c = _read_csv(path / CONTRACTIONS, contractions_header(muscles))
+    m_rows, torn_m = _read_csv(path / MARKERS, markers_header(markers))
     d_rows, torn_d = None, False
     if (path / DISPLACEMENTS).exists():
-        _, d_rows, torn_d = _read_csv(path / DISPLACEMENTS, len(markers_header(markers)))
+        d_rows, torn_d = _read_csv(path / DISPLACEMENTS, markers_header(markers))
     n = min(len(c_rows), len(m_rows), len(d_rows) if d_rows is not None else len(c_rows))
     c_rows, m_rows = c_rows[:n], m_rows[:n]
     if not np.array_equal(c_rows[:, :2], m_rows[:, :2]):
@@ -238,9 +328,7 @@ def read_markers(path: str | Path) -> tuple[tuple[str, ...], np.ndarray, np.ndar
     """
     path = Path(path)
     names = tuple(load_manifest(path).get("marker_names", ()))
-    if not (path / MARKERS).is_file():
-        raise InputError("file not found", path / MARKERS)
-    _, rows, _ = _read_csv(path / MARKERS, len(markers_header(names)))
+    rows, _ = _read_csv(path / MARKERS, markers_header(names))
     return names, rows[:, 3:].reshape(len(rows), len(names), 3), rows[:, 2]
 
 

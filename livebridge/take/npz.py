@@ -16,6 +16,9 @@ File format: one ``.npz`` (``numpy.savez_compressed``) with
 from __future__ import annotations
 
 import json
+import math
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -90,28 +93,117 @@ class Take:
 
     @classmethod
     def load(cls, path: str | Path) -> Take:
-        """Read a take written by :meth:`save`."""
+        """Read a take written by :meth:`save`; anything malformed raises :class:`InputError` naming the file
+        and the array or manifest field (checks: :func:`_read_arrays`, :func:`_check_manifest`,
+        :func:`_check_arrays`)."""
         path = Path(path)
-        if not path.is_file():
-            raise InputError("take file not found", path)
+        arrays = _read_arrays(path)
+        manifest = _check_manifest(path, arrays.pop("manifest"))
+        arrays = _check_arrays(path, arrays)
         try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {key: data[key] for key in data.files}
-        except (OSError, ValueError) as error:
-            raise InputError(f"not a livebridge take .npz ({error})", path) from None
-        if "manifest" not in arrays or "t" not in arrays:
-            raise InputError("missing 'manifest' or 't'", path)
-        manifest = json.loads(str(arrays["manifest"]))
-        if manifest.get("format") != TAKE_FORMAT:
-            raise InputError(f"format must be {TAKE_FORMAT!r}", path, "format")
-        if manifest.get("version", 0) > TAKE_VERSION:
-            raise InputError(f"version {manifest['version']} is newer than this livebridge reads", path, "version")
-        muscle_names = manifest.get("muscle_names")
-        try:
-            return cls(
-                t=arrays["t"], marker_names=tuple(manifest["marker_names"]),
-                muscle_names=tuple(muscle_names) if muscle_names else None, fps=manifest.get("fps"),
-                **{name: arrays.get(name) for name in _ARRAYS},
-            )
+            return cls(marker_names=tuple(manifest["marker_names"]), muscle_names=manifest["muscle_names"],
+                       fps=manifest["fps"], **arrays)
         except InputError as error:
             raise InputError(error.message, path, error.field) from None
+
+
+_ZIP_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
+_MANIFEST_KEYS = {"format", "version", "marker_names", "muscle_names", "fps"}
+
+
+def _read_arrays(path: Path) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` at ``path`` (no pickles); a missing, truncated or foreign file raises."""
+    if path.is_dir():
+        raise InputError("is a directory, not a take file (.npz)", path)
+    if not path.is_file():
+        raise InputError("take file not found", path)
+    try:
+        data = np.load(path, allow_pickle=False)
+    except _ZIP_ERRORS as error:
+        raise InputError(f"not a livebridge take .npz: truncated, damaged or another kind of file ({error!s:.60})",
+                         path) from None
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise InputError("a single .npy array, not a livebridge take .npz", path)
+    arrays = {}
+    with data:
+        for key in data.files:
+            try:
+                arrays[key] = data[key]
+            except _ZIP_ERRORS as error:  # a damaged member, or an object array (pickles are never loaded)
+                raise InputError(f"cannot read the array: damaged or not plain numbers ({error!s:.60})", path,
+                                 key) from None
+    missing = [name for name in ("manifest", "t") if name not in arrays]
+    if missing:
+        raise InputError(f"missing array(s) {', '.join(missing)}", path, missing[0])
+    unknown = sorted(set(arrays) - {"manifest", "t", *_ARRAYS})
+    if unknown:
+        raise InputError(f"unknown array(s) {', '.join(unknown)}; known: manifest, t, {', '.join(_ARRAYS)}",
+                         path, unknown[0])
+    return arrays
+
+
+def _check_manifest(path: Path, raw: np.ndarray) -> dict:
+    """The manifest (JSON text in a 0-d string array), every field checked; names tuples, fps float or None."""
+    if raw.ndim != 0 or raw.dtype.kind != "U":
+        raise InputError(f"expected one JSON string, got a {raw.dtype} array of shape {raw.shape}", path,
+                         "manifest")
+    try:
+        manifest = json.loads(str(raw))
+    except ValueError as error:
+        raise InputError(f"not valid JSON ({error})", path, "manifest") from None
+    if not isinstance(manifest, dict):
+        raise InputError(f"expected a JSON object, got {type(manifest).__name__}", path, "manifest")
+    unknown = sorted(set(manifest) - _MANIFEST_KEYS)
+    if unknown:
+        raise InputError(f"unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(_MANIFEST_KEYS))}", path,
+                         f"manifest.{unknown[0]}")
+    if manifest.get("format") != TAKE_FORMAT:
+        raise InputError(f"format must be {TAKE_FORMAT!r}, got {manifest.get('format')!r}", path, "manifest.format")
+    version = manifest.get("version")
+    if type(version) is not int or not 1 <= version:
+        raise InputError(f"expected a positive integer, got {version!r}", path, "manifest.version")
+    if version > TAKE_VERSION:
+        raise InputError(f"version {version} is newer than this livebridge reads", path, "manifest.version")
+    marker_names = _names(path, manifest, "marker_names")
+    if not marker_names:
+        raise InputError("expected a non-empty list of marker names", path, "manifest.marker_names")
+    fps = manifest.get("fps")
+    if fps is not None and (type(fps) not in (int, float) or not math.isfinite(fps) or fps <= 0):
+        raise InputError(f"expected a positive finite number or null, got {fps!r}", path, "manifest.fps")
+    return {"marker_names": marker_names, "muscle_names": _names(path, manifest, "muscle_names") or None,
+            "fps": None if fps is None else float(fps)}
+
+
+def _names(path: Path, manifest: dict, key: str) -> tuple[str, ...] | None:
+    """A list of distinct non-empty strings (or null) from the manifest."""
+    names = manifest.get(key)
+    if names is None:
+        return None
+    if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
+        raise InputError(f"expected a list of non-empty strings, got {names!r:.80}", path, f"manifest.{key}")
+    if len(set(names)) != len(names):
+        twice = sorted({n for n in names if names.count(n) > 1})
+        raise InputError(f"name(s) given twice: {', '.join(twice)}", path, f"manifest.{key}")
+    return tuple(names)
+
+
+def _check_arrays(path: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The data arrays as float64, numeric and of the right rank; ``t`` finite and non-decreasing, the others
+    finite or NaN (unseen). Shapes against each other: :meth:`Take.__post_init__`."""
+    ranks = {"t": 1, "displacements": 3, "positions": 3, "contractions": 2, "head2world": 3}
+    checked = {}
+    for name, array in arrays.items():
+        if array.dtype.kind not in "fiu":
+            raise InputError(f"expected numbers, got dtype {array.dtype}", path, name)
+        if array.ndim != ranks[name]:
+            raise InputError(f"expected {ranks[name]} dimensions, got shape {array.shape}", path, name)
+        array = array.astype(np.float64)
+        if np.isinf(array).any():
+            raise InputError("infinite values", path, name)
+        checked[name] = array
+    t = checked["t"]
+    if not len(t):
+        raise InputError("no frames", path, "t")
+    if np.isnan(t).any() or (np.diff(t) < 0).any():
+        raise InputError("times must be finite and non-decreasing", path, "t")
+    return checked

@@ -9,7 +9,8 @@ A raw-frame take is a folder with, per camera ``NAME``:
   ``sync_domain``, ``source_id`` (the camera's original name, e.g. ``DEVICE/CAM_B``, which the
   replayed frames carry so that a calibration matches them; default ``NAME``). Without the file,
   frames are numbered from 0 at a given ``fps``.
-  Images beyond the last row (a recording cut short between an image and its row) are ignored.
+  Images beyond the last row (a recording cut short between an image and its row) are ignored, and so is
+  a last row without its newline (cut short by a crash).
 
 :class:`RawFrameWriter` writes this format incrementally and crash-safely (each image is written under a
 temporary name and renamed; each timestamp row is flushed once its image is in place). A take directory
@@ -19,6 +20,7 @@ temporary name and renamed; each timestamp row is flushed once its image is in p
 from __future__ import annotations
 
 import csv
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +29,7 @@ import numpy as np
 
 from livebridge.capture.frame import Frame
 from livebridge.errors import InputError
-from livebridge.take.directory import is_take_dir, raw_frames_folder
+from livebridge.take.directory import is_take_dir, raw_frames_folder, read_text
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 VIDEO_SUFFIXES = (".avi", ".mkv", ".mp4")
@@ -47,21 +49,48 @@ class TimestampRow:
 
 
 def read_timestamps(path: Path) -> list[TimestampRow]:
-    """Rows of a camera's timestamp file; errors name the file, the line and the column."""
+    """Rows of a camera's timestamp file, every field checked: errors name the file, the line and the column
+    (unknown or missing columns, ragged rows, non-numbers, non-finite values). The order is the recording's
+    (a camera's clock may step back; replay plays the rows as they are)."""
+    path = Path(path)
+    text = read_text(path)
+    lines = text.split("\n")[:-1] if "\n" in text else [text]  # a last line without its newline: torn by a crash
+    reader = csv.reader(line.rstrip("\r") for line in lines)
+    header = next(reader, [])
+    unknown = [c for c in header if c not in COLUMNS]
+    if unknown:
+        raise InputError(f"unknown column(s) {', '.join(map(repr, unknown))}; known: {', '.join(COLUMNS)}", path,
+                         "line 1")
+    missing = [c for c in ("seq", "t_capture") if c not in header]
+    if missing:
+        raise InputError(f"missing column(s) {', '.join(missing)}", path, "line 1")
     rows = []
-    with Path(path).open(newline="") as stream:
-        reader = csv.DictReader(stream)
-        missing = [c for c in ("seq", "t_capture") if c not in (reader.fieldnames or [])]
-        if missing:
-            raise InputError(f"missing column(s) {', '.join(missing)}", path, "header")
-        for line, row in enumerate(reader, start=2):
-            try:
-                rows.append(TimestampRow(int(row["seq"]), float(row["t_capture"]),
-                                         float(row.get("exposure_us") or "nan"), float(row.get("gain") or "nan"),
-                                         row.get("sync_domain") or "", row.get("source_id") or ""))
-            except (TypeError, ValueError) as error:
-                raise InputError(f"bad value ({error})", path, f"line {line}") from None
+    for line, fields in enumerate(reader, start=2):
+        if not fields:
+            continue  # a blank line
+        if len(fields) != len(header):
+            raise InputError(f"{len(fields)} fields, expected {len(header)}", path, f"line {line}")
+        rows.append(_timestamp_row(path, line, dict(zip(header, fields)), header))
     return rows
+
+
+def _timestamp_row(path: Path, line: int, values: dict[str, str], header: list[str]) -> TimestampRow:
+    def number(column: str, kind: type = float, optional: bool = False):
+        text = values.get(column, "")
+        if optional and text == "":
+            return math.nan
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or math.isinf(value) or math.isnan(value) and not optional:  # NaN: exposure unknown
+            raise InputError(f"expected a finite {'integer' if kind is int else 'number'}"
+                             f"{', nan or an empty field' if optional else ''}, got {text!r:.40}", path,
+                             f"line {line}, column {header.index(column) + 1} ({column})")
+        return value
+
+    return TimestampRow(number("seq", int), number("t_capture"), number("exposure_us", optional=True),
+                        number("gain", optional=True), values.get("sync_domain", ""), values.get("source_id", ""))
 
 
 def frames_folder(folder: str | Path) -> Path:

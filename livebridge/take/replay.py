@@ -7,11 +7,18 @@ take at ``PATH`` (format: :mod:`livebridge.take.raw_frames`), or of a take direc
 (default) plays with the original timing: all cameras of the take share one clock, recorded times are
 shifted onto the host monotonic clock at start; ``realtime=0`` plays as fast as the reader asks and
 keeps the recorded times. A source replaying a take directory knows its camera's calibration as recorded
-with the take (:attr:`ReplaySource.calibration`)."""
+with the take (:attr:`ReplaySource.calibration`).
+
+A damaged take replays what it can: a frame whose image is missing, truncated or undecodable is skipped
+and counted (:attr:`ReplaySource.frames_skipped`, logged once per :data:`SKIP_LOG_EVERY` skips), and the
+source plays on. A source that cannot go on (its camera folder vanished, no image of a whole pass could be
+read, its video cannot be opened or ends before its timestamp file) ends with ``ended`` True and ``error``
+naming the file; :meth:`ReplaySource.read` never raises."""
 
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import threading
 import time
@@ -36,6 +43,10 @@ from livebridge.take.raw_frames import (
 
 if TYPE_CHECKING:
     from livebridge.calibration.cameras import Camera
+
+log = logging.getLogger(__name__)
+
+SKIP_LOG_EVERY = 100  # a damaged take logs its 1st, 101st, 201st, ... skipped frame, not every one
 
 
 class _Clock:
@@ -66,6 +77,31 @@ def _frame_period(rows: list[TimestampRow], fps: float) -> float:
     return period if period > 0 else 1.0 / fps
 
 
+def _numbered_images(files: list[Path], n_rows: int) -> list[Path] | None:
+    """Image number ``k`` for each ``k < n_rows`` when every name is a number (``000000.pgm``, as
+    :class:`~livebridge.take.raw_frames.RawFrameWriter` writes them), the path it would have where it is
+    missing; None when the names are not numbers."""
+    if not files or not all(p.stem.isdigit() for p in files):
+        return None
+    numbered = {int(p.stem): p for p in files}
+    width, suffix = len(files[0].stem), files[0].suffix
+    return [numbered.get(k, files[0].with_name(f"{k:0{width}d}{suffix}")) for k in range(n_rows)]
+
+
+def _decode(path: Path) -> tuple[np.ndarray | None, str]:
+    """A grayscale image from ``path``, or None and why it cannot be read."""
+    import cv2
+
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as error:
+        return None, error.strerror or type(error).__name__
+    image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if len(data) else None
+    if image is None:
+        return None, "damaged, truncated or not an image"
+    return image, ""
+
+
 def _take_dir(folder: Path, frames: Path) -> Path | None:
     """The take directory a replay of ``folder`` (raw frames in ``frames``) reads: ``folder`` itself, or the
     take whose ``frames/`` it is; None for a bare raw-frame take."""
@@ -90,6 +126,11 @@ class ReplaySource(SourceBase):
         Frame rate for numbering frames when the take has no timestamp file.
     loop : bool
         Start again at the end (recorded times continue increasing).
+
+    Attributes
+    ----------
+    frames_skipped : int
+        Frames skipped since :meth:`start` because their image was missing, truncated or undecodable.
     """
 
     def __init__(self, folder, camera: str, realtime: bool = True, fps: float = 30.0, loop: bool = False,
@@ -98,27 +139,20 @@ class ReplaySource(SourceBase):
         self._take_dir = _take_dir(Path(folder), self.folder)
         self.realtime, self.fps, self.loop = realtime, float(fps), loop
         self._clock = clock or _Clock()
-        image_dir = self.folder / camera
+        self._image_dir = image_dir = self.folder / camera
         videos = [self.folder / f"{camera}{s}" for s in VIDEO_SUFFIXES if (self.folder / f"{camera}{s}").exists()]
         self._files: list[Path] | None = None
         self._video_path = None
+        stamps = self.folder / f"{camera}.csv"
+        self._rows = read_timestamps(stamps) if stamps.exists() else None
         if image_dir.is_dir():
-            self._files = sorted(p for p in image_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-            n_frames = len(self._files)
+            self._files = self._image_files(image_dir, stamps)
         elif videos:
             self._video_path = videos[0]
-            n_frames = None
         else:
             raise InputError(f"no images or video for camera {camera!r}", self.folder)
-        stamps = self.folder / f"{camera}.csv"
-        if stamps.exists():
-            self._rows = read_timestamps(stamps)
-            if n_frames is not None and len(self._rows) > n_frames:
-                raise InputError(f"{len(self._rows)} timestamps for {n_frames} images", stamps)
-            if self._files is not None:
-                self._files = self._files[:len(self._rows)]  # images past the last row: cut short
-        else:
-            count = n_frames if n_frames is not None else self._video_length()
+        if self._rows is None:
+            count = len(self._files) if self._files is not None else self._video_length()
             self._rows = [TimestampRow(k, k / self.fps, math.nan, math.nan, "") for k in range(count)]
         if self._rows and self._rows[0].source_id:
             self.source_id = self._rows[0].source_id
@@ -127,31 +161,53 @@ class ReplaySource(SourceBase):
         self._period = _frame_period(self._rows, self.fps)
         self._index = 0
         self._laps = 0
+        self.frames_skipped, self._delivered_in_lap = 0, 0
         self._video = None
         self._size: tuple[int, int] | None = None
+
+    def _image_files(self, image_dir: Path, stamps: Path) -> list[Path]:
+        """The image of each frame: with a timestamp file and numbered images, row ``k`` is image number
+        ``k`` (one that is missing is skipped on replay); otherwise the images in name order, cut to the
+        timestamp rows."""
+        files = sorted(p for p in image_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not files:
+            raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) for camera {self.source_id!r}", image_dir)
+        if self._rows is None:
+            return list(files)
+        numbered = _numbered_images(files, len(self._rows))
+        if numbered is not None:
+            return numbered
+        if len(self._rows) > len(files):
+            raise InputError(f"{len(self._rows)} timestamps for {len(files)} images", stamps)
+        return list(files[:len(self._rows)])  # images past the last row: cut short
 
     def _video_length(self) -> int:
         import cv2
 
         capture = cv2.VideoCapture(str(self._video_path))
-        count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
-        capture.release()
-        return max(count, 0)
+        try:
+            if not capture.isOpened():
+                raise InputError("cannot open the video (damaged, or a codec OpenCV lacks)", self._video_path)
+            return max(int(capture.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
+        finally:
+            capture.release()
 
     def start(self) -> None:
         self._ended, self._error = False, None
         self._index, self._laps = 0, 0
+        self.frames_skipped, self._delivered_in_lap = 0, 0
         if self._video_path is not None:
             self._open_video()
 
     def _open_video(self) -> None:
+        """(Re)open the video; a video that cannot be opened ends the source."""
         import cv2
 
         if self._video is not None:
             self._video.release()
         self._video = cv2.VideoCapture(str(self._video_path))
         if not self._video.isOpened():
-            raise InputError("cannot open the video", self._video_path)
+            self._end(f"{self._video_path}: cannot open the video (damaged, or a codec OpenCV lacks)")
 
     def stop(self) -> None:
         if self._video is not None:
@@ -160,49 +216,70 @@ class ReplaySource(SourceBase):
         self._end(None)
 
     def _image(self, index: int) -> np.ndarray | None:
+        """The image of frame ``index``; None when it is skipped or the source has ended."""
         import cv2
 
-        if self._files is not None:
-            image = cv2.imread(str(self._files[index]), cv2.IMREAD_GRAYSCALE)
-            if image is None:
-                raise InputError("cannot read the image", self._files[index])
-            return image
-        ok, image = self._video.read()
-        if not ok:
-            return None
-        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+        if self._files is None:
+            ok, image = self._video.read()
+            if not ok:
+                self._end(f"{self._video_path}: video ended after {self._index} of {len(self._rows)} frames")
+                return None
+            return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+        file = self._files[index]
+        image, why = _decode(file)
+        if image is None:
+            if not self._image_dir.is_dir():
+                self._end(f"{self._image_dir}: the camera folder vanished during the replay")
+            else:
+                self._skip(file, why)
+        return image
+
+    def _skip(self, file: Path, why: str) -> None:
+        self.frames_skipped += 1
+        if (self.frames_skipped - 1) % SKIP_LOG_EVERY == 0:
+            log.warning("%s: skipped a frame: %s: %s (%d skipped so far)", self.source_id, file, why,
+                        self.frames_skipped)
+
+    def _next_lap(self) -> bool:
+        """Rewind at the end of the take; False (and ended) when it does not loop or nothing could be read."""
+        if self._files is not None and self._rows and self._delivered_in_lap == 0:
+            self._end(f"{self._image_dir}: none of the {len(self._rows)} images could be read")
+            return False
+        if not self.loop or not self._rows:
+            self._end(None)
+            return False
+        self._index, self._laps, self._delivered_in_lap = 0, self._laps + 1, 0
+        if self._video_path is not None:
+            self._open_video()
+        return not self._ended
 
     def read(self, timeout: float | None = None) -> Frame | None:
-        if self._ended:
-            return None
-        if self._index >= len(self._rows):
-            if not self.loop or not self._rows:
-                self._end(None)
+        """The next readable frame (skipping damaged ones), None at the end, on timeout or after an error."""
+        while not self._ended:
+            if self._index >= len(self._rows) and not self._next_lap():
                 return None
-            self._index, self._laps = 0, self._laps + 1
-            if self._video_path is not None:
-                self._open_video()
-        row = self._rows[self._index]
-        lap_shift = self._laps * (self._rows[-1].t_capture - self._rows[0].t_capture + self._period)
-        recorded = row.t_capture + lap_shift
-        t_capture = recorded
-        if self.realtime:
-            t_capture = self._clock.host_time(recorded)
-            wait = t_capture - time.monotonic()
-            if timeout is not None and wait > timeout:
-                time.sleep(max(timeout, 0.0))
-                return None
-            if wait > 0:
-                time.sleep(wait)
-        image = self._image(self._index)
-        self._index += 1
-        if image is None:  # video shorter than its timestamp file
-            self._end(f"{self.source_id}: video ended after {self._index - 1} frames")
-            return None
-        self._size = (image.shape[1], image.shape[0])
-        seq = row.seq + self._laps * (self._rows[-1].seq - self._rows[0].seq + 1)
-        return Frame(image, t_capture, seq, self.source_id, row.exposure_us, row.gain,
-                     row.sync_domain or self.source_id)
+            row = self._rows[self._index]
+            lap_shift = self._laps * (self._rows[-1].t_capture - self._rows[0].t_capture + self._period)
+            recorded = row.t_capture + lap_shift
+            t_capture = recorded
+            if self.realtime:
+                t_capture = self._clock.host_time(recorded)
+                wait = t_capture - time.monotonic()
+                if timeout is not None and wait > timeout:
+                    time.sleep(max(timeout, 0.0))
+                    return None
+                if wait > 0:
+                    time.sleep(wait)
+            image = self._image(self._index)
+            self._index += 1
+            if image is None:
+                continue
+            self._delivered_in_lap += 1
+            self._size = (image.shape[1], image.shape[0])
+            seq = row.seq + self._laps * (self._rows[-1].seq - self._rows[0].seq + 1)
+            return Frame(image, t_capture, seq, self.source_id, row.exposure_us, row.gain,
+                         row.sync_domain or self.source_id)
+        return None
 
     def set_exposure(self, manual: bool, exposure_us: float | None = None, gain: float | None = None):
         """A recording's exposure cannot change: returns what was recorded for the next frame."""
