@@ -79,6 +79,9 @@ class CameraSource(Protocol):
     """
 
     source_id: str
+    realtime: bool
+    """True when frames come at the camera's own pace (hardware, a paced replay or simulator); False when the
+    source delivers the next frame as soon as it is asked (an unpaced replay or simulator)."""
 
     def start(self) -> None: ...
 
@@ -143,6 +146,7 @@ class SourceBase:
     """Context-manager plumbing shared by the implementations (subclasses define start/stop)."""
 
     source_id: str = ""
+    realtime: bool = True
     _ended: bool = False
     _error: str | None = None
 

@@ -111,7 +111,7 @@ def open_session_cameras(session: Session):
         if any(camera is None for camera in own):
             raise InputError("these cameras need a calibration file", session.path, "calibration")
         cameras = CameraGroup(own)
-    realtime = all(getattr(s, "realtime", True) for s in sources)
+    realtime = all(s.realtime for s in sources)
     return sources, cameras, realtime
 
 
