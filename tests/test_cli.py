@@ -48,7 +48,7 @@ def test_basis_show_renders_a_png(tmp_path, rng):
     result = CliRunner().invoke(main, ["basis", "show", str(tmp_path / "b.npz"), "--out", str(out), "--dpi", "40"])
     assert result.exit_code == 0, result.output
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 1000
-    result = CliRunner().invoke(main, ["basis", "show", str(tmp_path / "missing.npz"), "--out", str(out)])
+    result = CliRunner().invoke(main, ["basis", "show", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "x.png")])
     assert result.exit_code != 0 and "missing.npz" in result.output
 
 
@@ -130,5 +130,5 @@ def test_python_dash_m_livebridge_runs_the_same_command_line(tmp_path):
     missing = tmp_path / "nothing.npz"
     result = subprocess.run([sys.executable, "-m", "livebridge", "basis", "show", str(missing), "--out",
                              str(tmp_path / "f.png")], capture_output=True, text=True, timeout=120)
-    assert result.returncode == 1 and "Traceback" not in result.stderr
-    assert _error_lines(result.stderr) == [f"Error: {missing}: file not found"]
+    assert result.returncode == 2 and "Traceback" not in result.stderr  # click's exit code for a bad argument
+    assert _error_lines(result.stderr) == [f"Error: Invalid value for 'BASIS': {missing}: file not found"]

@@ -82,3 +82,35 @@ class DeviceURL:
         if unknown:
             raise InputError(f"unknown parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}",
                              self.url, unknown[0])
+
+
+def parse_ranges(text: str, first: int, last: int) -> list[int]:
+    """``"1-4,7"`` -> ``[1, 2, 3, 4, 7]``: servo IDs or channels, each in ``first..last``, none twice.
+
+    Bounds are checked before a range is expanded, so ``1-999999999`` is refused at once instead of
+    building a list of a billion numbers.
+
+    Raises
+    ------
+    InputError
+        Saying which part is wrong (no path or field: the caller names the URL parameter or option).
+    """
+    numbers: list[int] = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        low_text, dash, high_text = part.partition("-")
+        try:
+            low = int(low_text)
+            high = int(high_text) if dash else low
+        except ValueError:
+            raise InputError(f"{part!r} is not a number or a range like 1-20") from None
+        if not first <= low <= high <= last:
+            raise InputError(f"{part!r}: numbers run {first}..{last}, ranges upwards")
+        numbers.extend(range(low, high + 1))
+    if not numbers:
+        raise InputError(f"no number in {text!r}")
+    if len(set(numbers)) != len(numbers):
+        raise InputError(f"a number is given twice in {text!r}")
+    return numbers
