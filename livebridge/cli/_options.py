@@ -141,7 +141,7 @@ class Destination(click.ParamType):
         try:
             resolve_destination(host, int(port_text))
         except InputError as error:
-            self.fail(f"{error.field}: {error.message}", param, ctx)
+            self.fail(f"{value}: {error.field}: {error.message}", param, ctx)
         return host, int(port_text)
 
 
@@ -315,15 +315,13 @@ def parse_addresses(text: str, first: int, last: int, option: str) -> list[int]:
 
 
 def bind_error(host: str, port: int) -> OSError | None:
-    """The error binding a TCP server to ``host:port`` would meet now (None: it would bind; port 0 always does).
+    """The error binding a TCP server to ``host:port`` would meet now (None: it would bind; port 0 tests the host).
 
     A test bind made before a long set-up, so a port in use is reported at once; the server's own bind
     still reports it later (another program may take the port in between).
     """
     import socket
 
-    if port == 0:
-        return None
     try:
         family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM,
                                                              flags=socket.AI_PASSIVE)[0]
