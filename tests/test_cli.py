@@ -191,3 +191,20 @@ def test_allow_remote_lets_the_render_server_listen_on_every_interface(monkeypat
     monkeypatch.setattr(demo, "build_demo", record)
     result = CliRunner().invoke(main, ["demo", "--host", "0.0.0.0", "--allow-remote", "--port", "0"])
     assert result.exit_code == 130 and seen["host"] == "0.0.0.0", result.output
+
+
+def test_the_demo_camera_options_are_bounded_as_the_simulated_rig():
+    from livebridge.cli.runtime import DEMO_FPS, DEMO_SIZE
+    from livebridge.simulators.rig import _CONFIG_RANGES, SIZE_RANGE
+
+    assert DEMO_SIZE == SIZE_RANGE and DEMO_FPS == _CONFIG_RANGES["fps"][:2]
+
+
+def test_an_id_range_is_bounded_before_it_is_expanded():
+    from livebridge.devices.url import parse_ranges
+    from livebridge.errors import InputError
+
+    assert parse_ranges("1-3, 7", 0, 252) == [1, 2, 3, 7]
+    for text in ("1-999999999", "0-99999999999999999999", "3-1", "-1", "1,1", "", "a-b"):
+        with pytest.raises(InputError):
+            parse_ranges(text, 0, 252)

@@ -57,6 +57,7 @@ file and the dotted field.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -209,8 +210,8 @@ class _Table:
 
 
 def _positive(value, path, name, allow_zero=False):
-    if value is not None and not (value > 0 or allow_zero and value == 0):
-        raise InputError(f"must be {'>= 0' if allow_zero else '> 0'}, got {value}", path, name)
+    if value is not None and not ((value > 0 or allow_zero and value == 0) and math.isfinite(value)):
+        raise InputError(f"must be a finite number {'>= 0' if allow_zero else '> 0'}, got {value}", path, name)
     return value
 
 
