@@ -554,8 +554,10 @@ def open_url(url: DeviceURL, **options) -> DynamixelBus:
     except InputError as error:
         raise InputError(error.message, url.url, "ids") from None
     settings = {"ids": ids, "model": url.query.get("model", "XL330-M288"), "baud": baud,
-                "corrupt_rate": url.take("corrupt", float, 0.0), "drop_rate": url.take("drop", float, 0.0),
-                "seed": url.take("seed", int, 0), "return_delay_time": url.take("delay", int)}
+                "corrupt_rate": url.take("corrupt", float, 0.0, within=(0, 1)),
+                "drop_rate": url.take("drop", float, 0.0, within=(0, 1)),
+                "seed": url.take("seed", int, 0, within=(0, 2**32 - 1)),
+                "return_delay_time": url.take("delay", int, within=(0, 254))}
     own_process = url.take("process", bool, False)
     try:
         sim = simulated_device(DynamixelSim, settings, own_process)

@@ -582,6 +582,10 @@ COMMANDS = (
         *_numbers("--dpi", ("0", "-5", "71", "100000", "nan", "3e2")),
         Bad("SPEC malformed", ("calibrate", "board", "chessboard:7", "--out", "{dir}/new.png"),
             ("SPEC", "chessboard:7"), True),
+        Bad("SPEC of 500x500 squares", ("calibrate", "board", "charuco:500x500:100:80:DICT_4X4_50", "--out",
+                                        "{dir}/new.png"), ("SPEC", "at most 100 squares"), True),
+        Bad("SPEC too big to print", ("calibrate", "board", "chessboard:30x21:100", "--out",
+                                      "{dir}/new.png"), ("SPEC", "does not print"), True),
     )),
     Command("calibrate run", ("calibrate", "run", "--board", "chessboard:7x5:25", "--videos", "a={dir}/basis.npz",
                               "--videos", "b={dir}/markers.toml", "--out", "{dir}/new.toml"), (
@@ -633,6 +637,11 @@ COMMANDS = (
         Bad("URL ids a billion", ("simdynamixel://?ids=1-999999999",), ("simdynamixel://?ids=1-999999999", "ids",
                                                                        "0..252")),
         Bad("--ids a billion", ("simdynamixel://", "--ids", "1-999999999"), ("--ids", "1-999999999")),
+        *[Bad(f"URL {url}", (url,), (url, parameter)) for url, parameter in (
+            ("simmaestro://?channels=999999999", "channels"), ("simmaestro://?device=128", "device"),
+            ("simssc32://?channels=0", "channels"), ("simssc32://?drop=nan", "drop"),
+            ("simdynamixel://?corrupt=inf", "corrupt"), ("simdynamixel://?delay=-1", "delay"),
+            ("simdynamixel://?seed=-1", "seed"))],
         Bad("URL without scheme", ("ttyUSB0",), ("ttyUSB0", "scheme")),
         Bad("URL unknown scheme", ("usb://x",), ("usb://x", "unknown bus URL scheme")),
     )),

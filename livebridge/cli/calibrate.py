@@ -17,6 +17,9 @@ from livebridge.cli._options import (
     unique_names,
 )
 
+MAX_PRINT_MM = 2000.0
+"""The longest side of a board ``calibrate board`` prints (A0 is 1189 mm)."""
+
 
 class BoardSpec(click.ParamType):
     """A board spec (``charuco:7x5:40:30:DICT_4X4_50``), read by
@@ -54,6 +57,9 @@ def board_command(board, out: Path, force: bool, dpi: int) -> None:
     """
     from livebridge.calibration.printout import write_board
 
+    if max(board.size_mm) > MAX_PRINT_MM:  # the page is drawn in memory at --dpi: a huge one never ends
+        raise click.BadParameter(f"a {board.size_mm[0]:g} x {board.size_mm[1]:g} mm board does not print (at most "
+                                 f"{MAX_PRINT_MM:g} mm a side)", param_hint="SPEC")
     width, height = write_board(board, out, dpi)
     click.echo(f"wrote {out}: page {width:g} x {height:g} mm; print at 100% and check the scale bar")
 

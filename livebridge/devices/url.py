@@ -57,9 +57,16 @@ class DeviceURL:
         """``netloc + path``: the device, port or folder the URL names (``''`` when none)."""
         return self.netloc + self.path
 
-    def take(self, key: str, kind: type, default=None):
+    def take(self, key: str, kind: type, default=None, within: tuple[float, float] | None = None):
         """The value of parameter ``key`` converted to ``kind`` (bool accepts 0/1/true/false/yes/no/on/off);
-        ``default`` when the URL does not give it."""
+        ``default`` when the URL does not give it. ``within=(low, high)``: a number outside it (or NaN) is an
+        :class:`InputError` naming the parameter."""
+        value = self._convert(key, kind, default)
+        if within is not None and value is not None and not within[0] <= value <= within[1]:  # also refuses NaN
+            raise InputError(f"parameter {key!r} must be in {within[0]:g}..{within[1]:g}, got {value}", self.url, key)
+        return value
+
+    def _convert(self, key: str, kind: type, default):
         if key not in self.query:
             return default
         raw = self.query[key]
