@@ -149,6 +149,10 @@ class Board:
         return image
 
 
+MAX_SQUARES = 100
+"""The most squares (or inner corners) a board spec has along a side."""
+
+
 def parse_board(spec: str) -> Board:
     """Parse a board spec string (see the module docstring); bad specs raise :class:`InputError`."""
     if isinstance(spec, Board):
@@ -169,6 +173,8 @@ def parse_board(spec: str) -> Board:
     if not match:
         fail(f"size {parts[1]!r} is not COLSxROWS")
     cols, rows = int(match.group(1)), int(match.group(2))
+    if max(cols, rows) > MAX_SQUARES:  # checked before OpenCV builds the board (a huge one takes minutes)
+        fail(f"at most {MAX_SQUARES} squares a side, got {cols}x{rows}")
     square = _positive(parts[2], "SQUARE_MM", fail)
     if kind == "chessboard":
         if cols < 2 or rows < 2:
@@ -191,12 +197,11 @@ def parse_board(spec: str) -> Board:
         if parts[5].lower() != "legacy":
             fail(f"unknown option {parts[5]!r} (only 'legacy')")
         legacy = True
-    board = Board("charuco", cols, rows, square, marker, name, legacy)
     n_markers = (cols * rows) // 2
-    dictionary_size = board.cv_board.getDictionary().bytesList.shape[0]
+    dictionary_size = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)).bytesList.shape[0]
     if n_markers > dictionary_size:
         fail(f"{cols}x{rows} squares need {n_markers} markers but {name} has only {dictionary_size}")
-    return board
+    return Board("charuco", cols, rows, square, marker, name, legacy)
 
 
 def _positive(text: str, what: str, fail) -> float:

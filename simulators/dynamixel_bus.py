@@ -36,7 +36,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-from livebridge.devices.url import DeviceURL
+from livebridge.devices.url import DeviceURL, parse_ranges
 from livebridge.drivers import dynamixel_protocol as dxl
 from livebridge.drivers.dynamixel import DynamixelBus
 from livebridge.errors import InputError
@@ -533,20 +533,9 @@ class DynamixelSim(PtyDevice):
 
 
 def parse_ids(text: str) -> list[int]:
-    """``"1-4,7"`` -> ``[1, 2, 3, 4, 7]``."""
-    ids: list[int] = []
-    for part in str(text).split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if "-" in part:
-            lo, hi = (int(x) for x in part.split("-", 1))
-            ids.extend(range(lo, hi + 1))
-        else:
-            ids.append(int(part))
-    if not ids or any(not 0 <= i <= dxl.MAX_ID for i in ids) or len(set(ids)) != len(ids):
-        raise ValueError(f"bad servo id list {text!r} (ids 0..252, no repeats)")
-    return ids
+    """``"1-4,7"`` -> ``[1, 2, 3, 4, 7]``: ids 0..252, none twice, bounds checked before a range is expanded
+    (:func:`~livebridge.devices.url.parse_ranges`); raises :class:`~livebridge.errors.InputError`."""
+    return parse_ranges(text, 0, dxl.MAX_ID)
 
 
 def open_url(url: DeviceURL, **options) -> DynamixelBus:
@@ -562,11 +551,13 @@ def open_url(url: DeviceURL, **options) -> DynamixelBus:
     baud = url.take("baud", int, 1_000_000)
     try:
         ids = parse_ids(url.query.get("ids", "1"))
-    except ValueError as error:
-        raise InputError(str(error), url.url, "ids") from None
+    except InputError as error:
+        raise InputError(error.message, url.url, "ids") from None
     settings = {"ids": ids, "model": url.query.get("model", "XL330-M288"), "baud": baud,
-                "corrupt_rate": url.take("corrupt", float, 0.0), "drop_rate": url.take("drop", float, 0.0),
-                "seed": url.take("seed", int, 0), "return_delay_time": url.take("delay", int)}
+                "corrupt_rate": url.take("corrupt", float, 0.0, within=(0, 1)),
+                "drop_rate": url.take("drop", float, 0.0, within=(0, 1)),
+                "seed": url.take("seed", int, 0, within=(0, 2**32 - 1)),
+                "return_delay_time": url.take("delay", int, within=(0, 254))}
     own_process = url.take("process", bool, False)
     try:
         sim = simulated_device(DynamixelSim, settings, own_process)

@@ -147,11 +147,12 @@ def open_url(url: DeviceURL, **options) -> MaestroBus:
     closing the bus closes the simulator. ``device`` also makes the driver use the Pololu protocol.
     ``options``: :class:`~livebridge.drivers.maestro.MaestroBus` keyword arguments."""
     url.check_known(URL_PARAMETERS)
-    device, baud = url.take("device", int), url.take("baud", int, 115200)
-    sim = simulated_device(MaestroSim, {"channels": url.take("channels", int, 24),
+    device, baud = url.take("device", int, within=(0, 127)), url.take("baud", int, 115200)
+    sim = simulated_device(MaestroSim, {"channels": url.take("channels", int, 24, within=(1, 24)),
                                         "device": mp.DEFAULT_DEVICE if device is None else device,
-                                        "corrupt_rate": url.take("corrupt", float, 0.0),
-                                        "drop_rate": url.take("drop", float, 0.0), "seed": url.take("seed", int, 0)},
+                                        "corrupt_rate": url.take("corrupt", float, 0.0, within=(0, 1)),
+                                        "drop_rate": url.take("drop", float, 0.0, within=(0, 1)),
+                                        "seed": url.take("seed", int, 0, within=(0, 2**32 - 1))},
                            url.take("process", bool, False))
     return open_on_pty(sim, lambda path: MaestroBus(path, baud=baud, device=device, url=url.url, companion=sim,
                                                     **options))

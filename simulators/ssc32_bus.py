@@ -104,8 +104,9 @@ def open_url(url: DeviceURL, **options) -> SSC32Bus:
     closes the simulator. ``options``: :class:`~livebridge.drivers.ssc32.SSC32Bus` keyword arguments."""
     url.check_known(URL_PARAMETERS)
     baud = url.take("baud", int, 115200)
-    sim = simulated_device(SSC32Sim, {"channels": url.take("channels", int, 32),
-                                      "corrupt_rate": url.take("corrupt", float, 0.0),
-                                      "drop_rate": url.take("drop", float, 0.0), "seed": url.take("seed", int, 0)},
+    sim = simulated_device(SSC32Sim, {"channels": url.take("channels", int, 32, within=(1, 32)),
+                                      "corrupt_rate": url.take("corrupt", float, 0.0, within=(0, 1)),
+                                      "drop_rate": url.take("drop", float, 0.0, within=(0, 1)),
+                                      "seed": url.take("seed", int, 0, within=(0, 2**32 - 1))},
                            url.take("process", bool, False))
     return open_on_pty(sim, lambda path: SSC32Bus(path, baud=baud, url=url.url, companion=sim, **options))

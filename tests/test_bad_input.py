@@ -266,7 +266,7 @@ def _calibration(extra: str = "", **changes) -> Callable[[Path], None]:
     return _text("\n".join(tables) + extra)
 
 
-CALIBRATION_CASES = _toml_cases(missing="does not exist") + (  # click checks that the file exists
+CALIBRATION_CASES = _toml_cases() + (
     Case("empty file", _text(""), ("no [cam_N] tables",)),
     Case("rotation 1e308", _calibration(rotation="[1e308, 0.0, 0.0]"), ("cam_0.rotation",)),
     Case("rotation beyond one turn", _calibration(rotation="[0.0, 0.0, 7.0]"), ("cam_0.rotation",)),
@@ -353,8 +353,12 @@ SESSION_CASES = _toml_cases() + (
     Case("render host a number", _session("[outputs.render]\nhost = 127\n"), ("outputs.render.host",)),
     Case("render foreign origin", _session('[outputs.render]\nallowed_origins = ["evil.example"]\n'),
          ("outputs.render.allowed_origins[0]",)),
-    Case("render port in use", _render_port_in_use, ("render server 127.0.0.1:", "address already in use"),
-         names_input=False),
+    Case("render port in use", _render_port_in_use,
+         ("outputs.render.port", "render server 127.0.0.1:", "address already in use")),
+    Case("render host not local", _session('[outputs.render]\nhost = "0.0.0.0"\n'),
+         ("outputs.render.host", "not a loopback address", "--allow-remote")),
+    Case("render host not on this machine", _session('[outputs.render]\nhost = "203.0.113.7"\n'),
+         ("outputs.render.host",)),
     Case("vmc case unknown", _session('[outputs.vmc]\ncase = "SHOUT"\n'), ("outputs.vmc.case",)),
     Case("vmc mapping unknown", _session('[outputs.vmc]\nmapping = "arkit"\n'), ("outputs.vmc.mapping",)),
     Case("vmc port 99999", _session("[outputs.vmc]\nport = 99999\n"), ("outputs.vmc.port",)),
@@ -406,6 +410,22 @@ def crash_dir(tmp_path, monkeypatch):
     return folder
 
 
+def _refused(result, words, crash_dir: Path, work: Path, before) -> str:
+    """Assert what every refusal shows: exit != 0, one ``Error:`` line holding ``words``, no traceback, no
+    crash report, ``work`` unchanged; returns the error line."""
+    output = result.output
+    errors = [line for line in output.splitlines() if line.startswith("Error:")]
+    assert result.exit_code != 0, output
+    assert isinstance(result.exception, SystemExit), repr(result.exception)  # nothing escaped the boundary
+    assert "Traceback" not in output and "Aborted" not in output, output
+    assert len(errors) == 1, output
+    for word in words:
+        assert word in errors[0], (word, errors[0])
+    assert not list(crash_dir.iterdir()), "reported as a bug: " + errors[0]
+    assert _snapshot(work) == before
+    return errors[0]
+
+
 @pytest.mark.parametrize("fmt,case", CASES)
 def test_malformed_input_is_one_error_line(tmp_path, crash_dir, fmt, case):
     work = tmp_path / "work"
@@ -419,13 +439,251 @@ def test_malformed_input_is_one_error_line(tmp_path, crash_dir, fmt, case):
     finally:
         if held is not None:
             held.close()
-    output = result.output
-    errors = [line for line in output.splitlines() if line.startswith("Error:")]
-    assert result.exit_code != 0, output
-    assert isinstance(result.exception, SystemExit), repr(result.exception)  # nothing escaped the boundary
-    assert "Traceback" not in output and "Aborted" not in output, output
-    assert len(errors) == 1, output
-    for word in (fmt.filename,) * case.names_input + case.expect:
-        assert word in errors[0], (word, errors[0])
-    assert not list(crash_dir.iterdir()), "reported as a bug: " + errors[0]
-    assert _snapshot(work) == before
+    _refused(result, (fmt.filename,) * case.names_input + case.expect, crash_dir, work, before)
+
+
+# ================================================================================================ command options
+# Every option that takes a number, port, path or URL, malformed: each case adds its arguments to the command's
+# valid ``base`` ones ("{dir}" is the work folder, "{port}" a port another socket holds), and the one error line
+# must name the option and what is wrong. Nothing may run: every refusal comes before any work.
+
+@dataclass(frozen=True)
+class Bad:
+    """Malformed arguments, added to the command's base ones (a repeated option's last value wins), or the
+    whole command line (``whole``: a malformed positional argument)."""
+
+    name: str
+    args: tuple[str, ...]
+    expect: tuple[str, ...]
+    whole: bool = False
+
+
+@dataclass(frozen=True)
+class Command:
+    """A command line, its valid arguments, and its table of malformed ones."""
+
+    name: str
+    base: tuple[str, ...]
+    cases: tuple[Bad, ...]
+
+
+def _numbers(option: str, values: tuple[str, ...], *base: str) -> tuple[Bad, ...]:
+    """One case per malformed value of a numeric ``option``; the error names the option and the value."""
+    return tuple(Bad(f"{option} {value}", (*base, option, value), (option, value)) for value in values)
+
+
+_NOT_FINITE = ("nan", "inf", "-inf", "abc", "")
+_BAD_COUNT = ("-1", "1.5", "x", "99999999999999999999")
+_BAD_PORT = ("-1", "65536", "99999", "http")
+_MISSING = "{dir}/no/such/folder"
+
+
+def _output_cases(option: str = "--out", suffix: str = ".png") -> tuple[Bad, ...]:
+    """An output file in a missing folder, that is a folder, or that exists (kept without --force)."""
+    return (
+        Bad(f"{option} in a missing folder", (option, f"{_MISSING}/x{suffix}"), (option, "does not exist")),
+        Bad(f"{option} a folder", (option, "{dir}"), (option, "is a folder")),
+        Bad(f"{option} exists", (option, f"{{dir}}/existing{suffix}"), (option, "already exists", "--force")),
+    )
+
+
+def _input_cases(option: str) -> tuple[Bad, ...]:
+    return (Bad(f"{option} missing", (option, "{dir}/nothing.toml"), (option, "nothing.toml", "file not found")),
+            Bad(f"{option} a folder", (option, "{dir}"), (option, "is a directory")))
+
+
+def _held_port() -> tuple[object, int]:
+    import socket
+
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    return busy, busy.getsockname()[1]
+
+
+_DEMO = ("demo", "--frames", "1", "--no-servo", "--unpaced", "--size", "160x100", "--port", "0")
+_RIG = ("--cameras", "{dir}/calibration.toml")
+_QUALITY = ("--basis", "{dir}/basis.npz", "--markers", "{dir}/markers.toml", "--take", "{dir}/take.npz")
+
+COMMANDS = (
+    Command("run", ("run", "{dir}/session.toml"), (
+        *_numbers("--frames", _BAD_COUNT),
+        Bad("SESSION missing", ("run", "{dir}/nothing.toml"), ("SESSION", "nothing.toml", "file not found"), True),
+    )),
+    Command("demo", _DEMO, (
+        *_numbers("--frames", _BAD_COUNT + ("1000000001",)),
+        *_numbers("--cameras", ("1", "9", "-2", "x")),
+        *_numbers("--seed", ("-1", "4294967296", "x")),
+        *_numbers("--fps", _NOT_FINITE + ("0", "-5", "0.5", "1e9")),
+        *_numbers("--size", ("0x0", "-5x10", "100000x100000", "640", "axb", "10x10", "")),
+        *_numbers("--port", _BAD_PORT),
+        Bad("--port in use", ("--port", "{port}"), ("--port", "127.0.0.1:{port}", "address already in use")),
+        Bad("--host not local", ("--host", "0.0.0.0"), ("--host", "0.0.0.0", "--allow-remote")),
+        Bad("--host a LAN address", ("--host", "192.168.1.1"), ("--host", "--allow-remote")),
+        Bad("--host empty", ("--host", " "), ("--host",)),
+        Bad("--host not on this machine", ("--host", "203.0.113.7", "--allow-remote"),
+            ("--host", "203.0.113.7", "address not available")),
+        *_numbers("--vmc", ("127.0.0.1:99999", "127.0.0.1:0", "127.0.0.1", ":39539", "0.0.0.0:39539",
+                            "255.255.255.255:1", "127.0.0.1:-1")),
+        Bad("--record in a missing folder", ("--record", f"{_MISSING}/take"), ("--record", "does not exist")),
+        Bad("--record exists", ("--record", "{dir}"), ("--record", "already exists")),
+        Bad("--record-frames without --record", ("--record-frames",), ("--record-frames", "--record")),
+    )),
+    Command("basis import", ("basis", "import", "{dir}/manifest.toml", "--out", "{dir}/new.npz"), (
+        *_output_cases(suffix=".npz"),
+        Bad("--shapes missing", ("--shapes", "{dir}/nothing"), ("--shapes", "nothing", "file not found")),
+    )),
+    Command("basis show", ("basis", "show", "{dir}/basis.npz", "--out", "{dir}/new.png"), (
+        *_output_cases(),
+        *_numbers("--yaw", _NOT_FINITE + ("1e9",)),
+        *_numbers("--dpi", ("0", "-5", "100000", "nan")),
+        *_numbers("--panel-size", _NOT_FINITE + ("0", "-1", "1e6")),
+        Bad("--crop-y nan", ("--crop-y", "0", "nan"), ("--crop-y", "nan")),
+        Bad("--crop-y upside down", ("--crop-y", "5", "1"), ("--crop-y", "below")),
+        Bad("--crop-y infinite", ("--crop-y", "-inf", "1"), ("--crop-y", "-inf")),
+        Bad("--markers missing", ("--markers", "{dir}/nothing.toml"), ("--markers", "nothing.toml", "not found")),
+        Bad("--muscle unknown", ("--muscle", "nose"), ("--muscle", "'nose'")),
+        Bad("BASIS missing", ("basis", "show", "{dir}/nothing.npz", "--out", "{dir}/new.png"),
+            ("BASIS", "nothing.npz", "file not found"), True),
+    )),
+    Command("basis check", ("basis", "check", *_QUALITY), (
+        *_input_cases("--basis"), *_input_cases("--markers"), *_input_cases("--take"),
+        Bad("--out-dir a file", ("--out-dir", "{dir}/basis.npz"), ("--out-dir", "is a file")),
+        Bad("--out-dir in a missing folder", ("--out-dir", f"{_MISSING}/out"), ("--out-dir", "does not exist")),
+        Bad("--out-dir holds the summary", ("--out-dir", "{dir}/checked"), ("--out-dir", "already exists", "--force")),
+    )),
+    Command("basis refine", ("basis", "refine", *_QUALITY, "--out", "{dir}/new.npz"), (
+        *_output_cases(suffix=".npz"),
+        *_input_cases("--basis"),
+        *_numbers("--max-iterations", ("0", "-1", "1000000000", "x")),
+        *_numbers("--tolerance", _NOT_FINITE + ("-0.1", "2")),
+    )),
+    Command("markers design", ("markers", "design", "--out", "{dir}/new.toml"), (
+        *_output_cases(suffix=".toml"),
+        *_numbers("--count", ("0", "1000000000") + _BAD_COUNT),
+        *_numbers("--min-spacing", _NOT_FINITE + ("-1", "1e9")),
+        *_numbers("--head", ("-1", "1000000", "x")),
+        *_numbers("--min-observers", ("0", "1000000")),
+        *_numbers("--min-views", ("0", "-3", "1000"), *_RIG),
+        *_numbers("--max-view-deg", _NOT_FINITE + ("0", "91"), *_RIG),
+        *_numbers("--view-margin", _NOT_FINITE + ("-1", "1e9"), *_RIG),
+        *_input_cases("--cameras"),
+        Bad("--basis missing", ("--basis", "{dir}/nothing.npz"), ("--basis", "nothing.npz", "file not found")),
+    )),
+    Command("markers report", ("markers", "report", "{dir}/markers.toml", "--basis", "{dir}/basis.npz"), (
+        *_input_cases("--cameras"),
+        *_numbers("--min-views", ("0",), *_RIG),
+        *_numbers("--max-view-deg", ("nan", "inf"), *_RIG),
+        Bad("LAYOUT_FILE missing", ("markers", "report", "{dir}/nothing.toml"),
+            ("LAYOUT_FILE", "nothing.toml", "file not found"), True),
+    )),
+    Command("calibrate board", ("calibrate", "board", "charuco:5x4:30:22:DICT_4X4_50", "--out", "{dir}/new.png"), (
+        *_output_cases(),
+        *_numbers("--dpi", ("0", "-5", "71", "100000", "nan", "3e2")),
+        Bad("SPEC malformed", ("calibrate", "board", "chessboard:7", "--out", "{dir}/new.png"),
+            ("SPEC", "chessboard:7"), True),
+        Bad("SPEC of 500x500 squares", ("calibrate", "board", "charuco:500x500:100:80:DICT_4X4_50", "--out",
+                                        "{dir}/new.png"), ("SPEC", "at most 100 squares"), True),
+        Bad("SPEC too big to print", ("calibrate", "board", "chessboard:30x21:100", "--out",
+                                      "{dir}/new.png"), ("SPEC", "does not print"), True),
+    )),
+    Command("calibrate run", ("calibrate", "run", "--board", "chessboard:7x5:25", "--videos", "a={dir}/basis.npz",
+                              "--videos", "b={dir}/markers.toml", "--out", "{dir}/new.toml"), (
+        *_output_cases(suffix=".toml"),
+        *_numbers("--every", ("0", "-1", "1000000000", "x")),
+        *_numbers("--frames", ("0", "-1", "1000000000")),
+        *_numbers("--origin-view", ("-1", "x")),
+        Bad("--board malformed", ("--board", "charuco:7x5"), ("--board", "charuco:7x5")),
+        Bad("--videos missing", ("--videos", "c={dir}/nothing.mp4"), ("--videos", "nothing.mp4", "not found")),
+        Bad("--videos without a name", ("--videos", "{dir}/basis.npz"), ("--videos", "NAME=FILE")),
+        Bad("--videos a name twice", ("--videos", "a={dir}/session.toml"), ("--videos", "'a'", "twice")),
+        Bad("--report in a missing folder", ("--report", f"{_MISSING}/report"), ("--report", "does not exist")),
+        Bad("--report a file", ("--report", "{dir}/basis.npz"), ("--report", "already exists")),
+    )),
+    Command("calibrate run --sources", ("calibrate", "run", "--board", "chessboard:7x5:25", "--out",
+                                        "{dir}/new.toml"), (
+        Bad("no scheme", ("--sources", "a=webcam0"), ("--sources", "scheme")),
+        Bad("unknown scheme", ("--sources", "a=webcam://0"), ("--sources", "unknown camera URL scheme")),
+        Bad("a parameter twice", ("--sources", "a=sim://rig?fps=30&fps=60"), ("--sources", "'fps'", "2 times")),
+    )),
+    Command("calibrate show", ("calibrate", "show", "{dir}/calibration.toml"), (
+        Bad("PATH missing", ("calibrate", "show", "{dir}/nothing.toml"), ("PATH", "nothing.toml", "file not found"),
+            True),
+    )),
+    Command("sim dynamixel", ("sim", "dynamixel"), (
+        Bad("--ids a billion", ("--ids", "1-999999999"), ("--ids", "1-999999999", "0..252")),
+        Bad("--ids downwards", ("--ids", "5-1"), ("--ids", "5-1")),
+        Bad("--ids text", ("--ids", "one"), ("--ids", "'one'")),
+        Bad("--ids twice", ("--ids", "1-3,2"), ("--ids", "twice")),
+        *_numbers("--baud", ("7", "-1", "x")),
+        *_numbers("--corrupt", _NOT_FINITE + ("-0.1", "1.5")),
+        *_numbers("--drop", ("nan", "2")),
+        *_numbers("--seed", ("-1", "4294967296")),
+        *_numbers("--delay", ("-1", "255", "1e3")),
+    )),
+    Command("sim maestro", ("sim", "maestro"), (
+        *_numbers("--channels", ("0", "25", "1000000000", "-1")),
+        *_numbers("--device", ("-1", "128")),
+        *_numbers("--corrupt", ("nan", "inf", "-1")),
+        *_numbers("--drop", ("1.01",)),
+        *_numbers("--seed", ("-1",)),
+    )),
+    Command("sim ssc32", ("sim", "ssc32"), (
+        *_numbers("--corrupt", ("nan", "1.5")),
+        *_numbers("--drop", ("-0.1", "inf")),
+        *_numbers("--seed", ("x", "-1")),
+    )),
+    Command("servo scan", ("servo", "scan"), (
+        Bad("URL ids a billion", ("simdynamixel://?ids=1-999999999",), ("simdynamixel://?ids=1-999999999", "ids",
+                                                                       "0..252")),
+        Bad("--ids a billion", ("simdynamixel://", "--ids", "1-999999999"), ("--ids", "1-999999999")),
+        *[Bad(f"URL {url}", (url,), (url, parameter)) for url, parameter in (
+            ("simmaestro://?channels=999999999", "channels"), ("simmaestro://?device=128", "device"),
+            ("simssc32://?channels=0", "channels"), ("simssc32://?drop=nan", "drop"),
+            ("simdynamixel://?corrupt=inf", "corrupt"), ("simdynamixel://?delay=-1", "delay"),
+            ("simdynamixel://?seed=-1", "seed"))],
+        Bad("URL without scheme", ("ttyUSB0",), ("ttyUSB0", "scheme")),
+        Bad("URL unknown scheme", ("usb://x",), ("usb://x", "unknown bus URL scheme")),
+    )),
+    Command("bench", ("bench",), (
+        Bad("NAME unknown", ("fastest",), ("NAME", "'fastest'")),
+    )),
+)
+OPTION_CASES = [pytest.param(command, case, id=f"{command.name}: {case.name}")
+                for command in COMMANDS for case in command.cases]
+
+
+def _option_work(folder: Path) -> None:
+    """The files the commands' valid arguments name, and outputs that already exist."""
+    _npz()(folder / "basis.npz")
+    _markers()(folder / "markers.toml")
+    _calibration()(folder / "calibration.toml")
+    (folder / "session.toml").write_text(_SIM)
+    (folder / "manifest.toml").write_text("x = 1\n")
+    (folder / "take.npz").write_bytes(b"not read: the options are refused first")
+    for name in ("existing.png", "existing.npz", "existing.toml"):
+        (folder / name).write_bytes(b"keep me")
+    (folder / "checked").mkdir()
+    (folder / "checked" / "take.basis-check.txt").write_text("keep me")
+
+
+@pytest.mark.parametrize("command,case", OPTION_CASES)
+def test_a_malformed_option_is_one_error_line(tmp_path, crash_dir, command, case):
+    work = tmp_path / "work"
+    work.mkdir()
+    _option_work(work)
+    held, port = _held_port() if "{port}" in case.args else (None, 0)
+    fill = {"dir": str(work), "port": str(port)}
+    try:
+        before = _snapshot(work)
+        args = [arg.format(**fill) for arg in (case.args if case.whole else (*command.base, *case.args))]
+        result = CliRunner().invoke(main, args)
+    finally:
+        if held is not None:
+            held.close()
+    _refused(result, tuple(word.format(**fill) for word in case.expect), crash_dir, work, before)
+
+
+def test_the_option_corpus_runs_hundreds_of_cases():
+    """The number the issue asks to quote (with the file cases above)."""
+    assert len(OPTION_CASES) >= 200 and len(CASES) >= 150

@@ -48,7 +48,8 @@ def test_basis_show_renders_a_png(tmp_path, rng):
     result = CliRunner().invoke(main, ["basis", "show", str(tmp_path / "b.npz"), "--out", str(out), "--dpi", "40"])
     assert result.exit_code == 0, result.output
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 1000
-    result = CliRunner().invoke(main, ["basis", "show", str(tmp_path / "missing.npz"), "--out", str(out)])
+    missing = ["basis", "show", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "x.png")]
+    result = CliRunner().invoke(main, missing)
     assert result.exit_code != 0 and "missing.npz" in result.output
 
 
@@ -130,5 +131,80 @@ def test_python_dash_m_livebridge_runs_the_same_command_line(tmp_path):
     missing = tmp_path / "nothing.npz"
     result = subprocess.run([sys.executable, "-m", "livebridge", "basis", "show", str(missing), "--out",
                              str(tmp_path / "f.png")], capture_output=True, text=True, timeout=120)
-    assert result.returncode == 1 and "Traceback" not in result.stderr
-    assert _error_lines(result.stderr) == [f"Error: {missing}: file not found"]
+    assert result.returncode == 2 and "Traceback" not in result.stderr  # click's exit code for a bad argument
+    assert _error_lines(result.stderr) == [f"Error: Invalid value for 'BASIS': {missing}: file not found"]
+
+
+def _hold_port():
+    import socket
+
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    return busy
+
+
+def _no_set_up(*args, **kwargs):
+    raise AssertionError("the pipeline was set up although its render port is taken")
+
+
+@pytest.mark.parametrize("command", ["demo", "run"])
+def test_a_render_port_in_use_is_refused_before_the_set_up(tmp_path, monkeypatch, crash_dir, command):
+    import livebridge.runtime.build as build
+
+    monkeypatch.setattr(build, "build_pipeline", _no_set_up)
+    with _hold_port() as busy:
+        port = busy.getsockname()[1]
+        session = tmp_path / "session.toml"
+        session.write_text(f'[cameras]\nurls = ["sim://rig?realtime=0"]\n[outputs.render]\nport = {port}\n')
+        args = ["demo", "--port", str(port)] if command == "demo" else ["run", str(session)]
+        result = CliRunner().invoke(main, args)
+    (line,) = _error_lines(result.output)
+    assert result.exit_code != 0 and f"127.0.0.1:{port}" in line and "address already in use" in line
+    assert ("--port" if command == "demo" else "outputs.render.port") in line
+    assert not list(crash_dir.iterdir())
+
+
+def test_a_render_port_taken_after_the_check_is_still_one_error_line(tmp_path, monkeypatch, crash_dir):
+    """Another program may take the port between the early check and the server's bind (a race)."""
+    import livebridge.cli.runtime as runtime_cli
+
+    monkeypatch.setattr(runtime_cli, "render_bind_problem", lambda host, port: None)
+    with _hold_port() as busy:
+        port = busy.getsockname()[1]
+        result = CliRunner().invoke(main, ["demo", "--port", str(port), "--no-servo", "--unpaced", "--frames", "1",
+                                           "--size", "160x100"])
+    (line,) = _error_lines(result.output)
+    assert result.exit_code == 1 and f"render server 127.0.0.1:{port}" in line and "address already in use" in line
+    assert "Traceback" not in result.output and not list(crash_dir.iterdir())
+
+
+def test_allow_remote_lets_the_render_server_listen_on_every_interface(monkeypatch, crash_dir):
+    import livebridge.runtime.demo as demo
+
+    seen = {}
+
+    def record(**options):
+        seen.update(options)
+        raise KeyboardInterrupt  # stop before anything is built
+
+    monkeypatch.setattr(demo, "build_demo", record)
+    result = CliRunner().invoke(main, ["demo", "--host", "0.0.0.0", "--allow-remote", "--port", "0"])
+    assert result.exit_code == 130 and seen["host"] == "0.0.0.0", result.output
+
+
+def test_the_demo_camera_options_are_bounded_as_the_simulated_rig():
+    from livebridge.cli.runtime import DEMO_FPS, DEMO_SIZE
+    from livebridge.simulators.rig import _CONFIG_RANGES, SIZE_RANGE
+
+    assert DEMO_SIZE == SIZE_RANGE and DEMO_FPS == _CONFIG_RANGES["fps"][:2]
+
+
+def test_an_id_range_is_bounded_before_it_is_expanded():
+    from livebridge.devices.url import parse_ranges
+    from livebridge.errors import InputError
+
+    assert parse_ranges("1-3, 7", 0, 252) == [1, 2, 3, 7]
+    for text in ("1-999999999", "0-99999999999999999999", "3-1", "-1", "1,1", "", "a-b"):
+        with pytest.raises(InputError):
+            parse_ranges(text, 0, 252)

@@ -282,7 +282,8 @@ def test_cli_design_for_a_calibrated_rig(tmp_path, ict, ict_file):
                                        "--cameras", str(calibration), "--min-views", "4"])
     assert result.exit_code == 0 and "seen by fewer than 4 cameras:" in result.output
     result = CliRunner().invoke(main, ["markers", "design", "--basis", ict_file, "--cameras", str(calibration),
-                                       "--min-views", "5", "--out", str(out)])
+                                       "--min-views", "5", "--out", str(out), "--force"])
     assert result.exit_code != 0 and "between 1 and the rig's 4 cameras, got 5" in result.output
-    result = CliRunner().invoke(main, ["markers", "design", "--basis", ict_file, "--min-views", "3", "--out", str(out)])
+    result = CliRunner().invoke(main, ["markers", "design", "--basis", ict_file, "--min-views", "3", "--out", str(out),
+                                       "--force"])
     assert result.exit_code != 0 and "--cameras is needed by --min-views" in result.output

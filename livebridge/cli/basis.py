@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from livebridge.cli._attach import attach
+from livebridge.cli._options import InputPath, OutputFile, force_option
 
 
 @click.group()
@@ -16,19 +17,15 @@ def basis() -> None:
 
 @basis.command("import")
 @click.argument("manifest")
-@click.option("--shapes", type=click.Path(exists=True, path_type=Path),
+@click.option("--shapes", type=InputPath("any"),
               help="Folder of mesh files or .npz of named deltas (default: the manifest's folder).")
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Basis file to write (.npz).")
-def import_(manifest: str, shapes: Path | None, out: Path) -> None:
+@click.option("--out", required=True, type=OutputFile(), help="Basis file to write (.npz).")
+@force_option
+def import_(manifest: str, shapes: Path | None, out: Path, force: bool) -> None:
     """Build a basis from MANIFEST (a TOML file, or a shipped name such as choe-ko-ict)."""
-    from livebridge.errors import InputError
     from livebridge.face.basis_import import import_basis
 
-    try:
-        result = import_basis(manifest, shapes)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    result = import_basis(manifest, shapes)
     result.save(out)
     click.echo(f"wrote {out}: {result.n_muscles} muscles, {result.n_vertices} vertices, "
                f"{len(result.triangles)} triangles")

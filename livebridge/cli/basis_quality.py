@@ -6,18 +6,18 @@ from pathlib import Path
 
 import click
 
+from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option, refuse_overwrite
+
 _MODES = click.Choice(["split-compensated", "split", "joint"])
 
 
 def _inputs(basis_help: str, take_help: str):
     """The ``--basis``, ``--markers`` and ``--take`` options both commands read with :func:`_load`."""
     options = [
-        click.option("--basis", "basis_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
-                     help=basis_help),
-        click.option("--markers", "markers_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
-                     help="Marker set (.toml)."),
-        click.option("--take", "take_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
-                     help=take_help),
+        click.option("--basis", "basis_path", required=True, type=InputPath(), help=basis_help),
+        click.option("--markers", "markers_path", required=True, type=InputPath(), help="Marker set (.toml)."),
+        click.option("--take", "take_path", required=True, type=InputPath(), help=take_help),
+        force_option,
     ]
 
     def decorate(command):
@@ -29,19 +29,7 @@ def _inputs(basis_help: str, take_help: str):
 
 
 def _load(basis_path: Path, markers_path: Path, take_path: Path):
-    """Basis, marker set and the take's displacements in the marker set's order (n_frames, n_markers, 3).
-
-    Bad input (an :class:`~livebridge.errors.InputError`) becomes a ``click.ClickException``.
-    """
-    from livebridge.errors import InputError
-
-    try:
-        return _read(basis_path, markers_path, take_path)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
-
-
-def _read(basis_path: Path, markers_path: Path, take_path: Path):
+    """Basis, marker set and the take's displacements in the marker set's order (n_frames, n_markers, 3)."""
     import numpy as np
 
     from livebridge.errors import InputError
@@ -70,36 +58,49 @@ def _read(basis_path: Path, markers_path: Path, take_path: Path):
 @click.command()
 @_inputs("Basis file (.npz).", "Training take (.npz) with marker displacements.")
 @click.option("--out-dir", type=click.Path(file_okay=False, path_type=Path),
-              help="Where the summary (.txt) and plot (.png) go (default: beside the take).")
+              help="Where the summary (.txt) and plot (.png) go (default: beside the take; made if missing).")
 @click.option("--mode", type=_MODES, default="split-compensated", show_default=True, help="Region mode.")
-def check(basis_path: Path, markers_path: Path, take_path: Path, out_dir: Path | None, mode: str) -> None:
+def check(basis_path: Path, markers_path: Path, take_path: Path, force: bool, out_dir: Path | None,
+          mode: str) -> None:
     """Validate a basis on a training take: per-muscle range excursions and misfit, per-region marker error."""
     from livebridge.solve.solver import SolverConfig
     from livebridge.solve.validate import check_basis, plot_report
 
+    out_dir = out_dir or take_path.parent
+    written = [out_dir / f"{take_path.stem}.basis-check.txt", out_dir / f"{take_path.stem}.basis-check.png"]
+    _check_outputs(out_dir, written, force)
     basis, markers, take, displacements = _load(basis_path, markers_path, take_path)
     report = check_basis(basis, markers, displacements, take.t, SolverConfig(mode=mode), progress=True)
-    out_dir = out_dir or take_path.parent
-    out_dir.mkdir(parents=True, exist_ok=True)
-    stem = take_path.stem
+    out_dir.mkdir(exist_ok=True)
     summary = report.summary()
-    (out_dir / f"{stem}.basis-check.txt").write_text(summary + "\n")
-    plot_report(report, out_dir / f"{stem}.basis-check.png")
+    written[0].write_text(summary + "\n")
+    plot_report(report, written[1])
     click.echo(summary)
-    click.echo(f"wrote {out_dir / (stem + '.basis-check.txt')} and {out_dir / (stem + '.basis-check.png')}")
+    click.echo(f"wrote {written[0]} and {written[1]}")
+
+
+def _check_outputs(out_dir: Path, files: list[Path], force: bool) -> None:
+    """``--out-dir`` can hold ``files``: a folder, or one to make in an existing folder; ``files`` exist only
+    with --force."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise click.BadParameter(f"{out_dir}: is a file, not a folder", param_hint="--out-dir")
+    if not out_dir.exists() and not out_dir.parent.is_dir():
+        raise click.BadParameter(f"{out_dir}: the folder {str(out_dir.parent)!r} does not exist; create it first",
+                                 param_hint="--out-dir")
+    refuse_overwrite(files, force, "--out-dir")
 
 
 @click.command()
 @_inputs("Draft basis file (.npz).",
          "Training take (.npz) with marker displacements; every muscle should reach full contraction.")
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Refined basis (.npz).")
+@click.option("--out", required=True, type=OutputFile(), help="Refined basis (.npz).")
 @click.option("--mode", type=_MODES, default="split-compensated", show_default=True, help="Region mode.")
 @click.option("--anchor", type=click.Choice(["extremes", "norm"]), default="extremes", show_default=True,
               help="Pin each element's scale by the take's full contractions, or by the draft's norm.")
-@click.option("--max-iterations", type=click.IntRange(1), default=30, show_default=True)
-@click.option("--tolerance", type=float, default=1e-2, show_default=True,
+@click.option("--max-iterations", type=click.IntRange(1, 10_000), default=30, show_default=True)
+@click.option("--tolerance", type=FiniteFloat(0, 1), default=1e-2, show_default=True,
               help="Stop when the total error falls by less than this fraction.")
-def refine(basis_path: Path, markers_path: Path, take_path: Path, out: Path, mode: str, anchor: str,
+def refine(basis_path: Path, markers_path: Path, take_path: Path, force: bool, out: Path, mode: str, anchor: str,
            max_iterations: int, tolerance: float) -> None:
     """Refine a basis on a training take (fixed-point re-fit at the markers, thin-plate densification)."""
     from livebridge.solve.refine import refine_basis

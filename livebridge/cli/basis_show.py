@@ -7,7 +7,8 @@ from pathlib import Path
 import click
 import numpy as np
 
-from livebridge.cli.markers import load_basis
+from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option
+from livebridge.cli.markers import BASIS_TYPE, load_basis
 
 
 def _view(vertices: np.ndarray, yaw_deg: float, pitch_deg: float) -> np.ndarray:
@@ -134,23 +135,31 @@ def render_basis(basis, path: str | Path, markers=None, yaw_deg: float = 15.0, p
 
 
 @click.command("show")
-@click.argument("basis_spec", metavar="BASIS")
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Image file (.png).")
-@click.option("--markers", "markers_spec", default=None,
+@click.argument("basis_spec", metavar="BASIS", type=BASIS_TYPE)
+@click.option("--out", required=True, type=OutputFile(), help="Image file (.png).")
+@force_option
+@click.option("--markers", "markers_spec", type=InputPath(builtins=("design",)), default=None,
               help="Marker layout (.toml) to draw on the neutral face, or 'design' to design one now.")
-@click.option("--yaw", default=15.0, show_default=True, help="View angle about the vertical axis, degrees.")
+@click.option("--yaw", type=FiniteFloat(-360, 360), default=15.0, show_default=True,
+              help="View angle about the vertical axis, degrees.")
 @click.option("--dpi", default=90, show_default=True, type=click.IntRange(30, 600))
 @click.option("--muscle", "muscles", multiple=True, help="Only this element (repeatable; default: all).")
-@click.option("--panel-size", default=3.0, show_default=True, type=click.FloatRange(1, 20), help="Inches per panel.")
-@click.option("--crop-y", nargs=2, type=float, default=None, metavar="LOW HIGH",
+@click.option("--panel-size", default=3.0, show_default=True, type=FiniteFloat(1, 20), help="Inches per panel.")
+@click.option("--crop-y", nargs=2, type=FiniteFloat(-1e4, 1e4), default=None, metavar="LOW HIGH",
               help="Frame only this range of heights of the neutral face (mm), e.g. -100 90.")
-def show(basis_spec: str, out: Path, markers_spec: str | None, yaw: float, dpi: int, muscles: tuple[str, ...],
-         panel_size: float, crop_y: tuple[float, float] | None) -> None:
+def show(basis_spec: str, out: Path, force: bool, markers_spec: str | None, yaw: float, dpi: int,
+         muscles: tuple[str, ...], panel_size: float, crop_y: tuple[float, float] | None) -> None:
     """Render BASIS (a basis file or 'builtin'): the neutral face and each element, one panel each."""
     from livebridge.errors import InputError
     from livebridge.face.markers import MarkerSet
 
+    if crop_y is not None and not crop_y[0] < crop_y[1]:
+        raise click.BadParameter(f"LOW {crop_y[0]:g} must be below HIGH {crop_y[1]:g}", param_hint="--crop-y")
     basis = load_basis(basis_spec)
+    unknown = [name for name in muscles if name not in basis.names]
+    if unknown:
+        raise click.BadParameter(f"no element {unknown[0]!r} in the basis; it has {', '.join(basis.names)}",
+                                 param_hint="--muscle")
     markers = None
     if markers_spec == "design":
         from livebridge.face.layout import design_markers
@@ -162,9 +171,6 @@ def show(basis_spec: str, out: Path, markers_spec: str | None, yaw: float, dpi: 
             markers.check_mesh(len(basis.triangles))
         except InputError as error:
             raise InputError(error.message, error.path or markers_spec, error.field) from None
-    try:
-        render_basis(basis, out, markers=markers, yaw_deg=yaw, dpi=dpi, muscles=muscles or None,
-                     panel_inches=panel_size, crop_y=crop_y)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    render_basis(basis, out, markers=markers, yaw_deg=yaw, dpi=dpi, muscles=muscles or None,
+                 panel_inches=panel_size, crop_y=crop_y)
     click.echo(f"wrote {out}: neutral and {basis.n_muscles} elements of {basis_spec}")

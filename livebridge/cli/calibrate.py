@@ -6,113 +6,127 @@ from pathlib import Path
 
 import click
 
+from livebridge.cli._options import (
+    MAX_FRAMES,
+    CameraURL,
+    InputPath,
+    Named,
+    NewFolder,
+    OutputFile,
+    force_option,
+    unique_names,
+)
+
+MAX_PRINT_MM = 2000.0
+"""The longest side of a board ``calibrate board`` prints (A0 is 1189 mm)."""
+
+
+class BoardSpec(click.ParamType):
+    """A board spec (``charuco:7x5:40:30:DICT_4X4_50``), read by
+    :func:`~livebridge.calibration.boards.parse_board` before any image is read."""
+
+    name = "SPEC"
+
+    def convert(self, value, param, ctx):
+        from livebridge.calibration.boards import parse_board
+        from livebridge.errors import InputError
+
+        if not isinstance(value, str):
+            return value
+        try:
+            return parse_board(value)
+        except InputError as error:
+            self.fail(str(error), param, ctx)
+
 
 @click.group()
 def calibrate() -> None:
     """Multi-camera calibration with a chessboard or ChArUco board."""
 
 
-def _pairs(values: tuple[str, ...], option: str) -> dict[str, str]:
-    out: dict[str, str] = {}
-    for value in values:
-        name, sep, target = value.partition("=")
-        if not sep or not name or not target:
-            raise click.BadParameter(f"expected NAME=PATH, got {value!r}", param_hint=option)
-        if name in out:
-            raise click.BadParameter(f"camera name {name!r} given twice", param_hint=option)
-        out[name] = target
-    return out
-
-
 @calibrate.command("board")
-@click.argument("spec")
-@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Output file, .png or .pdf.")
-@click.option("--dpi", default=300, show_default=True, help="Print resolution.")
-def board_command(spec: str, out: Path, dpi: int) -> None:
+@click.argument("board", metavar="SPEC", type=BoardSpec())
+@click.option("--out", "out", required=True, type=OutputFile(), help="Output file, .png or .pdf.")
+@force_option
+@click.option("--dpi", type=click.IntRange(72, 1200), default=300, show_default=True, help="Print resolution.")
+def board_command(board, out: Path, force: bool, dpi: int) -> None:
     """Write a print-ready board for SPEC at exact physical size, with a scale bar.
 
     SPEC is 'chessboard:COLSxROWS:SQUARE_MM' (inner corners) or
     'charuco:COLSxROWS:SQUARE_MM:MARKER_MM:DICT[:legacy]' (squares).
     """
-    from livebridge.calibration.boards import parse_board
     from livebridge.calibration.printout import write_board
-    from livebridge.errors import InputError
 
-    try:
-        width, height = write_board(parse_board(spec), out, dpi)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    if max(board.size_mm) > MAX_PRINT_MM:  # the page is drawn in memory at --dpi: a huge one never ends
+        raise click.BadParameter(f"a {board.size_mm[0]:g} x {board.size_mm[1]:g} mm board does not print (at most "
+                                 f"{MAX_PRINT_MM:g} mm a side)", param_hint="SPEC")
+    width, height = write_board(board, out, dpi)
     click.echo(f"wrote {out}: page {width:g} x {height:g} mm; print at 100% and check the scale bar")
 
 
 @calibrate.command("run")
-@click.option("--images", multiple=True, metavar="NAME=DIR",
+@click.option("--images", multiple=True, type=Named(click.STRING, "DIR"),
               help="A camera's folder of images (or a glob such as 'dir/left*.jpg'); repeat per camera.")
-@click.option("--videos", multiple=True, metavar="NAME=FILE", help="A camera's video file; repeat per camera.")
-@click.option("--sources", multiple=True, metavar="NAME=URL",
+@click.option("--videos", multiple=True, type=Named(InputPath(), "FILE"),
+              help="A camera's video file; repeat per camera.")
+@click.option("--sources", multiple=True, type=Named(CameraURL(), "URL"),
               help="A live camera source URL (e.g. v4l2:///dev/video0); repeat per camera. Hold the board still.")
-@click.option("--board", "board_spec", required=True, help="Board spec, e.g. 'charuco:7x5:40:30:DICT_4X4_50'.")
-@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Calibration file to write (TOML).")
+@click.option("--board", "board", required=True, type=BoardSpec(),
+              help="Board spec, e.g. 'charuco:7x5:40:30:DICT_4X4_50'.")
+@click.option("--out", "out", required=True, type=OutputFile(), help="Calibration file to write (TOML).")
+@force_option
 @click.option("--fisheye", is_flag=True, help="Fisheye lens model (k1..k4) instead of pinhole with 5 terms.")
 @click.option("--up", type=click.Choice(["y", "z"]), default="y", show_default=True, help="World axis that is up.")
-@click.option("--origin-view", type=int, default=None,
+@click.option("--origin-view", type=click.IntRange(0, MAX_FRAMES), default=None,
               help="Index of the view whose board defines the world frame (default: the best-seen view).")
 @click.option("--board-pose", type=click.Choice(["upright", "flat"]), default="upright", show_default=True,
               help="How the board stands in the origin view: upright facing the cameras, or flat printed side up.")
-@click.option("--every", type=int, default=10, show_default=True, help="Videos/sources: use every N-th frame.")
-@click.option("--frames", type=int, default=300, show_default=True, help="Sources: frame sets to grab.")
-@click.option("--report", "report_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--every", type=click.IntRange(1, 100_000), default=10, show_default=True,
+              help="Videos/sources: use every N-th frame.")
+@click.option("--frames", type=click.IntRange(1, 100_000), default=300, show_default=True,
+              help="Sources: frame sets to grab.")
+@click.option("--report", "report_dir", type=NewFolder(exist_ok=True), default=None,
               help="Folder for the report (default: next to --out, named after it).")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def run_command(images, videos, sources, board_spec, out, fisheye, up, origin_view, board_pose, every, frames,
+def run_command(images, videos, sources, board, out, force, fisheye, up, origin_view, board_pose, every, frames,
                 report_dir, quiet) -> None:
     """Calibrate cameras from board images, videos or live sources.
 
     Images in a folder pair across cameras by file name (identical names, else the
     last number in the name, else sorted order); videos pair by frame index.
     """
-    from livebridge.errors import InputError
-
     chosen = [name for name, given in (("--images", images), ("--videos", videos), ("--sources", sources)) if given]
     if len(chosen) != 1:
         raise click.UsageError("give exactly one of --images, --videos or --sources (one NAME=... per camera)")
-    try:
-        _run(images, videos, sources, board_spec, out, fisheye, up, origin_view, board_pose, every, frames,
-             report_dir, quiet)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    folder = report_dir or out.with_name(out.stem + "_report")
+    if report_dir is None and folder.exists() and not folder.is_dir():
+        raise click.BadParameter(f"the report folder {folder} is a file; name another with --report",
+                                 param_hint="--out")
+    named = unique_names(images or videos or sources, chosen[0])
+    _run(chosen[0], named, board, out, fisheye, up, origin_view, board_pose, every, frames, folder, quiet)
 
 
-def _run(images, videos, sources, board_spec, out, fisheye, up, origin_view, board_pose, every, frames,
-         report_dir, quiet) -> None:
-    from livebridge.calibration.boards import parse_board
+def _run(kind, named, board, out, fisheye, up, origin_view, board_pose, every, frames, folder, quiet) -> None:
     from livebridge.calibration.calibfile import save_calibration
     from livebridge.calibration.detect import detect_frames, detect_images, read_videos
     from livebridge.calibration.report import summary, write_report
     from livebridge.calibration.run import calibrate as run_calibration
 
-    board = parse_board(board_spec)
     progress = not quiet
-    if images:
-        detections = detect_images(board, _pairs(images, "--images"), progress=progress)
-    elif videos:
-        named = _pairs(videos, "--videos")
+    if kind == "--images":
+        detections = detect_images(board, named, progress=progress)
+    elif kind == "--videos":
         frame_sets, total = read_videos(named)
-        detections = detect_frames(board, list(named), frame_sets, progress, total, every=max(1, every))
+        detections = detect_frames(board, list(named), frame_sets, progress, total, every=every)
     else:
-        named = _pairs(sources, "--sources")
         detections = detect_frames(board, list(named), _source_frames(named, frames), progress, frames,
-                                   every=max(1, every))
+                                   every=every)
     found = detections.counts() >= board.min_corners
     click.echo("board found in: " + ", ".join(f"{n} {int(k)}/{detections.n_views}"
                                                for n, k in zip(detections.camera_names, found.sum(axis=1))), err=True)
     result = run_calibration(detections, board, fisheye=fisheye, up=up, origin_view=origin_view,
                              board_pose=board_pose, log=lambda line: click.echo(line, err=True))
-    out.parent.mkdir(parents=True, exist_ok=True)
     save_calibration(out, result.group, result.metadata())
-    folder = report_dir or out.with_name(out.stem + "_report")
     write_report(result, folder)
     click.echo(summary(result))
     click.echo(f"wrote {out} and report in {folder}")
@@ -147,17 +161,13 @@ def _source_frames(named: dict[str, str], n_frames: int):
 
 
 @calibrate.command("show")
-@click.argument("path", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("path", type=InputPath())
 def show_command(path: Path) -> None:
     """Print the cameras of a calibration file (ours or aniposelib's)."""
     from livebridge.calibration.calibfile import load_calibration, load_metadata
-    from livebridge.errors import InputError
 
-    try:
-        group = load_calibration(path)
-        metadata = load_metadata(path)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    group = load_calibration(path)
+    metadata = load_metadata(path)
     for camera in group.cameras:
         rms = metadata.get("rms_px", {}).get(camera.name)
         click.echo(f"{camera.name:12s} {camera.size[0]}x{camera.size[1]} f={camera.matrix[0, 0]:.1f} "

@@ -7,9 +7,13 @@ from pathlib import Path
 import click
 import numpy as np
 
+from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option
 from livebridge.face.layout import MAX_VIEW_DEG, VIEW_MARGIN_DEG
 
 BASIS_HELP = "Basis file (.npz, from `livebridge basis import`) or 'builtin' (the procedural face)."
+BASIS_TYPE = InputPath(builtins=("builtin",))
+MAX_MARKERS = 1000
+"""The most markers a layout option asks for (a face carries at most a few hundred)."""
 
 
 def load_basis(spec: str):
@@ -17,36 +21,32 @@ def load_basis(spec: str):
 
     Raises
     ------
-    click.ClickException
+    InputError
         Naming the file and what is wrong.
     """
-    from livebridge.errors import InputError
     from livebridge.face.basis import Basis
 
     if spec == "builtin":
         from livebridge.face.builtin import builtin_basis
 
         return builtin_basis()
-    try:
-        return Basis.load(spec)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    return Basis.load(spec)
 
 
 def rig_options(command):
     """The options that describe the camera rig a layout is for (``--cameras`` and how it must see markers)."""
     options = [
-        click.option("--cameras", "calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        click.option("--cameras", "calibration", type=InputPath(),
                      default=None, help="Calibration file (calibration.toml) of the rig the layout is for: markers "
                      "go only where enough of its cameras see them. The face is placed where the cameras' optical "
                      "axes meet, facing them."),
-        click.option("--min-views", default=3, show_default=True, type=click.IntRange(1),
+        click.option("--min-views", default=3, show_default=True, type=click.IntRange(1, 64),
                      help="With --cameras: cameras that must see every marker (2 to triangulate; each one more is a "
                      "spare view when a marker is occluded in another)."),
         click.option("--max-view-deg", default=MAX_VIEW_DEG, show_default=True,
-                     type=click.FloatRange(0, 90, min_open=True),
+                     type=FiniteFloat(0, 90, low_open=True),
                      help="With --cameras: largest angle between a marker's normal and a camera that still finds it."),
-        click.option("--view-margin", default=VIEW_MARGIN_DEG, show_default=True, type=click.FloatRange(0),
+        click.option("--view-margin", default=VIEW_MARGIN_DEG, show_default=True, type=FiniteFloat(0, 90),
                      help="With --cameras: degrees kept spare for head motion (taken off --max-view-deg at neutral)."),
     ]
     for option in reversed(options):
@@ -59,11 +59,12 @@ def load_rig(calibration: Path | None, min_views: int, max_view_deg: float, view
 
     Raises
     ------
-    click.ClickException
-        Naming the file or the option and what is wrong.
+    click.UsageError
+        When a rig option is given without ``--cameras``.
+    InputError
+        Naming the file and what is wrong.
     """
     from livebridge.calibration.calibfile import load_calibration
-    from livebridge.errors import InputError
     from livebridge.face.layout import RigVisibility
 
     if calibration is None:
@@ -73,10 +74,7 @@ def load_rig(calibration: Path | None, min_views: int, max_view_deg: float, view
         if given:
             raise click.UsageError(f"--cameras is needed by {', '.join(given)}")
         return None
-    try:
-        return RigVisibility(load_calibration(calibration), min_views, max_view_deg, view_margin)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    return RigVisibility(load_calibration(calibration), min_views, max_view_deg, view_margin)
 
 
 def describe_rig(rig) -> str:
@@ -120,37 +118,36 @@ def markers() -> None:
 
 
 @markers.command("design")
-@click.option("--basis", "basis_spec", default="builtin", show_default=True, help=BASIS_HELP)
-@click.option("--count", default=64, show_default=True, type=click.IntRange(1), help="Number of face markers.")
-@click.option("--min-spacing", type=click.FloatRange(0), default=None,
+@click.option("--basis", "basis_spec", type=BASIS_TYPE, default="builtin", show_default=True, help=BASIS_HELP)
+@click.option("--count", default=64, show_default=True, type=click.IntRange(1, MAX_MARKERS),
+              help="Number of face markers.")
+@click.option("--min-spacing", type=FiniteFloat(0, 1000), default=None,
               help="Minimum distance between face markers in mm (default: from the face area and the count).")
-@click.option("--head", "n_head", default=5, show_default=True, type=click.IntRange(0),
+@click.option("--head", "n_head", default=5, show_default=True, type=click.IntRange(0, MAX_MARKERS),
               help="Number of rigid head-rig markers (>= 4 recommended).")
-@click.option("--min-observers", default=3, show_default=True, type=click.IntRange(1),
+@click.option("--min-observers", default=3, show_default=True, type=click.IntRange(1, MAX_MARKERS),
               help="Markers that must observe every muscle.")
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Marker file (.toml).")
+@click.option("--out", required=True, type=OutputFile(), help="Marker file (.toml).")
+@force_option
 @click.option("--baseline/--no-baseline", default=True, show_default=True,
               help="Also print the farthest-point-sampling layout's figures for comparison.")
 @rig_options
 def design(basis_spec: str, count: int, min_spacing: float | None, n_head: int, min_observers: int, out: Path,
-           baseline: bool, calibration: Path | None, min_views: int, max_view_deg: float, view_margin: float) -> None:
+           force: bool, baseline: bool, calibration: Path | None, min_views: int, max_view_deg: float,
+           view_margin: float) -> None:
     """Design a marker layout (greedy D-optimal per region, spacing-constrained) and print its figures.
 
     With --cameras, the layout is for that rig: face and head markers only where at least --min-views of its
     cameras see them well at the neutral pose.
     """
-    from livebridge.errors import InputError
     from livebridge.face.layout import default_spacing, design_markers, farthest_point_markers, layout_report
 
     basis = load_basis(basis_spec)
     rig = load_rig(calibration, min_views, max_view_deg, view_margin)
-    try:
-        if rig is not None:
-            click.echo(describe_rig(rig))
-        spacing = default_spacing(basis, count, rig) if min_spacing is None else min_spacing
-        layout = design_markers(basis, count, spacing, n_head=n_head, min_observers=min_observers, rig=rig)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    if rig is not None:
+        click.echo(describe_rig(rig))
+    spacing = default_spacing(basis, count, rig) if min_spacing is None else min_spacing
+    layout = design_markers(basis, count, spacing, n_head=n_head, min_observers=min_observers, rig=rig)
     layout.save(out)
     click.echo(f"wrote {out}: {len(layout)} markers on {basis_spec} (min spacing {spacing:.1f} mm)")
     click.echo(format_report(layout_report(basis, layout, rig), basis.names))
@@ -162,8 +159,8 @@ def design(basis_spec: str, count: int, min_spacing: float | None, n_head: int, 
 
 
 @markers.command("report")
-@click.argument("layout_file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("--basis", "basis_spec", default="builtin", show_default=True, help=BASIS_HELP)
+@click.argument("layout_file", type=InputPath())
+@click.option("--basis", "basis_spec", type=BASIS_TYPE, default="builtin", show_default=True, help=BASIS_HELP)
 @rig_options
 def report(layout_file: Path, basis_spec: str, calibration: Path | None, min_views: int, max_view_deg: float,
            view_margin: float) -> None:
@@ -174,17 +171,14 @@ def report(layout_file: Path, basis_spec: str, calibration: Path | None, min_vie
 
     basis = load_basis(basis_spec)
     rig = load_rig(calibration, min_views, max_view_deg, view_margin)
+    layout = MarkerSet.load(layout_file)
     try:
-        layout = MarkerSet.load(layout_file)
-        try:
-            layout.check_mesh(len(basis.triangles))
-        except InputError as error:
-            raise InputError(error.message, layout_file, error.field) from None
-        if rig is not None:
-            click.echo(describe_rig(rig))
-        figures = layout_report(basis, layout, rig)
+        layout.check_mesh(len(basis.triangles))
     except InputError as error:
-        raise click.ClickException(str(error)) from None
+        raise InputError(error.message, layout_file, error.field) from None
+    if rig is not None:
+        click.echo(describe_rig(rig))
+    figures = layout_report(basis, layout, rig)
     click.echo(format_report(figures, basis.names))
     if rig is not None:
         short = [name for name, views in figures["views"].items() if views < rig.min_views]

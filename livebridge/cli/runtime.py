@@ -6,6 +6,25 @@ import sys
 
 import click
 
+from livebridge.cli._options import (
+    FRAMES,
+    SEED,
+    BindHost,
+    Destination,
+    FiniteFloat,
+    InputPath,
+    NewFolder,
+    Port,
+    Size,
+    allow_remote_option,
+    bind_host_problem,
+    render_bind_problem,
+)
+
+# The demo's camera options, as the simulated rig bounds them (simulators.rig: _CONFIG_RANGES["fps"], SIZE_RANGE).
+DEMO_FPS = (1.0, 1000.0)
+DEMO_SIZE = (16, 4096)
+
 
 def _log(message: str) -> None:
     click.echo(message, err=True)
@@ -31,22 +50,36 @@ def _print_summary(summary, score=None) -> None:
                    f"label swaps: {score.swaps}")
 
 
-@click.command()
-@click.argument("session", type=click.Path(dir_okay=False))
-@click.option("--frames", type=click.IntRange(min=0), default=None,
-              help="Stop after this many frame sets (default: the session's, or until Ctrl-C).")
-def run(session: str, frames: int | None) -> None:
-    """Run the live pipeline described by the session file SESSION (Ctrl-C stops it in order)."""
+def _check_render_address(session, allow_remote: bool) -> None:
+    """Refuse, before the long set-up, a render host other machines reach (without --allow-remote) and a
+    port another program holds (the server's own bind still reports one taken in between)."""
     from livebridge.errors import InputError
+
+    render = session.render
+    if not render.enabled:
+        return
+    problem = None if allow_remote else bind_host_problem(render.host)
+    if problem is not None:
+        raise InputError(problem, session.path, "outputs.render.host")
+    clash = render_bind_problem(render.host, render.port)
+    if clash is not None:
+        raise InputError(clash[1], session.path, f"outputs.render.{clash[0]}")
+
+
+@click.command()
+@click.argument("session", type=InputPath())
+@click.option("--frames", type=FRAMES, default=None,
+              help="Stop after this many frame sets (default: the session's, or until Ctrl-C).")
+@allow_remote_option
+def run(session: str, frames: int | None, allow_remote: bool) -> None:
+    """Run the live pipeline described by the session file SESSION (Ctrl-C stops it in order)."""
     from livebridge.runtime.build import build_pipeline
     from livebridge.runtime.pipeline import run_until_stopped
     from livebridge.runtime.session import load_session
 
-    try:
-        loaded = load_session(session)
-        pipeline = build_pipeline(loaded, log=_log)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    loaded = load_session(session)
+    _check_render_address(loaded, allow_remote)
+    pipeline = build_pipeline(loaded, log=_log)
 
     def started(p):
         if p.render is not None:
@@ -60,56 +93,42 @@ def run(session: str, frames: int | None) -> None:
 
 
 @click.command()
-@click.option("--frames", type=click.IntRange(min=0), default=0, help="End after N frame sets and print a summary.")
+@click.option("--frames", type=FRAMES, default=0, help="End after N frame sets and print a summary.")
 @click.option("--cameras", type=click.IntRange(2, 8), default=4, show_default=True, help="Simulated cameras.")
-@click.option("--seed", type=int, default=1, show_default=True)
-@click.option("--fps", type=float, default=30.0, show_default=True,
+@click.option("--seed", type=SEED, default=1, show_default=True)
+@click.option("--fps", type=FiniteFloat(*DEMO_FPS), default=30.0, show_default=True,
               help="Camera frame rate (30 keeps up on a 2-core machine; real rigs run 30-120).")
-@click.option("--size", default="1280x800", show_default=True, help="Simulated image size WxH.")
-@click.option("--host", default="127.0.0.1", show_default=True, help="Render client interface.")
-@click.option("--port", type=click.IntRange(0, 65535), default=8765, show_default=True,
+@click.option("--size", type=Size(*DEMO_SIZE), default="1280x800", show_default=True,
+              help="Simulated image size WxH.")
+@click.option("--host", type=BindHost(), default="127.0.0.1", show_default=True,
+              help="Render client interface (not loopback: needs --allow-remote).")
+@allow_remote_option
+@click.option("--port", type=Port(any_free=True), default=8765, show_default=True,
               help="Render client port (0: any free port).")
 @click.option("--unpaced", is_flag=True, help="Run the cameras as fast as the CPU allows instead of at --fps.")
 @click.option("--no-servo", is_flag=True, help="Leave out the simulated servo bus.")
 @click.option("--no-render", is_flag=True, help="Leave out the render client.")
-@click.option("--vmc", default=None, metavar="HOST:PORT", help="Also send VMC/OSC blendshapes there.")
-@click.option("--record", type=click.Path(file_okay=False), default=None, help="Record the take to this new folder.")
+@click.option("--vmc", type=Destination(), default=None, help="Also send VMC/OSC blendshapes there.")
+@click.option("--record", type=NewFolder(), default=None, help="Record the take to this new folder.")
 @click.option("--record-frames", is_flag=True,
               help="With --record: also record the raw camera frames (replay them with replay://FOLDER).")
-def demo(frames, cameras, seed, fps, size, host, port, unpaced, no_servo, no_render, vmc, record,
+def demo(frames, cameras, seed, fps, size, host, allow_remote, port, unpaced, no_servo, no_render, vmc, record,
          record_frames) -> None:
     """The whole pipeline on simulators: performer, 4-camera rig, servo bus, render client.
 
     Prints the URL of the render page; Ctrl-C (or --frames N) ends it with a summary.
     """
-    from livebridge.errors import InputError
     from livebridge.runtime.demo import build_demo
     from livebridge.runtime.pipeline import run_until_stopped
 
     if record_frames and not record:
         raise click.BadParameter("needs --record FOLDER", param_hint="--record-frames")
-    try:
-        width, height = (int(v) for v in size.lower().split("x"))
-    except ValueError:
-        raise click.BadParameter("expected WxH, e.g. 1280x800", param_hint="--size") from None
-    vmc_target = None
-    if vmc:
-        vmc_host, _, vmc_port = vmc.rpartition(":")
-        if not vmc_host or not vmc_port.isdigit():
-            raise click.BadParameter("expected HOST:PORT", param_hint="--vmc")
-        from livebridge.output.vmc import resolve_destination
-
-        vmc_target = (vmc_host.removeprefix("[").removesuffix("]"), int(vmc_port))
-        try:
-            resolve_destination(*vmc_target)
-        except InputError as error:
-            raise click.BadParameter(f"{error.field}: {error.message}", param_hint="--vmc") from None
-    try:
-        parts = build_demo(cameras=cameras, seed=seed, fps=fps, size=(width, height), realtime=not unpaced,
-                           servo=not no_servo, render=not no_render, host=host, port=port, vmc=vmc_target,
-                           record=record, record_frames=record_frames, log=_log)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    clash = None if no_render else render_bind_problem(host, port)
+    if clash is not None:  # before the long set-up; the server's own bind still reports a port taken meanwhile
+        raise click.BadParameter(clash[1], param_hint=f"--{clash[0]}")
+    parts = build_demo(cameras=cameras, seed=seed, fps=fps, size=size, realtime=not unpaced, servo=not no_servo,
+                       render=not no_render, host=host, port=port, vmc=vmc, record=record,
+                       record_frames=record_frames, log=_log)
 
     def started(p):
         if p.render is not None:

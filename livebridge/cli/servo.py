@@ -11,7 +11,7 @@ import time
 
 import click
 
-from livebridge.cli._servo_options import inside, parse_addresses, positive
+from livebridge.cli._options import InputPath, inside, parse_addresses, positive
 
 JOG_PERIOD_S = 0.02
 """One target every this many seconds while jogging."""
@@ -33,12 +33,8 @@ def _facts(url: str):
 
 def _open(url: str):
     from livebridge.devices.registry import open_bus
-    from livebridge.errors import InputError
 
-    try:
-        return open_bus(url, log=lambda m: click.echo(m, err=True))
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    return open_bus(url, log=lambda m: click.echo(m, err=True))
 
 
 @click.group()
@@ -78,7 +74,6 @@ def scan(url: str, ids: str | None) -> None:
 @click.option("--hold", is_flag=True, help="Keep torque on at the end (default: torque off).")
 def jog(url: str, address: int, goal: float | None, delta: float | None, speed: float, low, high, hold) -> None:
     """Move one servo gently to --to or --by, ramping at --speed, and print where it ended."""
-    from livebridge.errors import InputError
     from livebridge.servo.bus import ServoSetup
 
     if (goal is None) == (delta is None):
@@ -97,11 +92,8 @@ def jog(url: str, address: int, goal: float | None, delta: float | None, speed: 
     centre = min(high, max(low, facts.centre))  # where a servo that reports no position is assumed to be
     bus = _open(url)
     try:
-        try:
-            bus.configure([ServoSetup(address, low, high, centre, name=f"{address}")], JOG_PERIOD_S)
-            present = bus.activate().get(address, math.nan)
-        except InputError as error:
-            raise click.ClickException(str(error)) from None
+        bus.configure([ServoSetup(address, low, high, centre, name=f"{address}")], JOG_PERIOD_S)
+        present = bus.activate().get(address, math.nan)
         start = min(high, max(low, present)) if math.isfinite(present) else centre
         target = goal if goal is not None else min(high, max(low, start + delta))
         _ramp(bus, address, start, target, speed)
@@ -154,7 +146,7 @@ def _ramp(bus, address: int, start: float, target: float, speed: float) -> None:
 
 
 @servo.command()
-@click.argument("rig_file", type=click.Path(exists=True, dir_okay=False))
+@click.argument("rig_file", type=InputPath())
 @click.argument("servo_name")
 @click.option("--min", "minimum", type=float, default=None, help="Raw limit reached at drive -1.")
 @click.option("--neutral", type=float, default=None, help="Raw target at rest.")
@@ -166,16 +158,13 @@ def limits(rig_file: str, servo_name: str, minimum, neutral, maximum, from_prese
 
     The file keeps its comments and layout; the previous version is kept as RIG_FILE.bak.
     """
-    from livebridge.errors import InputError
     from livebridge.servo.rig import backup_path, load_rig, set_servo_limits
 
+    rig = load_rig(rig_file)
     try:
-        rig = load_rig(rig_file)
         spec = rig.servo(servo_name)
     except KeyError:
-        raise click.ClickException(f"{rig_file}: no servo {servo_name!r}") from None
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+        raise click.BadParameter(f"{rig_file} has no servo {servo_name!r}", param_hint="SERVO_NAME") from None
     values = {"min": minimum, "neutral": neutral, "max": maximum}
     facts = rig.buses[spec.bus].facts
     for key, value in values.items():
@@ -186,10 +175,7 @@ def limits(rig_file: str, servo_name: str, minimum, neutral, maximum, from_prese
         values[from_present] = _present_position(rig, spec)
     if all(v is None for v in values.values()):
         raise click.UsageError("nothing to record: give --min/--neutral/--max or --from-present")
-    try:
-        rig = set_servo_limits(rig_file, servo_name, values["min"], values["neutral"], values["max"])
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    rig = set_servo_limits(rig_file, servo_name, values["min"], values["neutral"], values["max"])
     s = rig.servo(servo_name)
     click.echo(f"{servo_name}: min {s.minimum:g}  neutral {s.neutral:g}  max {s.maximum:g} "
                f"(previous file kept as {backup_path(rig_file)})")
@@ -197,7 +183,6 @@ def limits(rig_file: str, servo_name: str, minimum, neutral, maximum, from_prese
 
 def _present_position(rig, spec) -> float:
     """The raw position of one servo of the rig, read with torque off (to be moved by hand)."""
-    from livebridge.errors import InputError
     from livebridge.servo.bus import ServoSetup
 
     bus_spec = rig.buses[spec.bus]
@@ -207,8 +192,6 @@ def _present_position(rig, spec) -> float:
         bus.configure([ServoSetup(spec.address, lo, hi, spec.neutral, spec.model, spec.name)], JOG_PERIOD_S)
         bus.deactivate()
         status = bus.poll().get(spec.address)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
     finally:
         bus.close()
     if status is None or status.position is None or not math.isfinite(status.position):

@@ -13,7 +13,7 @@ import threading
 
 import click
 
-from livebridge.cli._servo_options import inside, parse_addresses, probability
+from livebridge.cli._options import PROBABILITY, SEED, parse_addresses
 
 
 def _serve(sim, describe: str) -> None:
@@ -32,11 +32,6 @@ def _serve(sim, describe: str) -> None:
         sim.close()
 
 
-def _fault_rates(corrupt: float, drop: float) -> None:
-    probability(corrupt, "--corrupt")
-    probability(drop, "--drop")
-
-
 @click.group()
 def sim() -> None:
     """Simulated servo buses that speak the real wire protocols on a pseudo-terminal."""
@@ -46,10 +41,12 @@ def sim() -> None:
 @click.option("--ids", default="1", show_default=True, help="Servo IDs, e.g. 1-16 or 1,3,5.")
 @click.option("--model", default="XL330-M288", show_default=True, help="XL330-M288, XL330-M077, XM430-W350, ...")
 @click.option("--baud", default=1_000_000, show_default=True, help="Baud rate the servos are set to.")
-@click.option("--corrupt", default=0.0, show_default=True, help="Probability a reply gets a flipped byte.")
-@click.option("--drop", default=0.0, show_default=True, help="Probability a reply is not sent.")
-@click.option("--seed", default=0, show_default=True)
-@click.option("--delay", type=int, default=None, help="Return delay time of every servo (2 µs units).")
+@click.option("--corrupt", type=PROBABILITY, default=0.0, show_default=True,
+              help="Probability a reply gets a flipped byte.")
+@click.option("--drop", type=PROBABILITY, default=0.0, show_default=True, help="Probability a reply is not sent.")
+@click.option("--seed", type=SEED, default=0, show_default=True)
+@click.option("--delay", type=click.IntRange(0, 254), default=None,
+              help="Return delay time of every servo (2 µs units).")
 def dynamixel(ids: str, model: str, baud: int, corrupt: float, drop: float, seed: int, delay: int | None) -> None:
     """A DYNAMIXEL Protocol 2.0 bus of X-series servos."""
     from livebridge.drivers.dynamixel_protocol import BAUD_CODES, MAX_ID, MODELS
@@ -61,39 +58,33 @@ def dynamixel(ids: str, model: str, baud: int, corrupt: float, drop: float, seed
     if baud not in BAUD_CODES.values():
         raise click.BadParameter(f"{baud} is not a DYNAMIXEL baud rate ({', '.join(map(str, BAUD_CODES.values()))})",
                                  param_hint="--baud")
-    _fault_rates(corrupt, drop)
-    if delay is not None:
-        inside(delay, 0, 254, "--delay", "the return delay times")
     bus = DynamixelSim(ids=id_list, model=model, baud=baud, corrupt_rate=corrupt, drop_rate=drop, seed=seed,
                        return_delay_time=delay)
     _serve(bus, f"simulated DYNAMIXEL bus: {len(id_list)} x {model} at {baud} baud (ids {ids}); Ctrl-C stops")
 
 
 @sim.command()
-@click.option("--channels", default=24, show_default=True)
-@click.option("--device", default=12, show_default=True, help="Pololu-protocol device number.")
-@click.option("--corrupt", default=0.0, show_default=True)
-@click.option("--drop", default=0.0, show_default=True)
-@click.option("--seed", default=0, show_default=True)
+@click.option("--channels", type=click.IntRange(1, 24), default=24, show_default=True,  # the largest Maestro
+              help="Number of channels (6, 12, 18 or 24 on real Maestros).")
+@click.option("--device", type=click.IntRange(0, 127), default=12, show_default=True,
+              help="Pololu-protocol device number.")
+@click.option("--corrupt", type=PROBABILITY, default=0.0, show_default=True)
+@click.option("--drop", type=PROBABILITY, default=0.0, show_default=True)
+@click.option("--seed", type=SEED, default=0, show_default=True)
 def maestro(channels: int, device: int, corrupt: float, drop: float, seed: int) -> None:
     """A Pololu Maestro (compact and Pololu protocols)."""
-    from livebridge.drivers.maestro import FACTS
     from livebridge.simulators.maestro_bus import MaestroSim
 
-    inside(channels, 1, FACTS.address_range[1] + 1, "--channels", "the Maestro sizes")
-    inside(device, 0, 127, "--device", "the Pololu device numbers")
-    _fault_rates(corrupt, drop)
     bus = MaestroSim(channels=channels, device=device, corrupt_rate=corrupt, drop_rate=drop, seed=seed)
     _serve(bus, f"simulated Maestro: {channels} channels, device {device}; Ctrl-C stops")
 
 
 @sim.command()
-@click.option("--corrupt", default=0.0, show_default=True)
-@click.option("--drop", default=0.0, show_default=True)
-@click.option("--seed", default=0, show_default=True)
+@click.option("--corrupt", type=PROBABILITY, default=0.0, show_default=True)
+@click.option("--drop", type=PROBABILITY, default=0.0, show_default=True)
+@click.option("--seed", type=SEED, default=0, show_default=True)
 def ssc32(corrupt: float, drop: float, seed: int) -> None:
     """A Lynxmotion SSC-32U (ASCII protocol)."""
     from livebridge.simulators.ssc32_bus import SSC32Sim
 
-    _fault_rates(corrupt, drop)
     _serve(SSC32Sim(corrupt_rate=corrupt, drop_rate=drop, seed=seed), "simulated SSC-32U; Ctrl-C stops")

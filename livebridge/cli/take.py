@@ -2,27 +2,12 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import click
 
-
-class _Rate(click.ParamType):
-    """A frame rate in Hz: a finite number in (0, MAX_RATE] (click's FloatRange lets NaN and inf through)."""
-
-    name = "rate"
-
-    def convert(self, value, param, ctx) -> float:
-        from livebridge.take.c3d import MAX_RATE
-
-        try:
-            rate = float(value)
-        except (TypeError, ValueError):
-            self.fail(f"{value!r} is not a number", param, ctx)
-        if not (math.isfinite(rate) and 0.0 < rate <= MAX_RATE):
-            self.fail(f"{value!r} is not a frame rate in (0, {MAX_RATE:g}] Hz", param, ctx)
-        return rate
+from livebridge.cli._options import FiniteFloat
+from livebridge.take.c3d import MAX_RATE
 
 
 @click.group()
@@ -34,7 +19,7 @@ def take() -> None:
 @click.argument("take_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="The C3D file (default: TAKE_DIR/markers.c3d); its folder must exist.")
-@click.option("--rate", type=_Rate(), default=None,
+@click.option("--rate", type=FiniteFloat(0.0, MAX_RATE, low_open=True), default=None,
               help="Frames per second (default: the take's fps, else the rate of its timestamps).")
 @click.option("--force", is_flag=True, help="Overwrite the C3D file when it exists.")
 def export_c3d(take_dir: Path, out: Path | None, rate: float | None, force: bool) -> None:
@@ -43,11 +28,7 @@ def export_c3d(take_dir: Path, out: Path | None, rate: float | None, force: bool
     A closed take already has markers.c3d; this exports one whose recording was cut short (a crash),
     up to its last flushed frame, or writes it again elsewhere (or in place with --force).
     """
-    from livebridge.errors import InputError
     from livebridge.take.c3d import export_c3d as export
 
-    try:
-        written = export(take_dir, out, rate, force)
-    except InputError as error:
-        raise click.ClickException(str(error)) from None
+    written = export(take_dir, out, rate, force)
     click.echo(f"wrote {written}")

@@ -57,9 +57,16 @@ class DeviceURL:
         """``netloc + path``: the device, port or folder the URL names (``''`` when none)."""
         return self.netloc + self.path
 
-    def take(self, key: str, kind: type, default=None):
+    def take(self, key: str, kind: type, default=None, within: tuple[float, float] | None = None):
         """The value of parameter ``key`` converted to ``kind`` (bool accepts 0/1/true/false/yes/no/on/off);
-        ``default`` when the URL does not give it."""
+        ``default`` when the URL does not give it. ``within=(low, high)``: a number outside it (or NaN) is an
+        :class:`InputError` naming the parameter."""
+        value = self._convert(key, kind, default)
+        if within is not None and value is not None and not within[0] <= value <= within[1]:  # also refuses NaN
+            raise InputError(f"parameter {key!r} must be in {within[0]:g}..{within[1]:g}, got {value}", self.url, key)
+        return value
+
+    def _convert(self, key: str, kind: type, default):
         if key not in self.query:
             return default
         raw = self.query[key]
@@ -82,3 +89,35 @@ class DeviceURL:
         if unknown:
             raise InputError(f"unknown parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}",
                              self.url, unknown[0])
+
+
+def parse_ranges(text: str, first: int, last: int) -> list[int]:
+    """``"1-4,7"`` -> ``[1, 2, 3, 4, 7]``: servo IDs or channels, each in ``first..last``, none twice.
+
+    Bounds are checked before a range is expanded, so ``1-999999999`` is refused at once instead of
+    building a list of a billion numbers.
+
+    Raises
+    ------
+    InputError
+        Saying which part is wrong (no path or field: the caller names the URL parameter or option).
+    """
+    numbers: list[int] = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        low_text, dash, high_text = part.partition("-")
+        try:
+            low = int(low_text)
+            high = int(high_text) if dash else low
+        except ValueError:
+            raise InputError(f"{part!r} is not a number or a range like 1-20") from None
+        if not first <= low <= high <= last:
+            raise InputError(f"{part!r}: numbers run {first}..{last}, ranges upwards")
+        numbers.extend(range(low, high + 1))
+    if not numbers:
+        raise InputError(f"no number in {text!r}")
+    if len(set(numbers)) != len(numbers):
+        raise InputError(f"a number is given twice in {text!r}")
+    return numbers

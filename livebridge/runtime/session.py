@@ -57,6 +57,7 @@ file and the dotted field.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -209,14 +210,16 @@ class _Table:
 
 
 def _positive(value, path, name, allow_zero=False):
-    if value is not None and not (value > 0 or allow_zero and value == 0):
-        raise InputError(f"must be {'>= 0' if allow_zero else '> 0'}, got {value}", path, name)
+    if value is not None and not ((value > 0 or allow_zero and value == 0) and math.isfinite(value)):
+        raise InputError(f"must be a finite number {'>= 0' if allow_zero else '> 0'}, got {value}", path, name)
     return value
 
 
-def _port(value, path, name):
-    if not 0 <= value <= 65535:
-        raise InputError(f"port must be in 0..65535, got {value}", path, name)
+def _port(value, path, name, any_free: bool = False):
+    """A port number; 0 (the system picks a free one) only where ``any_free``: a server's, not a destination's."""
+    low = 0 if any_free else 1
+    if not low <= value <= 65535:
+        raise InputError(f"port must be in {low}..65535, got {value}", path, name)
     return value
 
 
@@ -268,7 +271,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     outputs.check_known({"render", "vmc"})
     r = outputs.table("render")
     render = RenderOptions(r.get("enabled", bool, True), r.get("host", str, "127.0.0.1"),
-                           _port(r.get("port", int, 8765), path, "outputs.render.port"),
+                           _port(r.get("port", int, 8765), path, "outputs.render.port", any_free=True),
                            _origins(r.get("allowed_origins", list, []), path))
     r.check_known()
     v = outputs.table("vmc")

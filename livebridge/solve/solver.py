@@ -61,6 +61,7 @@ from livebridge.face.markers import MarkerSet
 from livebridge.qp import FREE, KKT_TOLERANCE, RANK_TOLERANCE, SINGULAR, box_qp_kernel
 
 MODES = ("split-compensated", "split", "joint")
+MAX_SWEEPS = 100
 
 
 @dataclass(frozen=True)
@@ -83,8 +84,8 @@ class SolverConfig:
     def __post_init__(self):
         if self.mode not in MODES:
             raise InputError(f"mode must be one of {MODES}, got {self.mode!r}", field="mode")
-        if int(self.sweeps) < 1:
-            raise InputError(f"sweeps must be >= 1, got {self.sweeps}", field="sweeps")
+        if not 1 <= int(self.sweeps) <= MAX_SWEEPS:  # each sweep is a solve per frame: a huge count never ends
+            raise InputError(f"sweeps must be in 1..{MAX_SWEEPS}, got {self.sweeps}", field="sweeps")
 
 
 @dataclass(frozen=True)
