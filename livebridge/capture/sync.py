@@ -301,6 +301,9 @@ class SyncedCapture:
         self.stall_s = float(stall_s)
         self.sync = Synchronizer([s.source_id for s in self.sources], period_s, **sync_options)
         self._lock = threading.Lock()
+        # held from taking ready frame sets out of the synchroniser until they are queued, so the frame sets
+        # of two threads (a reader's push, another's camera ending) never overtake each other
+        self._handing_out = threading.Lock()
         self._queue: NewestQueue[FrameSet] = NewestQueue(queue_size)
         self._threads: list[threading.Thread] = []
         self._running = threading.Event()
@@ -452,13 +455,14 @@ class SyncedCapture:
                     self._read_t[k] = frame.t_capture
                     self._step.notify_all()
             arrival = self.clock()
-            with self._lock:
-                if self._first_arrival is None:
-                    self._first_arrival = arrival
-                if self.realtime:
-                    self._delays.append((arrival, arrival - frame.t_capture))
-                ready = self.sync.push(frame)
-            self._offer(ready)
+            with self._handing_out:
+                with self._lock:
+                    if self._first_arrival is None:
+                        self._first_arrival = arrival
+                    if self.realtime:
+                        self._delays.append((arrival, arrival - frame.t_capture))
+                    ready = self.sync.push(frame)
+                self._offer(ready)
 
     def _gone(self, k: int, error: str | None) -> None:
         """Camera ``k`` ended (``error`` None: it finished, like a replayed take) or failed (``error`` says why):
@@ -467,16 +471,18 @@ class SyncedCapture:
         with self._step:
             self._live[k] = False
             self._step.notify_all()
-        with self._lock:
-            if error:
-                self._faults[source_id] = error
-            self.sync.mark_dead(source_id, error or "source ended")
-            ready = self._host_poll()
-        self._offer(ready)
+        with self._handing_out:
+            with self._lock:
+                if error:
+                    self._faults[source_id] = error
+                self.sync.mark_dead(source_id, error or "source ended")
+                ready = self._host_poll()
+            self._offer(ready)
 
     def _ticker(self) -> None:
         while self._running.is_set():
             time.sleep(self.sync.period_s / 2)
-            with self._lock:
-                ready = self._host_poll()
-            self._offer(ready)
+            with self._handing_out:
+                with self._lock:
+                    ready = self._host_poll()
+                self._offer(ready)

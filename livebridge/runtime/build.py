@@ -137,6 +137,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
 
     basis, markers = load_face(session)
     check_markers(markers, basis, session)
+    log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
     sources, cameras, realtime = open_session_cameras(session)
     check_cameras(cameras, session)
     fps = _fps(sources)
@@ -147,6 +148,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
         if session.servo_rig is not None:
             from livebridge.servo.output import ServoOutput
 
+            log("set-up: configuring the servos")
             servo = ServoOutput(_servo_rig(session, basis.names), basis.names, log=log, poll_every=15)
             servo.configure()
             opened.append(lambda: servo.close(ease=False))
@@ -179,6 +181,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             opened.append(recorder.close)
             sources = recorder.wrap_sources(sources)
             log(f"recording to {directory}" + (" (with raw frames)" if session.recording.raw_frames else ""))
+        log("set-up: warming up the per-frame kernels (compiled on their first use)")
         return Pipeline(sources, cameras, basis, markers, period, session.reconstruct, session.solver, servo=servo,
                         render=render, vmc=vmc, recorder=recorder, sync_tolerance=session.sync_tolerance,
                         realtime=realtime, log=log, on_frame=on_frame, status_interval=session.status_interval,

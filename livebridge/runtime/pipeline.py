@@ -819,6 +819,7 @@ def run_until_stopped(pipeline: Pipeline, frames: int = 0, log: Callable[[str], 
             previous[signum] = signal.signal(signum, handler)
     try:
         try:
+            log("starting: outputs, servos, cameras")
             pipeline.start()
         finally:
             starting.clear()  # from here Ctrl-C stops in order, also while stopping
