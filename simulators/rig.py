@@ -148,6 +148,7 @@ class RigConfig:
 
 SIZE_RANGE = (16, 4096)  # pixels, each of width and height
 MAX_CAMERAS = 16
+PAIR_SPREAD_DEG = 30.0  # a rig of two cameras: both see nearly every marker (80 deg apart they share a third)
 MAX_SEED = 2**32 - 1
 _CONFIG_RANGES = {  # field: (low, high, low excluded, high excluded)
     "fps": (1.0, 1000.0, False, False),
@@ -228,7 +229,8 @@ def generate_cameras(basis: Basis, n_cameras: int = 4, config: RigConfig | None 
                      seed: int = 0) -> CameraGroup:
     """Cameras on an arc in front of the face (+z), looking at its centre, at 0.5–1 m.
 
-    Azimuths spread evenly over ``config.spread_deg``; elevations alternate a little above and below;
+    Azimuths spread evenly over ``config.spread_deg`` (two cameras: at most :data:`PAIR_SPREAD_DEG` apart,
+    since every marker must then be seen by both); elevations alternate a little above and below;
     distances are drawn in ``config.distance_mm``; the focal length makes the face fill ``config.fill``
     of the image height. No lens distortion.
 
@@ -241,7 +243,8 @@ def generate_cameras(basis: Basis, n_cameras: int = 4, config: RigConfig | None 
     if n_cameras < 1:
         raise InputError(f"need at least one camera, got {n_cameras}", field="cameras")
     rng = np.random.default_rng([int(seed), 5])
-    azimuths = np.deg2rad(np.linspace(-0.5, 0.5, n_cameras) * config.spread_deg) if n_cameras > 1 else [0.0]
+    spread = min(config.spread_deg, PAIR_SPREAD_DEG) if n_cameras == 2 else config.spread_deg
+    azimuths = np.deg2rad(np.linspace(-0.5, 0.5, n_cameras) * spread) if n_cameras > 1 else [0.0]
     cameras = []
     for k, azimuth in enumerate(azimuths):
         elevation = np.deg2rad(8.0 if k % 2 == 0 else -6.0) if n_cameras > 1 else 0.0

@@ -204,3 +204,12 @@ def test_the_documented_example_session_is_valid(tmp_path):
     assert session.calibration == tmp_path / "calibration.toml" and session.servo_rig == tmp_path / "head.toml"
     assert len(session.camera_urls) == 2 and session.solver.mode == "split-compensated"
     assert session.recording.directory == tmp_path / "takes" and not session.recording.raw_frames
+
+
+def test_the_labelling_timeout_defaults_to_10_s_and_0_means_wait(tmp_path):
+    assert load_session(_write(tmp_path, '[cameras]\nurls = ["sim://rig"]\n')).labelling_timeout_s == 10.0
+    path = _write(tmp_path, '[cameras]\nurls = ["sim://rig"]\n[runtime]\nlabelling_timeout_s = 0\n')
+    assert load_session(path).labelling_timeout_s == 0.0
+    with pytest.raises(InputError) as error:
+        load_session(_write(tmp_path, '[cameras]\nurls = ["sim://rig"]\n[runtime]\nlabelling_timeout_s = -2\n'))
+    assert error.value.field == "runtime.labelling_timeout_s"

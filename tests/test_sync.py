@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -323,3 +324,38 @@ def test_unpaced_in_flight_stall_guard_runs_on_the_clock_it_is_given():
         assert capture.read(timeout=0.3) is None  # the clock stands still: no stall yet
         clock.now += 0.2
         assert capture.read(timeout=2.0) is not None
+
+
+class _FailingCamera(_GappyCamera):
+    """An unpaced camera whose ``read`` raises after ``fail_after`` frames (a driver bug, a USB error)."""
+
+    def __init__(self, name, seqs, fail_after):
+        super().__init__(name, seqs)
+        self.fail_after = fail_after
+
+    def read(self, timeout=None):
+        if self.reads == self.fail_after:
+            raise OSError(5, "Input/output error")
+        return super().read(timeout)
+
+
+def test_a_camera_whose_read_raises_is_reported_dead_and_the_rest_go_on():
+    """The exception becomes the camera's fault (no reader thread dies with a traceback); frame sets go on
+    without it; a camera that simply ends is no fault."""
+    failures = []
+    previous_hook, threading.excepthook = threading.excepthook, failures.append
+    try:
+        a, b = _GappyCamera("a", range(20)), _FailingCamera("b", range(20), fail_after=5)
+        with SyncedCapture([a, b], 1 / 60, queue_size=1, realtime=False) as capture:
+            got = []
+            while (frameset := capture.read(timeout=2.0)) is not None:
+                got.append(frameset)
+            assert capture.ended and set(capture.gone) == {"a", "b"}
+            faults = capture.faults
+    finally:
+        threading.excepthook = previous_hook
+    assert not failures, failures
+    assert faults == {"b": "OSError: [Errno 5] Input/output error"}
+    assert [fs.frames[0].seq for fs in got] == list(range(20))
+    assert all(fs.frames[1] is not None for fs in got[:5]) and all(fs.frames[1] is None for fs in got[6:])
+    assert "b: dead (OSError: [Errno 5] Input/output error)" in capture.events

@@ -254,7 +254,9 @@ class SyncedCapture:
     ``read(timeout)`` returns the next ready frame set, or None. Live (``realtime``), the queue is bounded
     and keeps the newest (older ready frame sets are dropped and counted in ``dropped_framesets``);
     unpaced, the reader threads wait for room instead, so every frame set is handed out. A source that
-    ends (unplugged) is marked dead and reported in ``events``; the others keep going.
+    ends (unplugged) is marked dead and reported in ``events``; the others keep going. A source that fails
+    (it ends with an ``error``, or its ``read`` raises) is also kept in :attr:`faults`, with why: an
+    exception never ends a reader thread with a traceback.
 
     Parameters
     ----------
@@ -299,6 +301,9 @@ class SyncedCapture:
         self.stall_s = float(stall_s)
         self.sync = Synchronizer([s.source_id for s in self.sources], period_s, **sync_options)
         self._lock = threading.Lock()
+        # held from taking ready frame sets out of the synchroniser until they are queued, so the frame sets
+        # of two threads (a reader's push, another's camera ending) never overtake each other
+        self._handing_out = threading.Lock()
         self._queue: NewestQueue[FrameSet] = NewestQueue(queue_size)
         self._threads: list[threading.Thread] = []
         self._running = threading.Event()
@@ -309,6 +314,25 @@ class SyncedCapture:
         self._live = [True] * len(self.sources)
         self._done_t = -math.inf  # unpaced with in_flight: time of the newest frame set the consumer finished
         self._done_at = self.clock()
+        self._faults: dict[str, str] = {}
+
+    @property
+    def faults(self) -> dict[str, str]:
+        """The cameras that failed (ended with an error, or their ``read`` raised): name -> why."""
+        with self._lock:
+            return dict(self._faults)
+
+    @property
+    def ended(self) -> bool:
+        """Every source has ended or failed (none is read any more)."""
+        with self._step:
+            return not any(self._live)
+
+    @property
+    def gone(self) -> tuple[str, ...]:
+        """The sources that ended or failed (not those stopped by :meth:`stop`)."""
+        with self._step:
+            return tuple(s.source_id for s, live in zip(self.sources, self._live) if not live)
 
     @property
     def events(self) -> list[str]:
@@ -414,18 +438,16 @@ class SyncedCapture:
                 with self._step:
                     if not self._step.wait_for(lambda: not self._running.is_set() or self._may_read(k), 0.05):
                         continue
-            frame = source.read(timeout=0.1)
+            try:
+                frame = source.read(timeout=0.1)
+            except Exception as error:  # noqa: BLE001 - a failing camera is reported dead, the rest go on
+                self._gone(k, f"{type(error).__name__}: {error}")
+                return
             if frame is None:
                 if not self._running.is_set():
                     return  # stopped by us, not gone: not reported dead
                 if source.ended:
-                    with self._step:
-                        self._live[k] = False
-                        self._step.notify_all()
-                    with self._lock:
-                        self.sync.mark_dead(source.source_id, source.error or "source ended")
-                        ready = self._host_poll()
-                    self._offer(ready)
+                    self._gone(k, source.error)
                     return
                 continue
             if stepped:
@@ -433,17 +455,34 @@ class SyncedCapture:
                     self._read_t[k] = frame.t_capture
                     self._step.notify_all()
             arrival = self.clock()
+            with self._handing_out:
+                with self._lock:
+                    if self._first_arrival is None:
+                        self._first_arrival = arrival
+                    if self.realtime:
+                        self._delays.append((arrival, arrival - frame.t_capture))
+                    ready = self.sync.push(frame)
+                self._offer(ready)
+
+    def _gone(self, k: int, error: str | None) -> None:
+        """Camera ``k`` ended (``error`` None: it finished, like a replayed take) or failed (``error`` says why):
+        frame sets stop waiting for it; a failure is kept in :attr:`faults`."""
+        source_id = self.sources[k].source_id
+        with self._step:
+            self._live[k] = False
+            self._step.notify_all()
+        with self._handing_out:
             with self._lock:
-                if self._first_arrival is None:
-                    self._first_arrival = arrival
-                if self.realtime:
-                    self._delays.append((arrival, arrival - frame.t_capture))
-                ready = self.sync.push(frame)
+                if error:
+                    self._faults[source_id] = error
+                self.sync.mark_dead(source_id, error or "source ended")
+                ready = self._host_poll()
             self._offer(ready)
 
     def _ticker(self) -> None:
         while self._running.is_set():
             time.sleep(self.sync.period_s / 2)
-            with self._lock:
-                ready = self._host_poll()
-            self._offer(ready)
+            with self._handing_out:
+                with self._lock:
+                    ready = self._host_poll()
+                self._offer(ready)

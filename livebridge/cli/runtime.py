@@ -45,9 +45,23 @@ def _print_summary(summary, score=None) -> None:
     click.echo(f"labelled markers {100 * summary.labelled_fraction:.2f}%, marker error upper "
                f"{summary.error_upper_mm:.3f} mm, lower {summary.error_lower_mm:.3f} mm; "
                f"cameras alive {summary.cameras_alive}/{summary.cameras}")
+    if summary.frames_skipped:
+        per_camera = ", ".join(f"{name} {count}" for name, count in summary.frames_skipped)
+        click.echo(f"frames skipped (damaged or missing images): {summary.frames_skipped_total} ({per_camera})")
     if score is not None:
         click.echo(f"contraction RMSE vs ground truth: {score.rmse:.4f} (worst {score.worst_abs:.3f}), "
                    f"label swaps: {score.swaps}")
+
+
+EXIT_CAMERA_FAILED = 1
+
+
+def _exit_on_camera_errors(summary) -> None:
+    """After the summary: one line per camera that failed during the run, and a non-zero exit code."""
+    for name, error in summary.camera_errors:
+        click.echo(f"Error: camera {name} failed during the run: {error}", err=True)
+    if summary.camera_errors:
+        raise click.exceptions.Exit(EXIT_CAMERA_FAILED)
 
 
 def _check_render_address(session, allow_remote: bool) -> None:
@@ -90,6 +104,7 @@ def run(session: str, frames: int | None, allow_remote: bool) -> None:
     summary = run_until_stopped(pipeline, frames if frames is not None else loaded.frames, log=_log,
                                 on_start=started)
     _print_summary(summary)
+    _exit_on_camera_errors(summary)
 
 
 @click.command()
@@ -140,3 +155,4 @@ def demo(frames, cameras, seed, fps, size, host, allow_remote, port, unpaced, no
 
     summary = run_until_stopped(parts.pipeline, frames, log=_log, on_start=started)
     _print_summary(summary, parts.score)
+    _exit_on_camera_errors(summary)

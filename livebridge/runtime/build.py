@@ -2,8 +2,9 @@
 
 Everything that can fail on bad input is opened here, before any camera streams or servo moves:
 the basis, the marker set, the calibration, every camera URL, the servo rig (buses opened and
-servos checked), the render port, the VMC host and the take directory. On an error, whatever was
-already opened is closed again.
+servos checked), the render port, the VMC host and the take directory. A rig that could never solve
+(one camera, cameras at one place, too few markers, calibrated cameras left out) is refused here too
+(:mod:`livebridge.runtime.preflight`). On an error, whatever was already opened is closed again.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import datetime
 from pathlib import Path
 
 from livebridge.errors import InputError
+from livebridge.runtime.preflight import check_calibration_used, check_cameras, check_markers
 from livebridge.runtime.session import Session
 
 
@@ -106,6 +108,7 @@ def open_session_cameras(session: Session):
             raise InputError(f"no calibration for camera {missing[0]!r} in {session.calibration}; calibrated: "
                              f"{', '.join(by_name)}", session.path, "calibration")
         cameras = CameraGroup([by_name[s.source_id] for s in sources])
+        check_calibration_used(cameras, calibrated, session)
     else:
         own = [s.calibration for s in sources]
         if any(camera is None for camera in own):
@@ -132,8 +135,11 @@ def build_pipeline(session: Session, log=print, on_frame=None):
     """
     from livebridge.runtime.pipeline import Pipeline
 
-    sources, cameras, realtime = open_session_cameras(session)
     basis, markers = load_face(session)
+    check_markers(markers, basis, session)
+    log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
+    sources, cameras, realtime = open_session_cameras(session)
+    check_cameras(cameras, session)
     fps = _fps(sources)
     period = 1.0 / fps
     opened = []
@@ -142,6 +148,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
         if session.servo_rig is not None:
             from livebridge.servo.output import ServoOutput
 
+            log("set-up: configuring the servos")
             servo = ServoOutput(_servo_rig(session, basis.names), basis.names, log=log, poll_every=15)
             servo.configure()
             opened.append(lambda: servo.close(ease=False))
@@ -174,9 +181,11 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             opened.append(recorder.close)
             sources = recorder.wrap_sources(sources)
             log(f"recording to {directory}" + (" (with raw frames)" if session.recording.raw_frames else ""))
+        log("set-up: warming up the per-frame kernels (compiled on their first use)")
         return Pipeline(sources, cameras, basis, markers, period, session.reconstruct, session.solver, servo=servo,
                         render=render, vmc=vmc, recorder=recorder, sync_tolerance=session.sync_tolerance,
-                        realtime=realtime, log=log, on_frame=on_frame, status_interval=session.status_interval)
+                        realtime=realtime, log=log, on_frame=on_frame, status_interval=session.status_interval,
+                        labelling_timeout_s=session.labelling_timeout_s)
     except BaseException:
         for close in reversed(opened):
             close()

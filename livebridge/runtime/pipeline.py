@@ -46,8 +46,14 @@ import numpy as np
 
 from livebridge.capture.queue import NewestQueue
 from livebridge.capture.sync import SyncedCapture
+from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
+from livebridge.runtime.session import LABELLING_TIMEOUT_S
+
+
+class LabellingTimeout(InputError):
+    """The first labelling did not happen in time (``labelling_timeout_s``); the message says what was seen."""
 
 
 @dataclass(frozen=True)
@@ -161,6 +167,11 @@ class PipelineSummary:
         Mean RMS marker error per region.
     cameras, cameras_alive : int
     dead_cameras : tuple of str
+        Cameras not delivering at the end (failed, silent, or ended like a finished take).
+    camera_errors : tuple of (str, str)
+        The cameras that failed during the run and why (name, error), in camera order.
+    frames_skipped : tuple of (str, int)
+        Per camera with any: frames a source skipped (a replay's damaged or missing images).
     cpu_per_frameset_ms : float
         Process CPU time per solved frame set.
     pipeline_cpu_per_frameset_ms, detect_cpu_per_frameset_ms, reconstruct_solve_cpu_per_frameset_ms,
@@ -188,12 +199,56 @@ class PipelineSummary:
     cameras: int
     cameras_alive: int
     dead_cameras: tuple[str, ...]
+    camera_errors: tuple[tuple[str, str], ...]
+    frames_skipped: tuple[tuple[str, int], ...]
     cpu_per_frameset_ms: float
     pipeline_cpu_per_frameset_ms: float
     detect_cpu_per_frameset_ms: float
     reconstruct_solve_cpu_per_frameset_ms: float
     outputs_cpu_per_frameset_ms: float
     wall_s: float
+
+    @property
+    def frames_skipped_total(self) -> int:
+        return sum(count for _, count in self.frames_skipped)
+
+
+@dataclass
+class LabellingProgress:
+    """What the reconstruct stage saw before the first labelling (for the message when it gives up).
+
+    Attributes
+    ----------
+    framesets : int
+        Frame sets tried.
+    most_2d : dict of str to int
+        Per camera: most markers detected in one frame.
+    most_3d : int
+        Most markers triangulated (seen by two cameras or more) in one frame set.
+    """
+
+    framesets: int = 0
+    most_2d: dict = field(default_factory=dict)
+    most_3d: int = 0
+
+    def add(self, source_ids, points_2d, n_points_3d: int) -> None:
+        self.framesets += 1
+        for name, points in zip(source_ids, points_2d):
+            self.most_2d[name] = max(self.most_2d.get(name, 0), len(points))
+        self.most_3d = max(self.most_3d, int(n_points_3d))
+
+    def why(self, seconds: float, n_markers: int) -> str:
+        """Why nothing was labelled in ``seconds``, from what was seen."""
+        hint = "; raise [runtime] labelling_timeout_s to wait longer"
+        if not self.framesets:
+            return f"no frame set from the cameras in {seconds:g} s{hint}"
+        per_camera = ", ".join(f"{name} {count}" for name, count in self.most_2d.items())
+        if not self.most_3d:
+            return (f"no marker seen by 2 cameras in {seconds:g} s ({self.framesets} frame sets; most markers "
+                    f"seen by each camera: {per_camera}){hint}")
+        return (f"markers seen but never labelled in {seconds:g} s: at most {self.most_3d} of the {n_markers} "
+                f"markers seen by 2 cameras ({self.framesets} frame sets; most seen by each camera: {per_camera});"
+                f" the first labelling needs about half of them, 3 head markers among them, on a neutral face{hint}")
 
 
 class GarbageCollection:
@@ -331,13 +386,19 @@ class Pipeline:
         (default): the cameras read the next frame set once the previous one's servo bytes are written, so
         no frame set waits behind another (lowest latency); 2: the next set is detected while the previous
         one is reconstructed; None: the cameras read ahead as far as the bounded queues allow.
+    clock : callable
+        Monotonic seconds: stage times, status lines and the labelling timeout.
+    labelling_timeout_s : float
+        Seconds (on ``clock``) from the start for the first labelling; then the pipeline ends with a
+        :class:`LabellingTimeout` (:attr:`error`) saying what it saw. 0: wait forever.
     """
 
     def __init__(self, sources, cameras, basis: Basis, markers: MarkerSet, period_s: float,
                  reconstruct_config=None, solver_config=None, servo=None, render=None, vmc=None, recorder=None,
                  sync_tolerance: float = 0.5, realtime: bool = True, log: Callable[[str], None] | None = None,
                  on_frame: Callable[[SolvedFrame], None] | None = None, status_interval: float = 1.0,
-                 unpaced_in_flight: int | None = 1, clock: Callable[[], float] = time.monotonic):
+                 unpaced_in_flight: int | None = 1, clock: Callable[[], float] = time.monotonic,
+                 labelling_timeout_s: float = LABELLING_TIMEOUT_S):
         from livebridge.reconstruct.detect import DetectingSource
         from livebridge.reconstruct.pipeline import ReconstructConfig, Reconstructor
         from livebridge.solve.solver import SolverConfig
@@ -362,6 +423,9 @@ class Pipeline:
         self.log = log or (lambda message: None)
         self.on_frame = on_frame
         self.status_interval = status_interval
+        self.labelling_timeout_s = float(labelling_timeout_s)
+        self.labelling = LabellingProgress()
+        self._faults_logged: set[str] = set()
         self.stats = PipelineStats()
         self._stop = threading.Event()
         self._outputs_gone = threading.Event()  # unpaced: the reconstruct thread waits for the outputs until then
@@ -418,7 +482,11 @@ class Pipeline:
         if self.render is not None:
             self.render.start()
         if self.servo is not None:
-            self.servo.activate()
+            try:
+                self.servo.activate()
+            except BaseException:  # interrupted or failed half-way: the buses already activated hold torque
+                self.servo.deactivate()
+                raise
             low, high = self.servo.mapper.low, self.servo.mapper.high
             self._servo_scale = (low, np.where(high != low, high - low, 1.0))
         self._cpu_start, self._wall_start = time.process_time(), self.clock()
@@ -485,8 +553,10 @@ class Pipeline:
         cpu = 0.0
         while not self._stop.is_set():
             frameset = self.capture.read(timeout=0.05)
+            if self._solver is None and self._gave_up():
+                break
             if frameset is None:
-                if all(s.ended for s in self.sources):
+                if self.capture.ended:
                     self.log("every camera has ended")
                     break
                 continue
@@ -509,6 +579,8 @@ class Pipeline:
             state, labelled = self.reconstructor.step(state, points_2d, frameset.t)
             if not state.labelled:
                 self.stats.unlabelled_attempts += 1
+                if self._solver is None:
+                    self.labelling.add(frameset.source_ids, points_2d, labelled.n_stray)
             reconstructed = self.clock()
             if self._solver is None and state.alignment is not None:
                 from livebridge.solve.solver import ContractionSolver
@@ -539,6 +611,14 @@ class Pipeline:
             self.stats.cpu_reconstruct_s = cpu
         self._ended.set()
         self._hand_over(None)
+
+    def _gave_up(self) -> bool:
+        """Past the labelling timeout without a first labelling: keep the reason in :attr:`error`."""
+        timeout = self.labelling_timeout_s
+        if not timeout or self.clock() - self._wall_start <= timeout:
+            return False
+        self.error = LabellingTimeout(self.labelling.why(timeout, len(self.markers)))
+        return True
 
     def _frameset_done(self, t: float) -> None:
         if not self.realtime:  # unpaced sources wait for the pipeline (SyncedCapture in_flight)
@@ -599,6 +679,7 @@ class Pipeline:
 
     # ------------------------------------------------------------------------------ reporting
     def _maybe_status(self) -> None:
+        self._log_faults()
         now = self.clock()
         if now < self._next_status:
             return
@@ -608,17 +689,28 @@ class Pipeline:
         if self.render is not None:
             self.render.publish_status({"line": line})
 
+    def _log_faults(self) -> None:
+        """One line per camera that failed, when it is first noticed."""
+        for name, error in self.capture.faults.items():
+            if name not in self._faults_logged:
+                self._faults_logged.add(name)
+                self.log(f"camera {name} failed: {error} (the other cameras go on)")
+
     def status_line(self) -> str:
-        """One line: fps, drops, latency p50/p99, labelled fraction, region errors, cameras."""
+        """One line: fps, drops, latency p50/p99, labelled fraction, region errors, cameras (and which are dead)."""
         s = self.recent_summary()
+        cameras = f"cameras {s.cameras_alive}/{len(self.sources)}"
+        if s.dead_cameras:
+            cameras += f" (dead: {', '.join(s.dead_cameras)})"
+        if s.frames_skipped:
+            cameras += f" | frames skipped {s.frames_skipped_total}"
         if not self.stats.solved and self.stats.unlabelled_attempts:
             return (f"waiting for the first labelling: show the neutral face to every camera "
-                    f"({self.stats.unlabelled_attempts} frame sets tried) | cameras "
-                    f"{s.cameras_alive}/{len(self.sources)}")
+                    f"({self.stats.unlabelled_attempts} frame sets tried) | {cameras}")
         return (f"fps {s.fps:5.1f} | drops {s.drops} | latency servo p50 {s.latency_p50_ms:.2f} "
                 f"p99 {s.latency_p99_ms:.2f} ms, render p99 {s.render_latency_p99_ms:.2f} ms | "
                 f"labelled {100 * s.labelled_fraction:.1f}% | error upper {s.error_upper_mm:.3f} "
-                f"lower {s.error_lower_mm:.3f} mm | cameras {s.cameras_alive}/{len(self.sources)}")
+                f"lower {s.error_lower_mm:.3f} mm | {cameras}")
 
     def summary(self) -> PipelineSummary:
         """Figures of the run so far."""
@@ -673,6 +765,8 @@ class Pipeline:
             cameras=len(self.sources),
             cameras_alive=len(self.sources) - len(dead),
             dead_cameras=tuple(dead),
+            camera_errors=self._camera_errors(dead),
+            frames_skipped=tuple((s.source_id, n) for s in self.sources if (n := getattr(s, "frames_skipped", 0))),
             cpu_per_frameset_ms=1e3 * cpu / solved,
             pipeline_cpu_per_frameset_ms=1e3 * (stats.cpu_reconstruct_s + stats.cpu_outputs_s + detect_cpu) / solved,
             detect_cpu_per_frameset_ms=1e3 * detect_cpu / solved,
@@ -682,18 +776,40 @@ class Pipeline:
         )
 
 
+    def _camera_errors(self, dead) -> tuple[tuple[str, str], ...]:
+        """Cameras that failed (ended with an error, their read raised), and cameras silent at the end of a live
+        run (dead without ending); a camera that ended without an error (a finished take) is no error."""
+        faults, gone = self.capture.faults, self.capture.gone
+        errors = []
+        for source in self.sources:
+            name = source.source_id
+            if name in faults:
+                errors.append((name, faults[name]))
+            elif name in dead and name not in gone:
+                errors.append((name, f"no frame for more than {self.capture.sync.dead_after_s:g} s"))
+        return tuple(errors)
+
+
 def run_until_stopped(pipeline: Pipeline, frames: int = 0, log: Callable[[str], None] = print,
                       on_start: Callable[[Pipeline], None] | None = None) -> PipelineSummary:
     """Run until Ctrl-C, SIGTERM, every camera ending, or ``frames`` solved frame sets; stop in order.
 
-    ``on_start`` is called once the pipeline runs (e.g. to print the render URL).
+    ``on_start`` is called once the pipeline runs (e.g. to print the render URL). Ctrl-C while the pipeline
+    starts (servos activating, cameras starting) interrupts the start where it is: the pipeline is stopped
+    in order (servos already activated ease to neutral and torque off) and KeyboardInterrupt is raised.
 
-    Returns the pipeline's :meth:`~Pipeline.summary`.
+    Returns the pipeline's :meth:`~Pipeline.summary`; raises the pipeline's :attr:`~Pipeline.error` (a stage
+    failed, or :class:`LabellingTimeout`).
     """
     stop = threading.Event()
+    starting = threading.Event()
+    starting.set()
     previous = {}
 
     def handler(signum, _frame):
+        if signum == signal.SIGINT and starting.is_set():
+            starting.clear()
+            raise KeyboardInterrupt  # out of whatever start() is doing; the finally below stops in order
         log(f"{signal.Signals(signum).name}: stopping (servos to neutral, recording closed)")
         stop.set()
 
@@ -702,7 +818,11 @@ def run_until_stopped(pipeline: Pipeline, frames: int = 0, log: Callable[[str], 
         for signum in (signal.SIGINT, signal.SIGTERM):
             previous[signum] = signal.signal(signum, handler)
     try:
-        pipeline.start()
+        try:
+            log("starting: outputs, servos, cameras")
+            pipeline.start()
+        finally:
+            starting.clear()  # from here Ctrl-C stops in order, also while stopping
         if on_start is not None:
             on_start(pipeline)
         while not stop.is_set() and not pipeline.wait(0.05):

@@ -50,6 +50,7 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
     [runtime]
     status_interval = 1.0         # seconds between live status lines
     frames = 0                    # stop after this many frame sets (0: until Ctrl-C)
+    labelling_timeout_s = 10.0    # no first labelling by then: end, saying what the cameras saw (0: wait)
 
 Unknown keys are errors (a misspelt key would otherwise be silently ignored); every error names the
 file and the dotted field.
@@ -71,6 +72,7 @@ if TYPE_CHECKING:
     from livebridge.solve.solver import SolverConfig
 
 BUILTIN_NAMES = ("builtin",)
+LABELLING_TIMEOUT_S = 10.0  # default [runtime] labelling_timeout_s
 _TOP_KEYS = {"cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime"}
 
 
@@ -142,6 +144,8 @@ class Session:
     status_interval : float
     frames : int
         0: run until stopped.
+    labelling_timeout_s : float
+        Seconds the pipeline waits for its first labelling before it ends with the reason; 0: forever.
     """
 
     path: Path | None
@@ -158,6 +162,7 @@ class Session:
     recording: RecordingOptions = RecordingOptions()
     status_interval: float = 1.0
     frames: int = 0
+    labelling_timeout_s: float = LABELLING_TIMEOUT_S
 
 
 class _Table:
@@ -302,10 +307,12 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     runtime = top.table("runtime")
     status_interval = _positive(runtime.get("status_interval", float, 1.0), path, "runtime.status_interval")
     frames = _positive(runtime.get("frames", int, 0), path, "runtime.frames", allow_zero=True)
+    labelling_timeout_s = _positive(runtime.get("labelling_timeout_s", float, LABELLING_TIMEOUT_S), path,
+                                    "runtime.labelling_timeout_s", allow_zero=True)
     runtime.check_known()
 
     return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_config,
-                   solver_config, servo_rig, render, vmc, recording, status_interval, frames)
+                   solver_config, servo_rig, render, vmc, recording, status_interval, frames, labelling_timeout_s)
 
 
 def _reconstruct(table: _Table, path: Path | None) -> ReconstructConfig:
