@@ -13,6 +13,7 @@ Every run here has a hang guard (a subprocess or thread timeout); none asserts h
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -187,6 +188,13 @@ def _sim_calibration(path: Path, keep) -> Path:
     return path
 
 
+def _solved(output: str) -> int:
+    """The summary's count of solved frame sets (an unpaced run may solve a few past ``--frames``)."""
+    match = re.search(r"^frame sets solved: (\d+)", output, re.M)
+    assert match is not None, output
+    return int(match.group(1))
+
+
 def _run_session(tmp_path: Path, text: str) -> tuple[int, str]:
     """``livebridge run`` on a session in a subprocess (the hang guard); (exit code, output)."""
     session = tmp_path / "session.toml"
@@ -257,7 +265,7 @@ def test_a_calibrated_camera_no_url_opens_is_refused(recorded, tmp_path):
 
 def test_the_good_rig_passes_the_checks(tmp_path):
     code, output = _run_session(tmp_path, _SIM_URL + _NO_RENDER)
-    assert code == 0 and "frame sets solved: 2" in output, output
+    assert code == 0 and _solved(output) >= 20, output
 
 
 # -- configurations only the live frames tell: a bounded wait with the reason ----------------------------------------
@@ -386,7 +394,7 @@ def test_demo_with_two_cameras_solves():
                               "--frames", "30", "--size", f"{SMALL[0]}x{SMALL[1]}"],
                              capture_output=True, text=True, timeout=GUARD_S)
     assert process.returncode == 0, process.stderr
-    assert "frame sets solved: 3" in process.stdout and "cameras alive 2/2" in process.stdout
+    assert _solved(process.stdout) >= 30 and "cameras alive 2/2" in process.stdout
 
 
 # -- Ctrl-C during set-up ----------------------------------------------------------------------------------------------
