@@ -96,10 +96,14 @@ def open_session_cameras(session: Session):
     calibrated = _load_calibration(session.calibration) if session.calibration is not None else None
     sources = []
     for k, url in enumerate(session.camera_urls):
+        expanded = _session_url(url, session, k)
         try:
-            sources += open_cameras(_session_url(url, session, k))
+            sources += open_cameras(expanded)
         except InputError as error:
-            inner = error.message if error.path in (None, url) and error.field is None else str(error)
+            if error.path in (None, url, expanded):  # about the URL itself: name it once
+                inner = f"{error.field}: {error.message}" if error.field else error.message
+            else:  # about a file the URL names (a calibration, a take)
+                inner = str(error)
             raise InputError(f"{url}: {inner}", session.path, f"cameras.urls[{k}]") from None
     if calibrated is not None:
         by_name = {c.name: c for c in calibrated.cameras}
