@@ -184,3 +184,38 @@ def report(layout_file: Path, basis_spec: str, calibration: Path | None, min_vie
         short = [name for name, views in figures["views"].items() if views < rig.min_views]
         if short:
             click.echo(f"seen by fewer than {rig.min_views} cameras: {', '.join(short)}")
+
+
+@markers.command("place")
+@click.argument("marker_file", type=InputPath())
+@click.option("--basis", "basis_spec", type=BASIS_TYPE, default="builtin", show_default=True, help=BASIS_HELP)
+@click.option("--neutral-frame", default="auto", show_default=True,
+              help="Frame number (from 0) of the neutral face, or 'auto' for the frame closest to rest.")
+@click.option("--correspond", multiple=True, metavar="NAME=VERTEX",
+              help="A marker at a basis vertex; >= 4 of them give the rough alignment instead of the shape fit.")
+@click.option("--units", type=click.Choice(["mm", "cm", "m"]), default=None,
+              help="Unit of a file that does not say (default: the file's own, else mm).")
+@click.option("--out", required=True, type=OutputFile(), help="Marker set (.toml).")
+@force_option
+def place(marker_file: Path, basis_spec: str, neutral_frame: str, correspond: tuple[str, ...], units: str | None,
+          out: Path, force: bool) -> None:
+    """Place the markers of MARKER_FILE (any layout) on the basis: surface sites, regions, head markers."""
+    from livebridge.cli.solve import parse_correspond
+    from livebridge.solve.offline import parse_neutral, place_from_positions
+    from livebridge.take.trajectories import read_trajectories
+
+    basis = load_basis(basis_spec)
+    trajectories = read_trajectories(marker_file, units)
+    frame = parse_neutral(neutral_frame, len(trajectories.t))
+    placement, choice = place_from_positions(trajectories.points, trajectories.names, basis, frame,
+                                             parse_correspond(correspond))
+    placement.markers.save(out)
+    click.echo(choice.reason)
+    click.echo(f"rough alignment: {placement.how}")
+    layout = placement.markers
+    click.echo(f"wrote {out}: {len(layout)} markers, surface RMS {placement.rms_mm:.2f} mm; upper "
+               f"{layout.regions.count('upper')}, lower {layout.regions.count('lower')}")
+    head = [f"{name} ({d:.2f} mm)" for name, role, d in zip(layout.names, layout.roles, placement.deviation_mm)
+            if role == "head"]
+    click.echo("head markers (rigid with the head over the take; 95th-percentile deviation): "
+               f"{', '.join(head) or 'none'}")
