@@ -344,3 +344,15 @@ def render_bind_problem(host: str, port: int) -> tuple[str, str] | None:
     shown = f"[{host}]" if ":" in host else host
     which = "host" if error.errno in (errno.EADDRNOTAVAIL, errno.EAFNOSUPPORT) else "port"
     return which, f"render server {shown}:{port}: {os_error_reason(error)}"
+
+
+def parse_correspond(pairs: tuple[str, ...]) -> dict[str, int]:
+    """``NAME=VERTEX`` pairs (basis vertex indices)."""
+    out = {}
+    for pair in pairs:
+        name, _, vertex = pair.partition("=")
+        if not name or not vertex.strip().isdigit():
+            raise click.BadParameter(f"expected NAME=VERTEX (a vertex index of the basis mesh), got {pair!r}",
+                                     param_hint="--correspond")
+        out[name] = int(vertex)
+    return out

@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option
+from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option, parse_correspond
 from livebridge.face.layout import MAX_VIEW_DEG, VIEW_MARGIN_DEG
 
 BASIS_HELP = "Basis file (.npz, from `livebridge basis import`) or 'builtin' (the procedural face)."
@@ -200,7 +200,6 @@ def report(layout_file: Path, basis_spec: str, calibration: Path | None, min_vie
 def place(marker_file: Path, basis_spec: str, neutral_frame: str, correspond: tuple[str, ...], units: str | None,
           out: Path, force: bool) -> None:
     """Place the markers of MARKER_FILE (any layout) on the basis: surface sites, regions, head markers."""
-    from livebridge.cli.solve import parse_correspond
     from livebridge.solve.offline import parse_neutral, place_from_positions
     from livebridge.take.trajectories import read_trajectories
 

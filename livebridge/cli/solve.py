@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from livebridge.cli._options import InputPath, OutputFile, force_option, refuse_overwrite
+from livebridge.cli._options import InputPath, OutputFile, force_option, parse_correspond, refuse_overwrite
 from livebridge.cli.markers import BASIS_HELP, BASIS_TYPE, load_basis
 
 
@@ -52,18 +52,6 @@ def plot_contractions(path: Path, t: np.ndarray, names, contractions: np.ndarray
     figure.tight_layout()
     figure.savefig(path, dpi=100)
     plt.close(figure)
-
-
-def parse_correspond(pairs: tuple[str, ...]) -> dict[str, int]:
-    """``NAME=VERTEX`` pairs (basis vertex indices)."""
-    out = {}
-    for pair in pairs:
-        name, _, vertex = pair.partition("=")
-        if not name or not vertex.strip().isdigit():
-            raise click.BadParameter(f"expected NAME=VERTEX (a vertex index of the basis mesh), got {pair!r}",
-                                     param_hint="--correspond")
-        out[name] = int(vertex)
-    return out
 
 
 @click.command("solve")
