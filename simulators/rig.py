@@ -39,8 +39,9 @@ from livebridge.capture.sources import Capabilities, ExposureSetting, SourceBase
 from livebridge.devices.url import DeviceURL
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
-from livebridge.face.markers import MarkerSet, load_marker_set
+from livebridge.face.markers import MarkerSet
 from livebridge.face.meshio import triangle_normals
+from livebridge.face.shipped import load_marker_set
 from livebridge.geometry.transforms import apply, look_at
 from livebridge.geometry.visibility import depth_cell_mm, in_view, sees
 

@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 
 from livebridge.errors import InputError
+from livebridge.face import SHIPPED_MARKER_SETS
 from livebridge.face.builtin import BUILTIN_68_HEAD, builtin_basis, builtin_landmarks, builtin_markers
 from livebridge.face.markers import (
     LANDMARKS_68_UPPER,
-    SHIPPED_MARKER_SETS,
     MarkerSet,
     landmark_name,
     landmark_number,
-    load_marker_set,
     match_markers,
 )
+from livebridge.face.shipped import load_marker_set
 from livebridge.geometry.transforms import apply, invert, umeyama
 from livebridge.simulators.performer import Performer
 from livebridge.solve.solver import ContractionSolver

@@ -210,16 +210,8 @@ def _marker_row(row, path, prefix: str) -> tuple[str, int, list[float], str, str
 
 
 # ------------------------------------------------------------------------------------------------ shipped sets
-SHIPPED_MARKER_SETS = ("builtin", "builtin-68", "ict-68")
-"""Marker sets accepted by name wherever a marker-set file is (``--markers``, a session's ``[face] markers``):
-``builtin`` (the designed layout of the built-in face), ``builtin-68`` (the 68 Multi-PIE/iBUG landmarks on the
-built-in face) and ``ict-68`` (the same 68 landmarks on the ICT-FaceKit face region, as
-``livebridge basis import choe-ko-ict`` builds it)."""
-
 LANDMARKS_68_UPPER = (*range(17, 27), *range(36, 48))
 """Landmark numbers of the 68-point layout on the upper face: the brows (17-26) and the eyes (36-47)."""
-
-_DATA = Path(__file__).parent / "data"
 
 
 def landmark_name(number: int) -> str:
@@ -247,28 +239,6 @@ def markers_at_vertices(vertex_ids, triangles: np.ndarray, names, regions, roles
         chosen.append(int(rows[0]))
         bary.append(np.eye(3)[corners[0]])
     return MarkerSet(tuple(names), np.array(chosen), np.array(bary), tuple(regions), tuple(roles))
-
-
-def shipped_marker_set(name: str) -> MarkerSet:
-    """A marker set shipped with livebridge, by name (see :data:`SHIPPED_MARKER_SETS`)."""
-    if name == "builtin":
-        from livebridge.face.builtin import builtin_markers
-
-        return builtin_markers()
-    if name == "builtin-68":
-        from livebridge.face.builtin import builtin_landmarks
-
-        return builtin_landmarks()
-    if name in SHIPPED_MARKER_SETS:
-        return MarkerSet.load(_DATA / f"{name.replace('-', '_')}.toml")
-    raise InputError(f"no shipped marker set {name!r} (shipped: {', '.join(SHIPPED_MARKER_SETS)})")
-
-
-def load_marker_set(spec: str | Path) -> MarkerSet:
-    """A marker set by shipped name (:data:`SHIPPED_MARKER_SETS`) or from a marker-set TOML file."""
-    if isinstance(spec, str) and spec in SHIPPED_MARKER_SETS:
-        return shipped_marker_set(spec)
-    return MarkerSet.load(spec)
 
 
 _NUMBERED = re.compile(r"^(?:[A-Za-z]+[_ ]?)?(\d+)$")

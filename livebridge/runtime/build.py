@@ -20,7 +20,7 @@ from livebridge.runtime.session import Session
 def load_face(session: Session):
     """The session's basis and marker set (``builtin`` / ``ict`` or files; a simulated rig films this face)."""
     from livebridge.face.basis import Basis
-    from livebridge.face.markers import load_marker_set
+    from livebridge.face.shipped import load_marker_set
 
     if session.basis == "builtin":
         from livebridge.face.builtin import builtin_basis

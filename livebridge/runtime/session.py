@@ -14,7 +14,7 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
 
     [face]
     basis = "basis.npz"           # or "builtin" (the built-in face)
-    markers = "markers.toml"      # or "builtin"
+    markers = "markers.toml"      # or a shipped set: "builtin", "builtin-68", "ict-68"
 
     [reconstruct]
     tolerance_px = 2.0            # epipolar gate
@@ -259,7 +259,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     basis = face.path_value("basis", BUILTIN_NAMES, default="builtin")
     if isinstance(basis, Path) and basis.suffix != ".npz":
         raise InputError("a basis .npz file (from `livebridge basis import`) or 'builtin'", path, "face.basis")
-    from livebridge.face.markers import SHIPPED_MARKER_SETS
+    from livebridge.face import SHIPPED_MARKER_SETS
 
     markers = face.path_value("markers", SHIPPED_MARKER_SETS)
     face.check_known()
