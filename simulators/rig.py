@@ -41,6 +41,7 @@ from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
 from livebridge.face.meshio import triangle_normals
+from livebridge.face.shipped import load_marker_set
 from livebridge.geometry.transforms import apply, look_at
 from livebridge.geometry.visibility import depth_cell_mm, in_view, sees
 
@@ -1019,11 +1020,11 @@ def rig_from_url(url: DeviceURL | str) -> SimRig:
     config, counts = _rig_options(url)
     if "basis" in url.query:
         basis = Basis.load(url.query["basis"])
-        markers = MarkerSet.load(url.query["markers"]) if "markers" in url.query else generate_markers(basis)
+        markers = load_marker_set(url.query["markers"]) if "markers" in url.query else generate_markers(basis)
     else:
         basis, markers = default_face()
         if "markers" in url.query:
-            markers = MarkerSet.load(url.query["markers"])
+            markers = load_marker_set(url.query["markers"])
     cameras = None
     if "calibration" in url.query:
         from livebridge.calibration.calibfile import load_calibration

@@ -394,6 +394,30 @@ SESSION_CASES = _toml_cases() + (
 )
 
 
+
+# ------------------------------------------------------------------------------------------------ contraction CSV
+def _write_rig(folder: Path) -> None:
+    from livebridge.servo.rig import demo_rig
+
+    demo_rig("simdynamixel://?ids=1-16&delay=0").save(folder / "head.toml")
+
+
+CONTRACTION_CASES = _common_cases() + (
+    Case("not utf-8", _bytes(b"t,jaw\n0,\xff\n"), ("not UTF-8",)),
+    Case("empty file", _text(""), ("empty file", "line 1")),
+    Case("header only", _text("t,jaw\n"), ("no rows",)),
+    Case("no time column", _text("jaw,frontalis_L\n0.1,0.2\n"), ("no time column", "line 1")),
+    Case("no muscle column", _text("t,frame\n0,1\n"), ("no muscle columns", "line 1")),
+    Case("unknown muscle", _text("t,jaw,smile_L\n0,0.1,0.2\n"), ("'smile_L'", "--ignore-extra", "line 1")),
+    Case("a column twice", _text("t,jaw,jaw\n0,0.1,0.2\n"), ("'jaw'", "repeats", "column 3")),
+    Case("ragged row", _text("t,jaw\n0,0.1\n0.1,0.2,0.3\n0.2,0.1\n"), ("line 3", "3 fields")),
+    Case("text in a cell", _text("t,jaw\n0,0.1\n0.1,wide\n"), ("line 3", "column 2 (jaw)", "'wide'")),
+    Case("time not a number", _text("t,jaw\n0,0.1\nsoon,0.2\n"), ("line 3", "column 1 (t)")),
+    Case("time missing", _text("t,jaw\n0,0.1\n,0.2\n"), ("line 3", "column 1 (t)", "finite time")),
+    Case("time infinite", _text("t,jaw\n0,0.1\ninf,0.2\n"), ("line 3", "finite time")),
+)
+
+
 FORMATS = (
     Format("basis", "basis.npz", lambda path, folder: ["basis", "show", str(path), "--out", str(folder / "out.png")],
            BASIS_CASES),
@@ -403,6 +427,9 @@ FORMATS = (
     Format("calibration", "calibration.toml", lambda path, folder: ["calibrate", "show", str(path)],
            CALIBRATION_CASES),
     Format("session", "session.toml", lambda path, folder: ["run", str(path)], SESSION_CASES),
+    Format("contractions", "contractions.csv",
+           lambda path, folder: ["play", str(path), "--rig", str(folder / "head.toml"), "--no-render"],
+           CONTRACTION_CASES, setup=_write_rig),
 )
 CASES = [pytest.param(fmt, case, id=f"{fmt.name}: {case.name}") for fmt in FORMATS for case in fmt.cases]
 
@@ -656,6 +683,15 @@ COMMANDS = (
         Bad("URL without scheme", ("ttyUSB0",), ("ttyUSB0", "scheme")),
         Bad("URL unknown scheme", ("usb://x",), ("usb://x", "unknown bus URL scheme")),
     )),
+    Command("play", ("play", "{dir}/contractions.csv", "--rig", "{dir}/head.toml"), (
+        *_numbers("--speed", _NOT_FINITE + ("0", "-1", "101")),
+        *_numbers("--port", _BAD_PORT, "--render"),
+        *_input_cases("--rig"),
+        Bad("--basis missing", ("--basis", "{dir}/nothing.npz"), ("--basis", "nothing.npz", "file not found")),
+        Bad("CONTRACTIONS missing", ("play", "{dir}/nothing.csv", "--rig", "{dir}/head.toml"),
+            ("CONTRACTIONS", "nothing.csv"), True),
+        Bad("--rig left out", ("play", "{dir}/contractions.csv"), ("--rig",), True),
+    )),
     Command("bench", ("bench",), (
         Bad("NAME unknown", ("fastest",), ("NAME", "'fastest'")),
     )),
@@ -670,6 +706,8 @@ def _option_work(folder: Path) -> None:
     _markers()(folder / "markers.toml")
     _calibration()(folder / "calibration.toml")
     (folder / "session.toml").write_text(_SIM)
+    (folder / "contractions.csv").write_text("t,jaw\n0,0.5\n")
+    _write_rig(folder)
     (folder / "manifest.toml").write_text("x = 1\n")
     (folder / "take.npz").write_bytes(b"not read: the options are refused first")
     for name in ("existing.png", "existing.npz", "existing.toml"):

@@ -39,6 +39,7 @@ _COMMANDS = (
     ("livebridge.cli.runtime", "run"),
     ("livebridge.cli.runtime", "demo"),
     ("livebridge.cli.take", "take"),
+    ("livebridge.cli.play", "play"),
     ("livebridge.cli.solve", "solve"),
 )
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a command stopped by Ctrl-C

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option, refuse_overwrite
+from livebridge.face import SHIPPED_MARKER_SETS
 
 _MODES = click.Choice(["split-compensated", "split", "joint"])
 
@@ -15,7 +16,8 @@ def _inputs(basis_help: str, take_help: str):
     """The ``--basis``, ``--markers`` and ``--take`` options both commands read with :func:`_load`."""
     options = [
         click.option("--basis", "basis_path", required=True, type=InputPath(), help=basis_help),
-        click.option("--markers", "markers_path", required=True, type=InputPath(), help="Marker set (.toml)."),
+        click.option("--markers", "markers_path", required=True, type=InputPath(builtins=SHIPPED_MARKER_SETS),
+                     help=f"Marker set (.toml) or a shipped one ({', '.join(SHIPPED_MARKER_SETS)})."),
         click.option("--take", "take_path", required=True, type=InputPath(), help=take_help),
         force_option,
     ]
@@ -34,11 +36,11 @@ def _load(basis_path: Path, markers_path: Path, take_path: Path):
 
     from livebridge.errors import InputError
     from livebridge.face.basis import Basis
-    from livebridge.face.markers import MarkerSet
+    from livebridge.face.shipped import load_marker_set
     from livebridge.take.npz import Take
 
     basis = Basis.load(basis_path)
-    markers = MarkerSet.load(markers_path)
+    markers = load_marker_set(markers_path)
     markers.check_mesh(len(basis.triangles))
     take = Take.load(take_path)
     if take.displacements is None:

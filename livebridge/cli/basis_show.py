@@ -9,6 +9,7 @@ import numpy as np
 
 from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option
 from livebridge.cli.markers import BASIS_TYPE, load_basis
+from livebridge.face import SHIPPED_MARKER_SETS
 
 
 def _view(vertices: np.ndarray, yaw_deg: float, pitch_deg: float) -> np.ndarray:
@@ -138,8 +139,9 @@ def render_basis(basis, path: str | Path, markers=None, yaw_deg: float = 15.0, p
 @click.argument("basis_spec", metavar="BASIS", type=BASIS_TYPE)
 @click.option("--out", required=True, type=OutputFile(), help="Image file (.png).")
 @force_option
-@click.option("--markers", "markers_spec", type=InputPath(builtins=("design",)), default=None,
-              help="Marker layout (.toml) to draw on the neutral face, or 'design' to design one now.")
+@click.option("--markers", "markers_spec", type=InputPath(builtins=("design", *SHIPPED_MARKER_SETS)), default=None,
+              help="Marker layout (.toml) to draw on the neutral face, a shipped one (builtin, builtin-68, ict-68), "
+                   "or 'design' to design one now.")
 @click.option("--yaw", type=FiniteFloat(-360, 360), default=15.0, show_default=True,
               help="View angle about the vertical axis, degrees.")
 @click.option("--dpi", default=90, show_default=True, type=click.IntRange(30, 600))
@@ -151,7 +153,7 @@ def show(basis_spec: str, out: Path, force: bool, markers_spec: str | None, yaw:
          muscles: tuple[str, ...], panel_size: float, crop_y: tuple[float, float] | None) -> None:
     """Render BASIS (a basis file or 'builtin'): the neutral face and each element, one panel each."""
     from livebridge.errors import InputError
-    from livebridge.face.markers import MarkerSet
+    from livebridge.face.shipped import load_marker_set
 
     if crop_y is not None and not crop_y[0] < crop_y[1]:
         raise click.BadParameter(f"LOW {crop_y[0]:g} must be below HIGH {crop_y[1]:g}", param_hint="--crop-y")
@@ -167,7 +169,7 @@ def show(basis_spec: str, out: Path, force: bool, markers_spec: str | None, yaw:
         markers = design_markers(basis)
     elif markers_spec is not None:
         try:
-            markers = MarkerSet.load(markers_spec)
+            markers = load_marker_set(markers_spec)
             markers.check_mesh(len(basis.triangles))
         except InputError as error:
             raise InputError(error.message, error.path or markers_spec, error.field) from None

@@ -327,3 +327,80 @@ def builtin_markers() -> MarkerSet:
     from livebridge.face.layout import design_markers
 
     return design_markers(builtin_basis(), count=64, n_head=5)
+
+
+def _landmark_face_xy() -> np.ndarray:
+    """Face coordinates (x, y), mm, of the 68 Multi-PIE/iBUG landmarks on the built-in face, shape (68, 2).
+
+    iBUG numbering, the subject's right (-x here) first: 0-16 jaw line from the right ear round the chin to
+    the left ear; 17-21 right brow (outer to inner), 22-26 left brow (inner to outer); 27-30 nose bridge to
+    tip; 31-35 nostrils and subnasale, right to left; 36-41 right eye (36 outer corner, 37-38 upper lid,
+    39 inner corner, 40-41 lower lid), 42-47 left eye (42 inner corner, 43-44 upper lid, 45 outer corner,
+    46-47 lower lid); 48-59 outer lip contour (48 right corner, 51 top of the upper lip, 54 left corner,
+    57 bottom of the lower lip); 60-67 inner lip contour (60 right corner, 62 upper, 64 left, 66 lower).
+    Placed from the generator's own feature positions (eyes, lid margins, brow ridge, nose, mouth line).
+    """
+    angle = np.linspace(np.pi, 2 * np.pi, 17)  # the jaw: half an ellipse from ear to ear under the chin
+    jaw = np.stack([63.0 * np.cos(angle), 25.0 + 105.0 * np.sin(angle)], axis=1)
+    brow_x, brow_y = np.array([52.0, 44.0, 35.0, 26.0, 17.0]), np.array([40.0, 44.0, 46.0, 46.0, 44.0])
+    brows = np.concatenate([np.stack([-brow_x, brow_y], 1), np.stack([brow_x, brow_y], 1)[::-1]])
+    nose = np.array([[0.0, 30.0], [0.0, 18.0], [0.0, 6.0], [0.0, -7.0]])
+    nostrils = np.array([[-12.0, -15.0], [-6.0, -18.0], [0.0, -20.0], [6.0, -18.0], [12.0, -15.0]])
+    # eye points as lateral offsets from the eye's centre (+: towards the ear) and which lid margin
+    lateral = np.array([13.0, 5.0, -5.0, -13.0, -5.0, 5.0])
+    upper, lower = _eye_margins(lateral)
+    heights = np.where([False, True, True, False, False, False], upper, np.where([0, 0, 0, 0, 1, 1], lower, 0.0))
+    right_eye = np.stack([-(EYE_X + lateral), EYE_Y + heights], 1)
+    left_order = [3, 2, 1, 0, 5, 4]  # 42 inner, 43-44 upper (inner first), 45 outer, 46-47 lower (outer first)
+    left_eye = np.stack([EYE_X + lateral[left_order], EYE_Y + heights[left_order]], 1)
+    outer_lip = np.array([[-24, 0], [-16, 6], [-6, 8.5], [0, 8], [6, 8.5], [16, 6], [24, 0], [16, -6], [7, -10],
+                          [0, -11], [-7, -10], [-16, -6]], dtype=float)
+    inner_lip = np.array([[-21, 0], [-8, 1], [0, 1], [8, 1], [21, 0], [8, -1], [0, -1], [-8, -1]], dtype=float)
+    lips = np.concatenate([outer_lip, inner_lip]) + np.array([0.0, MOUTH_Y])
+    return np.concatenate([jaw, brows, nose, nostrils, right_eye, left_eye, lips])
+
+
+def _on_mesh(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, candidates: int = 24):
+    """Nearest triangle and barycentric coordinates of each point, shapes (n,) and (n, 3).
+
+    Among the triangles with the nearest centroids, the one whose plane holds the point's projection inside
+    it (or nearest to inside) and is closest.
+    """
+    from scipy.spatial import cKDTree
+
+    corners = vertices[triangles]  # (T, 3, 3)
+    _, near = cKDTree(corners.mean(axis=1)).query(points, k=candidates)
+    a, b, c = (corners[near, k] for k in range(3))  # (n, k, 3)
+    e1, e2, p = b - a, c - a, points[:, None] - a
+    d11, d12, d22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
+    p1, p2 = (p * e1).sum(-1), (p * e2).sum(-1)
+    det = d11 * d22 - d12 * d12
+    v, w = (d22 * p1 - d12 * p2) / det, (d11 * p2 - d12 * p1) / det
+    bary = np.stack([1.0 - v - w, v, w], axis=-1)
+    outside = np.clip(-bary, 0.0, None).sum(-1)
+    normal = np.cross(e1, e2)
+    distance = np.abs((p * normal).sum(-1)) / np.linalg.norm(normal, axis=-1)
+    best = np.argmin(distance + 1e3 * outside, axis=1)
+    rows = np.arange(len(points))
+    chosen = np.clip(bary[rows, best], 0.0, None)
+    return near[rows, best], chosen / chosen.sum(axis=1, keepdims=True)
+
+
+BUILTIN_68_HEAD = (0, 1, 2, 14, 15, 16, 29, 30, 36, 45)
+"""Landmarks of ``builtin-68`` that no built-in muscle moves by 0.3 mm or more, the head markers of the set:
+the jaw line at the ears (0-2, 14-16: above the jaw's reach), the lower nose bridge and tip (29, 30) and the
+outer eye corners (36, 45). (The upper bridge 27 follows the corrugators, the inner eye corners the lids.)"""
+
+
+@lru_cache(maxsize=1)
+def builtin_landmarks() -> MarkerSet:
+    """``builtin-68``: the 68 Multi-PIE/iBUG landmarks on :func:`builtin_basis` (see :func:`_landmark_face_xy`
+    for the numbering); brows (17-26) and eyes (36-47) upper, the rest lower; :data:`BUILTIN_68_HEAD` head."""
+    from livebridge.face.markers import LANDMARKS_68_UPPER, landmark_name
+
+    basis = builtin_basis()
+    xy = _landmark_face_xy()
+    triangles, barycentric = _on_mesh(_surface(xy[:, 0], xy[:, 1]), basis.neutral, basis.triangles)
+    regions = tuple("upper" if i in LANDMARKS_68_UPPER else "lower" for i in range(68))
+    roles = tuple("head" if i in BUILTIN_68_HEAD else "face" for i in range(68))
+    return MarkerSet(tuple(landmark_name(i) for i in range(68)), triangles, barycentric, regions, roles)

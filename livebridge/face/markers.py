@@ -7,6 +7,7 @@ expression; ``head`` markers sit on the rigid head rig and do not.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -206,3 +207,117 @@ def _marker_row(row, path, prefix: str) -> tuple[str, int, list[float], str, str
     if not isinstance(role, str):
         raise InputError(f"expected str, got {type(role).__name__} {role!r}", path, f"{prefix}.role")
     return name, triangle, [float(b) for b in bary], region, role
+
+
+# ------------------------------------------------------------------------------------------------ shipped sets
+LANDMARKS_68_UPPER = (*range(17, 27), *range(36, 48))
+"""Landmark numbers of the 68-point layout on the upper face: the brows (17-26) and the eyes (36-47)."""
+
+
+def landmark_name(number: int) -> str:
+    """The marker name of landmark ``number`` (0..67) in the shipped 68-point sets: ``lm_07``."""
+    return f"lm_{number:02d}"
+
+
+def markers_at_vertices(vertex_ids, triangles: np.ndarray, names, regions, roles) -> MarkerSet:
+    """Markers exactly at mesh vertices: each on a triangle holding the vertex, barycentric 1 at its corner.
+
+    Parameters
+    ----------
+    vertex_ids : array_like of int, shape (n_markers,)
+    triangles : ndarray of int, shape (n_triangles, 3)
+        The mesh the markers are for (a vertex in no triangle is an error).
+    names, regions, roles : sequences of str, length n_markers
+    """
+    vertex_ids = np.asarray(vertex_ids, dtype=np.int64).reshape(-1)
+    triangles = np.asarray(triangles)
+    chosen, bary = [], []
+    for name, vertex in zip(names, vertex_ids):
+        rows, corners = np.nonzero(triangles == vertex)
+        if not len(rows):
+            raise InputError(f"vertex {vertex} is in no triangle of the mesh", field=f"marker {name}")
+        chosen.append(int(rows[0]))
+        bary.append(np.eye(3)[corners[0]])
+    return MarkerSet(tuple(names), np.array(chosen), np.array(bary), tuple(regions), tuple(roles))
+
+
+_NUMBERED = re.compile(r"^(?:[A-Za-z]+[_ ]?)?(\d+)$")
+
+
+def landmark_number(name: str) -> int | None:
+    """The landmark number a marker or column name carries (``"17"``, ``"X_17"``, ``"lm_17"``, ``"p17"``),
+    or None."""
+    match = _NUMBERED.match(name.strip())
+    return int(match.group(1)) if match else None
+
+
+def match_markers(names, marker_set: MarkerSet, allow_missing: bool = False, ignore_extra: bool = False,
+                  source=None) -> np.ndarray:
+    """Where each marker of ``marker_set`` is among a file's marker ``names``.
+
+    Names match exactly; the markers left over are matched by landmark number when both sides are numbered
+    (OpenFace's ``0`` .. ``67`` / ``X_0``-style columns against ``lm_00`` .. ``lm_67``).
+
+    Parameters
+    ----------
+    names : sequence of str
+        The file's marker names, in its order.
+    marker_set : MarkerSet
+    allow_missing : bool
+        A marker of the set the file lacks gets -1 instead of an error.
+    ignore_extra : bool
+        File markers that are in no marker set are left out instead of an error.
+    source : str or Path, optional
+        The file, for error messages.
+
+    Returns
+    -------
+    ndarray of int, shape (n_markers of the set,)
+        Index into ``names`` of each marker of the set (-1: missing, when allowed).
+
+    Raises
+    ------
+    InputError
+        Naming the markers the file lacks, or the file's markers the set does not have.
+    """
+    names = [str(name) for name in names]
+    position = {}
+    for k, name in enumerate(names):
+        if name in position:
+            raise InputError(f"marker {name!r} appears twice", source)
+        position[name] = k
+    index = np.array([position.get(name, -1) for name in marker_set.names], dtype=np.int64)
+    _match_numbers(names, marker_set.names, index, source)
+    used = set(index[index >= 0].tolist())
+    extra = [name for k, name in enumerate(names) if k not in used]
+    missing = [name for name, k in zip(marker_set.names, index) if k < 0]
+    if extra and not ignore_extra:
+        raise InputError(f"{len(extra)} marker{'s' if len(extra) > 1 else ''} not in the marker set: "
+                         f"{_listing(extra)}", source)
+    if missing and not allow_missing:
+        raise InputError(f"{len(missing)} marker{'s' if len(missing) > 1 else ''} of the marker set not in the "
+                         f"file: {_listing(missing)}", source)
+    return index
+
+
+def _match_numbers(names: list[str], wanted, index: np.ndarray, source) -> None:
+    """Fill ``index`` (in place) for the still-unmatched markers by landmark number."""
+    used = set(index[index >= 0].tolist())
+    by_number: dict[int, int] = {}
+    for k, name in enumerate(names):
+        number = landmark_number(name)
+        if k in used or number is None:
+            continue
+        if number in by_number:
+            raise InputError(f"markers {names[by_number[number]]!r} and {name!r} both carry landmark number "
+                             f"{number}", source)
+        by_number[number] = k
+    for i, name in enumerate(wanted):
+        number = landmark_number(name)
+        if index[i] < 0 and number is not None and number in by_number:
+            index[i] = by_number.pop(number)
+
+
+def _listing(names: list[str], limit: int = 12) -> str:
+    shown = ", ".join(map(repr, names[:limit]))
+    return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")

@@ -20,7 +20,7 @@ from livebridge.runtime.session import Session
 def load_face(session: Session):
     """The session's basis and marker set (``builtin`` / ``ict`` or files; a simulated rig films this face)."""
     from livebridge.face.basis import Basis
-    from livebridge.face.markers import MarkerSet
+    from livebridge.face.shipped import load_marker_set
 
     if session.basis == "builtin":
         from livebridge.face.builtin import builtin_basis
@@ -34,12 +34,8 @@ def load_face(session: Session):
         from livebridge.face.builtin import builtin_markers
 
         markers = builtin_markers()
-    elif session.markers == "builtin":
-        from livebridge.face.builtin import builtin_markers
-
-        markers = builtin_markers()
     else:
-        markers = MarkerSet.load(session.markers)
+        markers = load_marker_set(session.markers)  # a file, or a shipped set by name ("builtin", "ict-68", ...)
     try:
         markers.check_mesh(len(basis.triangles))
     except InputError as error:
@@ -74,7 +70,7 @@ def _session_url(url: str, session: Session, k: int) -> str:
         raise InputError(f"the simulated rig films the session's face: name its {named[0]} in [face], "
                          f"not in the camera URL", session.path, f"cameras.urls[{k}]")
     options = [(key, value) for key, value in (("basis", session.basis), ("markers", session.markers))
-               if isinstance(value, Path)]
+               if isinstance(value, Path) or (key == "markers" and value not in (None, "builtin"))]  # or a name
     if session.calibration is not None and "calibration" not in query:
         options.append(("calibration", session.calibration))
     if not options:

@@ -14,7 +14,7 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
 
     [face]
     basis = "basis.npz"           # or "builtin" (the built-in face)
-    markers = "markers.toml"      # or "builtin"
+    markers = "markers.toml"      # or a shipped set: "builtin", "builtin-68", "ict-68"
 
     [reconstruct]
     tolerance_px = 2.0            # epipolar gate
@@ -131,7 +131,8 @@ class Session:
     basis : Path or str
         A ``.npz`` path, or ``"builtin"``.
     markers : Path or str or None
-        A marker-set TOML path, ``"builtin"``, or None (the rig's / built-in markers).
+        A marker-set TOML path, a shipped set's name (``"builtin"``, ``"builtin-68"``, ``"ict-68"``), or None
+        (the rig's / built-in markers).
     calibration : Path or None
     reconstruct : ReconstructConfig
         The reconstruction stage's configuration (the file's ``tolerance_px`` and ``max_residual_px``: the
@@ -258,7 +259,9 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     basis = face.path_value("basis", BUILTIN_NAMES, default="builtin")
     if isinstance(basis, Path) and basis.suffix != ".npz":
         raise InputError("a basis .npz file (from `livebridge basis import`) or 'builtin'", path, "face.basis")
-    markers = face.path_value("markers", ("builtin",))
+    from livebridge.face import SHIPPED_MARKER_SETS
+
+    markers = face.path_value("markers", SHIPPED_MARKER_SETS)
     face.check_known()
 
     calibration = top.path_value("calibration")
