@@ -2,7 +2,8 @@
 
 :class:`Trajectories` is what every marker-file reader returns and what the offline tools (solve, marker
 placement) take: positions in millimetres in the recording system's frame, NaN where a marker was not
-seen. :func:`read_trajectories` picks the reader by the file's suffix.
+seen. :func:`read_trajectories` picks the reader by the file's suffix (:data:`READERS`: C3D, TRC, marker
+CSV, livebridge ``.npz`` takes) and :func:`write_trajectories` the writer (:data:`WRITERS`: C3D, TRC, CSV).
 """
 
 from __future__ import annotations
@@ -33,12 +34,16 @@ class Trajectories:
         Millimetres, NaN where the marker was not seen.
     source : Path or None
         The file they were read from (named in errors).
+    unit : {"mm", "cm", "m"} or None
+        The unit the file stored (its own header's, or the one the user gave); None when neither said and
+        millimetres were assumed.
     """
 
     names: tuple[str, ...]
     t: np.ndarray
     points: np.ndarray
     source: Path | None = None
+    unit: str | None = None
 
     def __post_init__(self):
         n_frames, n_markers = len(self.t), len(self.names)
@@ -55,6 +60,68 @@ class Trajectories:
         step = float(np.median(np.diff(self.t)))
         return 1.0 / step if step > 0 and math.isfinite(step) else None
 
+    @property
+    def seen(self) -> np.ndarray:
+        """Per marker, the fraction of frames it was seen in, shape (n_markers,)."""
+        if not len(self.t):
+            return np.zeros(len(self.names))
+        return np.mean(np.all(np.isfinite(self.points), axis=-1), axis=0)
+
+
+def unit_name(units_mm: float | None) -> str | None:
+    """``"mm"``, ``"cm"`` or ``"m"`` for a factor of :data:`UNITS_MM` (None stays None)."""
+    return None if units_mm is None else next(k for k, v in UNITS_MM.items() if v == units_mm)
+
+
+def file_units(stated: str, given_mm: float | None, path: Path, field: str) -> tuple[float, str | None]:
+    """Millimetres per unit and the unit's name for a file whose header states the unit ``stated``.
+
+    An empty ``stated`` leaves the unit to the user (``given_mm``; millimetres when not given). A stated
+    unit the user contradicts is refused: a silent factor of 1000 is worse than asking.
+    """
+    stated = stated.strip().lower()
+    if not stated:
+        return (given_mm or 1.0), unit_name(given_mm)
+    if stated not in UNITS_MM:
+        if given_mm is None:
+            raise InputError(f"unknown unit {stated!r} (known: {', '.join(UNITS_MM)}); give the file's unit "
+                             "(--units)", path, field)
+        return given_mm, unit_name(given_mm)
+    if given_mm is not None and given_mm != UNITS_MM[stated]:
+        raise InputError(f"the file says its unit is {stated}, --units says {unit_name(given_mm)}; "
+                         "leave --units out", path, field)
+    return UNITS_MM[stated], stated
+
+
+def on_frame_grid(t: np.ndarray, points: np.ndarray, rate: float) -> np.ndarray:
+    """The frames ``points`` placed one sample period apart at ``rate``, NaN frames where none was recorded.
+
+    For formats with one frame per sample period (C3D): a frame set dropped on the way leaves a gap instead
+    of shifting every later frame one period early. Each step counts the periods since the previous frame
+    (at least one), so a camera clock a little off the nominal rate never makes two frames collide or a
+    spurious gap build up over a long take.
+
+    Parameters
+    ----------
+    t : ndarray, shape (n_frames,)
+        Seconds, increasing.
+    points : ndarray, shape (n_frames, n_markers, 3)
+    rate : float
+        Frames per second of the grid.
+
+    Returns
+    -------
+    ndarray, shape (n_slots, n_markers, 3)
+        ``n_slots >= n_frames``; the recorded frames in order, NaN frames in the gaps.
+    """
+    if len(t) < 2:
+        return np.asarray(points, float)
+    steps = np.maximum(1, np.rint(np.diff(np.asarray(t, float)) * rate)).astype(np.int64)
+    slots = np.concatenate([[0], np.cumsum(steps)])
+    grid = np.full((int(slots[-1]) + 1,) + points.shape[1:], np.nan)
+    grid[slots] = points
+    return grid
+
 
 def _read_npz_take(path: Path, units_mm: float | None) -> Trajectories:
     """The capture-frame marker positions of a livebridge ``.npz`` take (mm by definition)."""
@@ -63,15 +130,39 @@ def _read_npz_take(path: Path, units_mm: float | None) -> Trajectories:
     take = Take.load(path)
     if take.positions is None:
         raise InputError("the take has no marker positions (only model-frame displacements)", path, "positions")
+    if units_mm not in (None, 1.0):
+        raise InputError(f"a livebridge take is in mm; --units {unit_name(units_mm)} contradicts it", path, "units")
     return Trajectories(tuple(take.marker_names), np.asarray(take.t, float) - float(take.t[0]),
-                        np.asarray(take.positions, float), path)
+                        np.asarray(take.positions, float), path, "mm")
 
 
-READERS: dict[str, Callable[[Path, float | None], Trajectories]] = {".npz": _read_npz_take}
-"""Suffix -> ``reader(path, units_mm)``; ``units_mm`` is the user's unit (None: the file's own or mm)."""
+def _read_c3d(path: Path, units_mm: float | None, rate: float | None) -> Trajectories:
+    from livebridge.take.c3d import read_c3d
+
+    return read_c3d(path, units_mm)
 
 
-def read_trajectories(path: str | Path, units: str | None = None) -> Trajectories:
+def _read_trc(path: Path, units_mm: float | None, rate: float | None) -> Trajectories:
+    from livebridge.take.trc import read_trc
+
+    return read_trc(path, units_mm)
+
+
+def _read_csv(path: Path, units_mm: float | None, rate: float | None) -> Trajectories:
+    from livebridge.take.marker_csv import read_marker_csv
+
+    return read_marker_csv(path, units_mm, rate)
+
+
+READERS: dict[str, Callable[[Path, float | None, float | None], Trajectories]] = {
+    ".npz": lambda path, units_mm, rate: _read_npz_take(path, units_mm),
+    ".c3d": _read_c3d, ".trc": _read_trc, ".csv": _read_csv, ".tsv": _read_csv,
+}
+"""Suffix -> ``reader(path, units_mm, rate)``; ``units_mm`` is the user's unit (None: the file's own or mm),
+``rate`` the user's frame rate for a file without times (None: the file's own)."""
+
+
+def read_trajectories(path: str | Path, units: str | None = None, rate: float | None = None) -> Trajectories:
     """The labelled marker trajectories in ``path``, in millimetres.
 
     Parameters
@@ -80,13 +171,58 @@ def read_trajectories(path: str | Path, units: str | None = None) -> Trajectorie
         A marker file; its suffix picks the reader (:data:`READERS`).
     units : {"mm", "cm", "m"}, optional
         The unit of a file that does not say.
+    rate : float, optional
+        Frames per second of a file that has frame numbers but no times; a file whose own rate differs is
+        refused.
     """
     path = Path(path)
     if units is not None and units not in UNITS_MM:
         raise InputError(f"unknown unit {units!r}; known: {', '.join(UNITS_MM)}", path, "units")
+    if rate is not None and not (math.isfinite(rate) and rate > 0):
+        raise InputError(f"the frame rate must be a positive number of Hz, got {rate}", path, "rate")
     reader = READERS.get(path.suffix.lower())
     if reader is None:
         raise InputError(f"unknown marker-file type {path.suffix!r}; known: {', '.join(sorted(READERS))}", path)
     if not path.is_file():
         raise InputError("file not found" if not path.exists() else "not a file", path)
-    return reader(path, UNITS_MM[units] if units is not None else None)
+    trajectories = reader(path, UNITS_MM[units] if units is not None else None, rate)
+    own = trajectories.rate
+    if rate is not None and own is not None and abs(own - rate) > 1e-3 * rate:
+        raise InputError(f"the file's frames are {own:.6g} Hz apart; --rate {rate:g} contradicts it", path, "rate")
+    return trajectories
+
+
+def _write_c3d(path: Path, trajectories: Trajectories) -> None:
+    from livebridge.take.c3d import write_c3d
+
+    rate = trajectories.rate
+    if rate is None:
+        raise InputError("one frame: C3D needs a frame rate; give it (--rate)", trajectories.source, "rate")
+    write_c3d(path, trajectories.names, on_frame_grid(trajectories.t, trajectories.points, rate), rate)
+
+
+def _write_trc(path: Path, trajectories: Trajectories) -> None:
+    from livebridge.take.trc import write_trc
+
+    write_trc(path, trajectories)
+
+
+def _write_csv(path: Path, trajectories: Trajectories) -> None:
+    from livebridge.take.marker_csv import write_marker_csv
+
+    write_marker_csv(path, trajectories)
+
+
+WRITERS: dict[str, Callable[[Path, Trajectories], None]] = {
+    ".c3d": _write_c3d, ".trc": _write_trc, ".csv": _write_csv, ".tsv": _write_csv}
+"""Suffix -> ``writer(path, trajectories)`` (millimetres; C3D on a regular frame grid, gaps as invalid points)."""
+
+
+def write_trajectories(path: str | Path, trajectories: Trajectories) -> Path:
+    """Write ``trajectories`` to ``path`` in the format its suffix names (:data:`WRITERS`), atomically."""
+    path = Path(path)
+    writer = WRITERS.get(path.suffix.lower())
+    if writer is None:
+        raise InputError(f"cannot write {path.suffix!r} files; known: {', '.join(sorted(WRITERS))}", path)
+    writer(path, trajectories)
+    return path
