@@ -217,12 +217,16 @@ def read_c3d(path: str | Path, units_mm: float | None = None) -> Trajectories:
             reader = c3d.Reader(handle)
             names = _point_labels(reader, path)
             units = reader.get("POINT:UNITS")
-            scale, unit = file_units(units.string_value if units is not None else "", units_mm, path, "POINT:UNITS")
+            stated = units.string_value if units is not None else ""
             rate = float(reader.point_rate)
             expected = reader.frame_count
             points = [p[:, :4].copy() for _, p, _ in reader.read_frames(copy=False, analog_transform=False)]
+        except InputError:
+            raise  # a ValueError too, but already says what is wrong
         except _NOT_C3D as error:
-            raise InputError(f"not a C3D file, or a damaged one ({type(error).__name__}: {error})", path) from None
+            raise InputError(f"not a C3D file, or a damaged one ({str(error).strip() or type(error).__name__})",
+                             path) from None
+    scale, unit = file_units(stated, units_mm, path, "POINT:UNITS")
     if not (math.isfinite(rate) and 0 < rate <= MAX_RATE):
         raise InputError(f"the header's frame rate is {rate:g} Hz", path, "header")
     if len(points) < expected:
