@@ -67,8 +67,10 @@ def describe(trajectories) -> list[str]:
              f"frames: {n_frames} over {duration:.3f} s at {f'{rate:.6g} Hz' if rate else 'unknown rate'}",
              f"unit: {unit}",
              f"markers: {len(names)}, seen in {float(np.mean(seen)) if len(seen) else 0.0:.1%} of frames on average"]
-    width = max(map(len, names))
-    lines += [f"  {name:<{width}}  {fraction:6.1%}" for name, fraction in zip(names, seen)]
+    width = max(map(len, names)) + 8
+    entries = [f"{name} {fraction:.1%}".ljust(width) for name, fraction in zip(names, seen)]
+    per_line = max(1, 96 // width)  # several markers a line: a 68-landmark file stays short
+    lines += ["  " + "".join(entries[k:k + per_line]).rstrip() for k in range(0, len(entries), per_line)]
     return lines
 
 

@@ -37,7 +37,7 @@ from livebridge.take.directory import (
     load_manifest,
     read_markers,
 )
-from livebridge.take.trajectories import Trajectories, file_units, on_frame_grid
+from livebridge.take.tracks import Trajectories, file_units, on_frame_grid
 
 MAX_RATE = 100_000.0  # Hz; C3D stores the rate as a float32, and no capture runs faster
 

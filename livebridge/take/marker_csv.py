@@ -33,13 +33,13 @@ from livebridge.take.atomic import write_atomically
 from livebridge.take.text_table import (
     format_number,
     increasing_times,
-    number,
+    number_table,
     repeated,
     text_lines,
     where,
     whole_points,
 )
-from livebridge.take.trajectories import Trajectories, file_units, unit_name
+from livebridge.take.tracks import Trajectories, file_units, unit_name
 
 TIME_COLUMNS = ("time", "timestamp", "t")
 FRAME_COLUMNS = ("frame", "frame#")
@@ -103,12 +103,13 @@ def read_marker_csv(path: str | Path, units_mm: float | None = None, rate: float
         if len(row) != len(header):
             raise InputError(f"{len(row)} fields, the header has {len(header)}", path, where(line))
     line_numbers = [line for line, _ in data]
-    t = _times(layout, data, header, path, rate, decimal_comma=delimiter == ";")
-    xyz = np.array([[[number(row[c], path, line, c + 1, header[c], decimal_comma=delimiter == ";") for c in columns]
-                     for columns in layout.xyz] for line, row in data]).reshape(len(data), len(layout.names), 3)
+    comma = delimiter == ";"
+    t = _times(layout, data, header, path, rate, decimal_comma=comma)
+    columns = [int(c) for c in layout.xyz.ravel()]
+    xyz = number_table([[row[c] for c in columns] for _, row in data], line_numbers, [c + 1 for c in columns],
+                       [header[c] for c in columns], path, decimal_comma=comma).reshape(len(data), len(layout.names), 3)
     if layout.success is not None:
-        found = np.array([number(row[layout.success], path, line, layout.success + 1, "success", missing_ok=False)
-                          for line, row in data])
+        found = _column(layout.success, data, header, path, comma)
         xyz[found == 0] = np.nan  # OpenFace writes zeros where it found no face
     _one_face(layout, data, path)
     return Trajectories(layout.names, increasing_times(t, line_numbers, path, *_time_column(layout, header)),
@@ -160,18 +161,22 @@ def _coordinate(name: str, openface: bool) -> tuple[str | None, str | None]:
     return (match[2], match[1].lower()) if match else (None, None)
 
 
+def _column(c: int, data, header: list[str], path: Path, decimal_comma: bool = False) -> np.ndarray:
+    """The numbers of column ``c`` (0-based), none missing, shape (n_rows,)."""
+    return number_table([[row[c]] for _, row in data], [line for line, _ in data], [c + 1], [header[c]], path,
+                        missing_ok=False, decimal_comma=decimal_comma)[:, 0]
+
+
 def _times(layout: Layout, data, header, path: Path, rate: float | None, decimal_comma: bool) -> np.ndarray:
     if layout.time is not None:
-        c = layout.time
-        return np.array([number(row[c], path, line, c + 1, header[c], False, decimal_comma) for line, row in data])
+        return _column(layout.time, data, header, path, decimal_comma)
     if rate is None:
         what = "frame numbers but no time column" if layout.frame is not None else "no time or frame column"
         raise InputError(f"the file has {what} ({', '.join(TIME_COLUMNS)}); give the frame rate (--rate)", path,
                          where(1))
     if layout.frame is None:
         return np.arange(len(data)) / rate
-    c = layout.frame
-    return np.array([number(row[c], path, line, c + 1, header[c], False) for line, row in data]) / rate
+    return _column(layout.frame, data, header, path) / rate
 
 
 def _time_column(layout: Layout, header: list[str]) -> tuple[int, str]:

@@ -27,12 +27,13 @@ from livebridge.take.text_table import (
     format_number,
     increasing_times,
     number,
+    number_table,
     repeated,
     text_lines,
     where,
     whole_points,
 )
-from livebridge.take.trajectories import Trajectories, file_units
+from livebridge.take.tracks import Trajectories, file_units
 
 HEADER_KEYS = ("DataRate", "CameraRate", "NumFrames", "NumMarkers", "Units", "OrigDataRate",
                "OrigDataStartFrame", "OrigNumFrames")
@@ -57,7 +58,7 @@ def read_trc(path: str | Path, units_mm: float | None = None) -> Trajectories:
     scale, unit = file_units(header.get("Units", ""), units_mm, path, where(3, None, "Units"))
     names = _marker_names(lines, split, path, header)
     width = 2 + 3 * len(names)
-    numbers, line_numbers = [], []
+    rows, line_numbers = [], []
     for line_number, line in enumerate(lines[FIRST_DATA_LINE - 1:], start=FIRST_DATA_LINE):
         if not line.strip():
             continue  # OpenSim writes a blank line before the data; trailing blank lines too
@@ -67,11 +68,15 @@ def read_trc(path: str | Path, units_mm: float | None = None) -> Trajectories:
         if len(fields) != width:
             raise InputError(f"{len(fields)} fields, expected {width} (Frame#, Time and 3 per marker)", path,
                              where(line_number))
-        numbers.append(_row(fields, names, path, line_number))
+        rows.append(fields[1:])
         line_numbers.append(line_number)
-    if not numbers:
+    if not rows:
         raise InputError("no frames (no data lines after the header)", path, where(FIRST_DATA_LINE))
-    table = np.array(numbers)
+    column_names = ["Time", *(f"{name} {axis}" for name in names for axis in "XYZ")]
+    table = number_table(rows, line_numbers, list(range(2, width + 1)), column_names, path)
+    if np.isnan(table[:, 0]).any():
+        k = int(np.argmax(np.isnan(table[:, 0])))
+        number(rows[k][0], path, line_numbers[k], 2, "Time", missing_ok=False)  # raises: a frame needs its time
     t = increasing_times(table[:, 0], line_numbers, path, 2, "Time")
     xyz = whole_points(table[:, 1:].reshape(len(table), len(names), 3)) * scale
     return Trajectories(names, t, xyz, path, unit)
@@ -117,13 +122,6 @@ def _marker_names(lines: list[str], split, path: Path, header: dict[str, str]) -
                          where(4))
     repeated(names, path, 4, columns)
     return names
-
-
-def _row(fields: list[str], names: tuple[str, ...], path: Path, line: int) -> list[float]:
-    time = number(fields[1], path, line, 2, "Time", missing_ok=False)
-    coordinates = [number(field, path, line, column, f"{names[(column - 3) // 3]} {'XYZ'[(column - 3) % 3]}")
-                   for column, field in enumerate(fields[2:], start=3)]
-    return [time, *coordinates]
 
 
 def write_trc(path: str | Path, trajectories: Trajectories) -> Path:
