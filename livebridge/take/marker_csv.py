@@ -96,7 +96,7 @@ def read_marker_csv(path: str | Path, units_mm: float | None = None, rate: float
         scale, unit = file_units("mm", units_mm, path, "X_0")
     else:
         scale, unit = (units_mm or 1.0), unit_name(units_mm)
-    data = [(number, row) for number, row in enumerate(rows[1:], start=2) if any(field.strip() for field in row)]
+    data = [(line, row) for line, row in enumerate(rows[1:], start=2) if any(field.strip() for field in row)]
     if not data:
         raise InputError("no frames (only a header)", path, where(2))
     for line, row in data:
