@@ -541,6 +541,7 @@ def _held_port() -> tuple[object, int]:
 
 _DEMO = ("demo", "--frames", "1", "--no-servo", "--unpaced", "--size", "160x100", "--port", "0")
 _RIG = ("--cameras", "{dir}/calibration.toml")
+_CONVERT = ("take", "convert", "{dir}/take.npz", "{dir}/out.csv")
 _QUALITY = ("--basis", "{dir}/basis.npz", "--markers", "{dir}/markers.toml", "--take", "{dir}/take.npz")
 
 COMMANDS = (
@@ -694,6 +695,22 @@ COMMANDS = (
     )),
     Command("bench", ("bench",), (
         Bad("NAME unknown", ("fastest",), ("NAME", "'fastest'")),
+    )),
+    Command("take show", ("take", "show", "{dir}/take.npz"), (
+        *_numbers("--rate", _NOT_FINITE + ("0", "-1", "1e9")),
+        Bad("--units unknown", ("--units", "inch"), ("--units", "inch")),
+        Bad("FILE missing", ("take", "show", "{dir}/nothing.csv"), ("FILE", "nothing.csv", "file not found"), True),
+        Bad("FILE a folder", ("take", "show", "{dir}"), ("FILE", "is a directory"), True),
+    )),
+    Command("take convert", _CONVERT, (
+        *_numbers("--rate", ("nan", "0", "-inf")),
+        Bad("--units unknown", ("--units", "km"), ("--units", "km")),
+        Bad("OUT exists", (*_CONVERT[:3], "{dir}/existing.png"), ("OUT", "existing.png", "--force"), True),
+        Bad("OUT in a missing folder", (*_CONVERT[:3], f"{_MISSING}/x.c3d"), ("OUT", "does not exist"), True),
+        Bad("OUT a folder", (*_CONVERT[:3], "{dir}"), ("OUT", "is a folder"), True),
+        Bad("OUT of an unknown type", (*_CONVERT[:3], "{dir}/out.xyz"), ("OUT", "'.xyz'", ".trc"), True),
+        Bad("IN missing", ("take", "convert", "{dir}/nothing.trc", "{dir}/out.csv"), ("IN", "nothing.trc",
+                                                                                    "file not found"), True),
     )),
 )
 OPTION_CASES = [pytest.param(command, case, id=f"{command.name}: {case.name}")

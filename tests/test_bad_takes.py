@@ -5,7 +5,8 @@ it one way, and runs the real command line on it (click's CliRunner on ``livebri
 
 - take directories (``take.toml``, ``markers.csv``) and every option through ``livebridge take export-c3d``;
 - ``.npz`` takes through ``livebridge basis check --take``;
-- raw-frame timestamp files and image folders through ``livebridge run`` on a session replaying them.
+- raw-frame timestamp files and image folders through ``livebridge run`` on a session replaying them;
+- marker files of other systems (C3D, TRC, CSV) through ``livebridge take show``.
 
 Every case asserts: exit code != 0 through click's own exit (no escaped exception), a message naming the file and
 the field, line/column or option, no ``Traceback``, and every input file unchanged (hashed before and after; no
@@ -279,14 +280,13 @@ def test_the_good_take_exports(good_take, tmp_path):
 def test_a_failed_export_leaves_no_partial_file_and_the_old_file_intact(good_take, tmp_path, monkeypatch):
     import errno
 
-    import c3d
+    import livebridge.take.atomic
 
-    def fail_midway(self, handle):
-        handle.write(b"\0" * 1000)
+    def disk_full(descriptor):  # the half-written file reaches the disk, and the disk is full
         raise OSError(errno.ENOSPC, "No space left on device")
 
     folder = _copy(good_take, tmp_path)
-    monkeypatch.setattr(c3d.Writer, "write", fail_midway)
+    monkeypatch.setattr(livebridge.take.atomic.os, "fsync", disk_full)
     output = _run(Case("disk-full", _nothing, (*_EXPORT, "--force"), ("markers.c3d", "No space left")), folder)
     assert "cannot write" in output
 
@@ -469,7 +469,115 @@ def test_a_bad_take_directory_csv_is_refused_by_the_loader(case, good_take, tmp_
     assert _hashes(folder) == before
 
 
+# -- marker files (C3D, TRC, CSV) through `livebridge take show` -------------------------------------------------
+
+def _c3d_in(units: str, labels=MARKERS) -> Callable[[Path], None]:
+    """Rewrite good.c3d as py-c3d writes a file whose POINT:UNITS is ``units`` and POINT:LABELS ``labels``."""
+    def damage(folder: Path) -> None:
+        import warnings
+
+        import c3d
+
+        writer = c3d.Writer(point_rate=60.0, point_scale=-1.0, point_units=units)
+        writer.set_point_labels(list(labels))
+        writer.add_frames([(np.ones((2, 5)), np.zeros((0, 0)))] * 3)
+        with open(folder / "good.c3d", "wb") as handle, warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            writer.write(handle)
+    return damage
+
+
+def _c3d_labels(labels) -> Callable[[Path], None]:
+    return _c3d_in("mm", labels)
+
+
+_SHOW_CSV = ("take", "show", "{dir}/good.csv")
+_SHOW_TRC = ("take", "show", "{dir}/good.trc")
+_SHOW_C3D = ("take", "show", "{dir}/good.c3d")
+_CSV_FILE, _TRC_FILE = "good.csv", "good.trc"
+_MARKER_FILE_CASES = [
+    Case("csv-ragged-row", _line(_CSV_FILE, 3, "0.1,1,2,3"), _SHOW_CSV, ("good.csv", "line 3", "4 fields")),
+    Case("csv-not-a-number", _line(_CSV_FILE, 3, "0.02,1,abc,3,4,5,6"), _SHOW_CSV,
+         ("good.csv", "line 3, column 3 (a_y)", "abc")),
+    Case("csv-infinite", _line(_CSV_FILE, 4, "0.04,1,2,inf,4,5,6"), _SHOW_CSV, ("good.csv", "line 4, column 4 (a_z)")),
+    Case("csv-two-coordinates", _line(_CSV_FILE, 1, "time,a_x,a_y,q,b_x,b_y,b_z"), _SHOW_CSV,
+         ("good.csv", "line 1, column 2 (a_x)", "'a' has no z")),
+    Case("csv-no-markers", _line(_CSV_FILE, 1, "time,p,q,r,s,u,v"), _SHOW_CSV, ("good.csv", "line 1", "no marker")),
+    Case("csv-names-are-case-sensitive", _line(_CSV_FILE, 1, "time,a_x,a_y,a_z,A_X,b_y,b_z"), _SHOW_CSV,
+         ("good.csv", "line 1, column 5 (A_X)", "'A' has no y or z")),
+    Case("csv-duplicate-name", _line(_CSV_FILE, 1, "time,a_x,a_y,a_z,a_x,b_y,b_z"), _SHOW_CSV,
+         ("good.csv", "line 1, column 5 (a_x)", "two columns for 'a' x")),
+    Case("csv-time-backwards", _line(_CSV_FILE, 4, "0.0,1,2,3,4,5,6"), _SHOW_CSV,
+         ("good.csv", "line 4, column 1 (time)", "does not increase")),
+    Case("csv-empty-time", _line(_CSV_FILE, 4, ",1,2,3,4,5,6"), _SHOW_CSV, ("good.csv", "line 4, column 1 (time)")),
+    Case("csv-frames-need-a-rate", _edit(_CSV_FILE, "time,", "frame,"), _SHOW_CSV, ("good.csv", "line 1", "--rate")),
+    Case("csv-empty", _write(_CSV_FILE, ""), _SHOW_CSV, ("good.csv", "empty file")),
+    Case("csv-header-only", _write(_CSV_FILE, "time,a_x,a_y,a_z\n"), _SHOW_CSV, ("good.csv", "line 2", "no frames")),
+    Case("csv-not-utf8", _write(_CSV_FILE, b"time,a_x\xff\n"), _SHOW_CSV, ("good.csv", "UTF-8")),
+    Case("csv-openface-two-faces", _write(_CSV_FILE, "frame, face_id, timestamp, success, x_0, X_0, Y_0, Z_0\n"
+                                                     "1, 0, 0.0, 1, 5, 1, 2, 3\n1, 1, 0.0, 1, 5, 1, 2, 3\n"),
+         _SHOW_CSV, ("good.csv", "column 2 (face_id)", "2 faces")),
+    Case("csv-bad-units", _nothing, (*_SHOW_CSV, "--units", "furlong"), ("--units", "furlong")),
+    Case("csv-bad-rate", _nothing, (*_SHOW_CSV, "--rate", "nan"), ("--rate", "nan")),
+    Case("csv-rate-contradicts-times", _nothing, (*_SHOW_CSV, "--rate", "30"), ("good.csv", "rate", "contradicts")),
+    Case("trc-bad-header", _line(_TRC_FILE, 1, "hello"), _SHOW_TRC, ("good.trc", "line 1", "PathFileType")),
+    Case("trc-no-units-key", _line(_TRC_FILE, 2, "DataRate\tCameraRate\tNumFrames\tNumMarkers"), _SHOW_TRC,
+         ("good.trc", "line 2", "no Units")),
+    Case("trc-bad-units", _edit(_TRC_FILE, "\tmm\t", "\tfurlong\t"), _SHOW_TRC,
+         ("good.trc", "line 3 (Units)", "unknown unit 'furlong'")),
+    Case("trc-units-contradicted", _nothing, (*_SHOW_TRC, "--units", "m"), ("good.trc", "line 3 (Units)", "says")),
+    Case("trc-bad-rate", _edit(_TRC_FILE, "60.000000\t", "fast\t"), _SHOW_TRC,
+         ("good.trc", "line 3, column 1 (DataRate)")),
+    Case("trc-marker-count", _edit(_TRC_FILE, "\t8\t2\tmm", "\t8\t3\tmm"), _SHOW_TRC,
+         ("good.trc", "line 4", "NumMarkers 3")),
+    Case("trc-no-markers", _line(_TRC_FILE, 4, "Frame#\tTime"), _SHOW_TRC, ("good.trc", "line 4", "no markers")),
+    Case("trc-duplicate-names", _line(_TRC_FILE, 4, "Frame#\tTime\ta\t\t\ta\t\t"), _SHOW_TRC,
+         ("good.trc", "line 4, column 6", "'a' repeats")),
+    Case("trc-ragged-row", _line(_TRC_FILE, 8, "2\t0.0166\t1\t2"), _SHOW_TRC, ("good.trc", "line 8", "4 fields")),
+    Case("trc-not-a-number", _line(_TRC_FILE, 8, "2\t0.02\t1\tx\t3\t4\t5\t6"), _SHOW_TRC,
+         ("good.trc", "line 8, column 4 (a Y)")),
+    Case("trc-time-backwards", _line(_TRC_FILE, 9, "3\t0.0\t1\t2\t3\t4\t5\t6"), _SHOW_TRC,
+         ("good.trc", "line 9, column 2 (Time)")),
+    Case("trc-cut-short", _truncate(_TRC_FILE, 0.1), _SHOW_TRC, ("good.trc", "cut short")),
+    Case("c3d-truncated", _truncate("good.c3d", 0.8), _SHOW_C3D, ("good.c3d", "truncated", "frame")),
+    Case("c3d-not-a-c3d", _write("good.c3d", b"PK\x03\x04" * 300), _SHOW_C3D, ("good.c3d", "not a C3D")),
+    Case("c3d-empty", _write("good.c3d", b""), _SHOW_C3D, ("good.c3d", "not a C3D")),
+    Case("c3d-unknown-unit", _c3d_in("in"), _SHOW_C3D, ("good.c3d", "POINT:UNITS", "unknown unit 'in'")),
+    Case("c3d-repeated-label", _c3d_labels(["a", "a "]), _SHOW_C3D, ("good.c3d", "POINT:LABELS", "'a' repeats")),
+    Case("unknown-suffix", _write("good.xyz", "1,2,3\n"), ("take", "show", "{dir}/good.xyz"),
+         ("good.xyz", "unknown marker-file type")),
+    Case("show-missing-file", _nothing, ("take", "show", "{dir}/none.csv"), ("none.csv", "not found")),
+]
+
+
+@pytest.fixture(scope="module")
+def good_marker_files(tmp_path_factory) -> Path:
+    from livebridge.take.trajectories import Trajectories, write_trajectories
+
+    folder = tmp_path_factory.mktemp("marker-files")
+    points = np.array([_values(k)[1] for k in range(N_FRAMES)])
+    short = Trajectories(MARKERS, np.arange(N_FRAMES) / 60, points)
+    write_trajectories(folder / "good.csv", short)
+    write_trajectories(folder / "good.trc", short)
+    long = np.concatenate([points] * 40)  # enough frames that a cut lands inside the point data
+    write_trajectories(folder / "good.c3d", Trajectories(MARKERS, np.arange(len(long)) / 60, long))
+    return folder
+
+
+@pytest.mark.parametrize("case", _MARKER_FILE_CASES, ids=lambda c: c.id)
+def test_a_bad_marker_file_is_one_error_line(case, good_marker_files, tmp_path):
+    output = _run(case, _copy(good_marker_files, tmp_path))
+    assert [line.startswith("Error:") for line in output.splitlines()].count(True) == 1, output
+
+
+def test_the_good_marker_files_show(good_marker_files):
+    for name in ("good.csv", "good.trc", "good.c3d"):
+        result = CliRunner().invoke(main, ["take", "show", str(good_marker_files / name)])
+        assert result.exit_code == 0 and "markers: 2" in result.output, result.output
+
+
 def test_the_corpus_size():
     """The number of malformed cases this file runs (quoted in the issue's note)."""
     cli = len(_TAKE_DIR_CASES) + len(_OPTION_CASES) + len(_NPZ_CASES) + len(_RAW_CASES) + 1  # + the failed write
+    cli += len(_MARKER_FILE_CASES)
     assert cli >= 100 and len(_API_CASES) == 6

@@ -320,6 +320,7 @@ def _assert_c3d_matches(points, markers):
     """C3D points (n_frames, n_markers, 5) hold ``markers`` (n_frames, n_markers, 3); unseen = invalid."""
     seen = ~np.isnan(markers).any(axis=-1)
     assert np.array_equal(points[..., 3], np.where(seen, 0.0, -1.0))  # residual -1: C3D's invalid point
+    assert not points[~seen][:, :3].any()  # and its coordinates 0, not the marker's last ones
     assert np.allclose(points[seen][:, :3], markers[seen], atol=1e-3)  # float32 of the CSV's 1e-4 mm
     as_nan = np.where(points[..., 3:4] < 0, np.nan, points[..., :3])
     assert np.allclose(as_nan, markers, atol=1e-3, equal_nan=True)
@@ -363,6 +364,19 @@ def test_a_take_never_closed_exports_to_c3d_from_the_command_line(tmp_path):
         _assert_c3d_matches(points, np.array([_values(k)[1] for k in range(12)]))
     finally:
         rec.close()
+
+
+def test_dropped_frame_sets_are_gaps_in_the_c3d_export(tmp_path):
+    recorded = [k for k in range(20) if k not in (4, 5, 11)]  # frame sets the pipeline dropped
+    jitter = np.random.default_rng(0).uniform(-3e-3, 3e-3, 20)  # capture times a few ms off the grid
+    with TakeRecorder(tmp_path / "t", MUSCLES, MARKERS, fps=60) as rec:
+        for k in recorded:
+            rec.record(k, 5.0 + k / 60 + jitter[k], *_values(k))
+    expected = np.array([_values(k)[1] if k in recorded else np.full((2, 3), np.nan) for k in range(20)])
+    for path in (tmp_path / "t" / "markers.c3d", export_c3d(tmp_path / "t", tmp_path / "again.c3d")):
+        _, rate, _, n_frames, points = _read_c3d(path)
+        assert rate == 60.0 and n_frames == 20
+        _assert_c3d_matches(points, expected)
 
 
 def test_c3d_export_needs_a_frame_rate(tmp_path):

@@ -9,5 +9,11 @@
 - :mod:`~livebridge.take.raw_frames`: raw camera frames on disk (image folders or videos and timestamp
   files) and their writer;
 - :mod:`~livebridge.take.replay`: raw frames played back as camera sources (``replay://``);
-- :mod:`~livebridge.take.c3d`: labelled markers as C3D (``markers.c3d``, ``livebridge take export-c3d``).
+- :mod:`~livebridge.take.trajectories`: :class:`~livebridge.take.trajectories.Trajectories` (labelled markers
+  over time, any system) and ``read_trajectories`` / ``write_trajectories`` by suffix;
+- :mod:`~livebridge.take.c3d`: labelled markers as C3D (``markers.c3d``, ``livebridge take export-c3d``) and
+  other systems' C3D files read;
+- :mod:`~livebridge.take.trc`: TRC files (OpenSim, Pose2Sim, Motive), read and written;
+- :mod:`~livebridge.take.marker_csv`: marker CSV files (one column per coordinate; OpenFace), read and written;
+- :mod:`~livebridge.take.text_table`, :mod:`~livebridge.take.atomic`: shared by the text readers and the writers.
 """

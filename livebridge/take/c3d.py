@@ -1,22 +1,32 @@
-"""C3D export of a take's labelled markers (``markers.c3d``; ``livebridge take export-c3d TAKE_DIR``).
+"""C3D files: the export of a take's labelled markers (``markers.c3d``; ``livebridge take export-c3d
+TAKE_DIR``) and the reader of other systems' C3D files (Vicon, OptiTrack, Qualisys; :func:`read_c3d`).
 
-One C3D point per marker, labelled with the marker name, one frame per row of the take's
-``markers.csv``, at the take's ``fps`` (or the rate of its timestamps), units mm, float storage; a
-marker not seen in a frame is an invalid point (residual -1). Written with ``c3d.Writer`` to a
-temporary name and renamed, so a crash never leaves half a file, and a failed write leaves no temporary
-file. :func:`export_c3d` checks the rate and the output path before it reads the take: the output's folder
-must exist, an existing file is overwritten only when asked, and never one of the take's own records.
+Export: one C3D point per marker, labelled with the marker name, one frame per sample period at the
+take's ``fps`` (or the rate of its timestamps) -- a frame set the pipeline dropped is a frame of invalid
+points, so later frames keep their times -- units mm, float storage; a marker not seen in a frame is an
+invalid point (residual -1, coordinates 0). Written with ``c3d.Writer`` to a temporary name and renamed,
+so a crash never leaves half a file, and a failed write leaves no temporary file. :func:`export_c3d`
+checks the rate and the output path before it reads the take: the output's folder must exist, an
+existing file is overwritten only when asked, and never one of the take's own records. A take cut short
+(recorder never closed, last line torn) exports up to its last whole line.
+
+Reading: the unit from ``POINT:UNITS`` (mm, cm, m), the frame rate from the header, names from
+``POINT:LABELS`` (and ``LABELS2``... for more than 255 points; blanks trimmed), a point with residual < 0
+or all three coordinates exactly 0 (how some systems write a gap) as NaN, analog channels ignored.
 """
 
 from __future__ import annotations
 
-import os
+import io
+import math
+import struct
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from livebridge.errors import InputError
+from livebridge.take.atomic import write_atomically
 from livebridge.take.directory import (
     C3D_NAME,
     CONTRACTIONS,
@@ -27,6 +37,7 @@ from livebridge.take.directory import (
     load_manifest,
     read_markers,
 )
+from livebridge.take.tracks import Trajectories, file_units, on_frame_grid
 
 MAX_RATE = 100_000.0  # Hz; C3D stores the rate as a float32, and no capture runs faster
 
@@ -74,28 +85,39 @@ def write_c3d(out: str | Path, marker_names, markers: np.ndarray, rate: float) -
     """
     import c3d
 
-    out = Path(out)
     points = c3d_points(markers)
+    if not len(points):
+        raise InputError("no frames to write", out)
     # point_scale < 0: float32 coordinates, no 16-bit quantisation of the millimetres
     writer = c3d.Writer(point_rate=float(rate), point_scale=-1.0, point_units="mm")
     writer.set_point_labels(list(marker_names))
-    # py-c3d 0.6 leaves an invalid point's x, y, z in the file as that point's last valid ones; C3D readers
-    # go by the residual -1, not the coordinates
     no_analog = np.zeros((0, 0))
     writer.add_frames([(frame, no_analog) for frame in points])
-    partial = out.with_name(out.name + ".partial")
-    try:
-        with open(partial, "wb") as handle, warnings.catch_warnings():
-            warnings.filterwarnings("ignore", "No analog data", UserWarning)  # markers only, by design
-            writer.write(handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(partial, out)
-    except OSError as error:
-        raise InputError(f"cannot write the C3D file ({error.strerror or error})", out) from None
-    finally:
-        partial.unlink(missing_ok=True)  # after a failure; gone already after the rename
-    return out
+    buffer = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "No analog data", UserWarning)  # markers only, by design
+        writer.write(buffer)
+    data = _zero_invalid_points(buffer.getbuffer(), points)
+    return write_atomically(out, lambda handle: handle.write(data), "C3D file")
+
+
+def _zero_invalid_points(data: memoryview, points: np.ndarray) -> bytes:
+    """The C3D file ``data`` with every invalid point's coordinates 0.
+
+    py-c3d 0.6 leaves an invalid point's x, y, z as that point's last valid ones; readers that go by the
+    coordinates instead of the residual (or plot them) would see a frozen marker. The point block is the
+    standard's (float32 x, y, z, residual word per point, frames in a row from the header's data block),
+    and the written valid points are checked against ours before anything is replaced.
+    """
+    data = bytearray(data)
+    start = 512 * (struct.unpack_from("<H", data, 16)[0] - 1)  # header word 9: first block of the data
+    block = np.frombuffer(data, "<f4", points[..., :4].size, start).reshape(points.shape[:-1] + (4,)).copy()
+    valid = points[..., 3] >= 0
+    if not np.array_equal(block[valid], points[valid][:, :4].astype(np.float32)):
+        raise RuntimeError("py-c3d wrote its point block in an unexpected layout")
+    block[~valid] = (0.0, 0.0, 0.0, -1.0)
+    data[start:start + block.nbytes] = block.tobytes()
+    return bytes(data)
 
 
 def check_rate(rate: float, field: str = "rate") -> float:
@@ -160,12 +182,77 @@ def export_c3d(path: str | Path, out: str | Path | None = None, rate: float | No
         if not rate <= MAX_RATE:
             raise InputError(f"the take's frame rate, {rate:g} Hz, is above {MAX_RATE:g} Hz; give it",
                              path / MANIFEST, "fps")
-    return write_c3d(out, names, markers, rate)
+    return write_c3d(out, names, on_frame_grid(t, markers, rate), rate)
 
 
 def export_closed_take(path: str | Path, fps: float | None) -> None:
     """``markers.c3d`` of a take directory just closed; skipped when one frame and no ``fps`` give no rate."""
     names, markers, t = read_markers(path)
     rate = frame_rate(fps, t)
-    if rate is not None:
-        write_c3d(Path(path) / C3D_NAME, names, markers, rate)
+    if rate is not None and len(markers):
+        write_c3d(Path(path) / C3D_NAME, names, on_frame_grid(t, markers, rate), rate)
+
+
+# ------------------------------------------------------------------------------------------------ reading
+_NOT_C3D = (AssertionError, struct.error, ValueError, KeyError, TypeError, IndexError, UnicodeDecodeError)
+"""What py-c3d raises on bytes that are not a C3D file (it asserts the header's magic byte, among others)."""
+
+
+def read_c3d(path: str | Path, units_mm: float | None = None) -> Trajectories:
+    """The labelled points of a C3D file as :class:`Trajectories` (see the module docstring).
+
+    Parameters
+    ----------
+    path : Path
+    units_mm : float, optional
+        Millimetres per unit for a file whose ``POINT:UNITS`` is missing or blank (else mm); one that
+        contradicts the file's is refused.
+    """
+    import c3d
+
+    path = Path(path)
+    with open(path, "rb") as handle, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # py-c3d warns about analog data and EOF; both are checked below
+        try:
+            reader = c3d.Reader(handle)
+            names = _point_labels(reader, path)
+            units = reader.get("POINT:UNITS")
+            stated = units.string_value if units is not None else ""
+            rate = float(reader.point_rate)
+            expected = reader.frame_count
+            points = [p[:, :4].copy() for _, p, _ in reader.read_frames(copy=False, analog_transform=False)]
+        except InputError:
+            raise  # a ValueError too, but already says what is wrong
+        except _NOT_C3D as error:
+            raise InputError(f"not a C3D file, or a damaged one ({str(error).strip() or type(error).__name__})",
+                             path) from None
+    scale, unit = file_units(stated, units_mm, path, "POINT:UNITS")
+    if not (math.isfinite(rate) and 0 < rate <= MAX_RATE):
+        raise InputError(f"the header's frame rate is {rate:g} Hz", path, "header")
+    if len(points) < expected:
+        raise InputError(f"truncated: {len(points)} of the {expected} frames the header announces", path,
+                         f"frame {len(points) + 1}")
+    block = np.array(points, dtype=np.float64).reshape(len(points), len(names), 4)
+    unseen = (block[..., 3] < 0) | np.all(block[..., :3] == 0, axis=-1) | ~np.all(np.isfinite(block), axis=-1)
+    xyz = np.where(unseen[..., None], np.nan, block[..., :3] * scale)
+    return Trajectories(names, np.arange(len(block)) / rate, xyz, path, unit)
+
+
+def _point_labels(reader, path: Path) -> tuple[str, ...]:
+    """The trimmed labels of the file's points (``LABELS``, then ``LABELS2``, ...); blank ones as ``P<k>``."""
+    used = int(reader.point_used)
+    if used == 0:
+        raise InputError("no markers (POINT:USED = 0)", path, "POINT:USED")
+    labels: list[str] = []
+    for group in ["LABELS"] + [f"LABELS{k}" for k in range(2, 2 + used // 255 + 1)]:
+        param = reader.get(f"POINT:{group}")
+        if param is None:
+            break
+        labels.extend(str(label).strip() for label in param.string_array)
+    labels = labels[:used] + [""] * (used - len(labels))
+    names = tuple(label or f"P{k + 1}" for k, label in enumerate(labels))
+    for k, name in enumerate(names):
+        if names.index(name) != k:
+            raise InputError(f"marker name {name!r} repeats (points {names.index(name) + 1} and {k + 1})", path,
+                             "POINT:LABELS")
+    return names
