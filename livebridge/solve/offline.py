@@ -4,12 +4,16 @@ The same steps as the live path after labelling, on a whole take at once:
 
 1. the file's markers matched to the marker set by name (or placed automatically,
    :mod:`livebridge.face.placement`);
-2. a neutral frame, given or chosen (:func:`choose_neutral_frame`);
+2. a neutral frame, given or chosen (:func:`choose_neutral_frame` with a marker set, :func:`choose_rest_frame`
+   for a layout being placed);
 3. the coordinate alignment on it (:func:`livebridge.reconstruct.align.align_to_model`: similarity, surface
    projection, repeat), whose neutral positions in the model frame are the displacements' origin;
 4. the head pose of every frame from the head markers, or with fewer than three of them seen from all
    markers weighted by how little the face model moves them (:meth:`livebridge.reconstruct.track.Tracker.pose`);
-5. displacements in the model frame and the live path's :class:`~livebridge.solve.solver.ContractionSolver`.
+5. displacements in the model frame and the live path's :class:`~livebridge.solve.solver.ContractionSolver`;
+6. for frames posed from the face markers, the pose refitted to the positions the solved contractions predict
+   and the frame solved again, until the contractions settle (:func:`refit_poses`): offline, unlike live, the
+   take can be solved more than once.
 """
 
 from __future__ import annotations
@@ -24,12 +28,17 @@ from livebridge.face.markers import MarkerSet
 from livebridge.face.placement import Placement, fill_unseen, place_markers
 from livebridge.geometry.transforms import apply, invert, transform_scale, umeyama
 from livebridge.reconstruct.align import Alignment, align_to_model
+from livebridge.reconstruct.stabilize import head_pose
 from livebridge.reconstruct.track import TrackConfig, Tracker
 from livebridge.solve.solver import ContractionSolver, SolverConfig, TakeSolution
 from livebridge.take.trajectories import Trajectories
 
 MAX_CANDIDATES = 300
 """Frames examined by the automatic neutral-frame choice (evenly spread over the take)."""
+MAX_POSE_ROUNDS = 30
+"""Most refits of the head pose of frames posed from the face markers (:func:`refit_poses`)..."""
+POSE_TOLERANCE = 1e-4
+"""...stopping once the contractions change by less than this (RMS over the take)."""
 REST_PERCENTILE = 1.0
 """Percentile of each muscle's contraction relative to a reference frame taken as its rest (:func:`rest_distance`)."""
 
@@ -198,8 +207,8 @@ def choose_rest_frame(points: np.ndarray, basis: Basis, markers: MarkerSet, refe
         Capture frame, NaN unseen, in ``markers`` order.
     """
     frames = _candidates(points)
-    alignment, _, displacements = model_displacements(points, basis, markers, reference)
-    scores = rest_distance(displacements, basis, alignment.markers)[frames]
+    take = model_displacements(points, basis, markers, reference)
+    scores = rest_distance(take.displacements, basis, take.alignment.markers)[frames]
     best = int(np.argmin(scores))
     reason = (f"neutral frame {int(frames[best])} chosen automatically: least deformation from rest the basis "
               f"explains ({scores[best]:.2f} mm RMS; median {float(np.median(scores)):.2f} mm over {len(frames)} "
@@ -216,8 +225,32 @@ def head_poses(tracker: Tracker, neutral_model: np.ndarray, capture2model: np.nd
     return np.stack([tracker.pose(state, frame) for frame in positions]) if len(positions) else np.zeros((0, 4, 4))
 
 
-def model_displacements(positions: np.ndarray, basis: Basis, markers: MarkerSet,
-                        frame: int) -> tuple[Alignment, np.ndarray, np.ndarray]:
+@dataclass(frozen=True, eq=False)
+class ModelTake:
+    """A take in the model frame, from its neutral frame.
+
+    Attributes
+    ----------
+    alignment : Alignment
+        The coordinate alignment on the neutral frame.
+    neutral_model : ndarray, shape (n_markers, 3)
+        The neutral frame's markers in the model frame (the model's place for those it misses).
+    head2world : ndarray, shape (n_frames, 4, 4)
+        NaN where fewer than 3 markers were seen.
+    head_posed : ndarray of bool, shape (n_frames,)
+        Frames whose pose came from 3 or more head markers (the others: from the face markers).
+    displacements : ndarray, shape (n_frames, n_markers, 3)
+        Model frame, from ``neutral_model``, NaN unseen.
+    """
+
+    alignment: Alignment
+    neutral_model: np.ndarray
+    head2world: np.ndarray
+    head_posed: np.ndarray
+    displacements: np.ndarray
+
+
+def model_displacements(positions: np.ndarray, basis: Basis, markers: MarkerSet, frame: int) -> ModelTake:
     """The coordinate alignment on the neutral ``frame``, the head pose of every frame and the model-frame
     displacements from that frame (module docstring, steps 3 and 4).
 
@@ -225,10 +258,6 @@ def model_displacements(positions: np.ndarray, basis: Basis, markers: MarkerSet,
     ----------
     positions : ndarray, shape (n_frames, n_markers, 3)
         Capture frame, in ``markers`` order, NaN unseen.
-
-    Returns
-    -------
-    (Alignment, head2world (n_frames, 4, 4), displacements (n_frames, n_markers, 3))
     """
     captured = positions[frame]
     if np.isfinite(captured).all(axis=1)[markers.face_mask].sum() < 3:
@@ -241,15 +270,42 @@ def model_displacements(positions: np.ndarray, basis: Basis, markers: MarkerSet,
     tracker = Tracker(markers.head_mask, neutral_model, transform_scale(invert(alignment.capture2model)),
                       TrackConfig(), displacement)
     head2world = head_poses(tracker, neutral_model, alignment.capture2model, positions)
-    # as the live tracker: positions_model = world2head @ world, displacement from the captured neutral
-    displacements = np.stack([_to_model(pose, frame) for pose, frame in zip(head2world, positions)]) \
-        - neutral_model[None] if len(positions) else np.zeros((0, len(markers), 3))
-    return alignment, head2world, displacements
+    head_posed = (np.isfinite(positions).all(axis=2) & markers.head_mask).sum(axis=1) >= 3
+    return ModelTake(alignment, neutral_model, head2world, head_posed, _displacements(head2world, positions,
+                                                                                       neutral_model))
+
+
+def _displacements(head2world: np.ndarray, positions: np.ndarray, neutral_model: np.ndarray) -> np.ndarray:
+    """Model-frame displacements (n_frames, n_markers, 3) as the live tracker: world2head @ world - neutral."""
+    if not len(positions):
+        return np.zeros((0, *neutral_model.shape))
+    return np.stack([_to_model(pose, frame) for pose, frame in zip(head2world, positions)]) - neutral_model[None]
+
+
+def refit_poses(take: ModelTake, positions: np.ndarray, matrix: np.ndarray, contractions: np.ndarray) -> np.ndarray:
+    """``head2world`` (n_frames, 4, 4) with each face-posed frame refitted rigidly to the model-frame positions
+    the solved contractions predict (neutral + displacement matrix @ contractions) rather than to the neutral:
+    the expression no longer drags the head pose along.
+
+    Parameters
+    ----------
+    take : ModelTake
+    positions : ndarray, shape (n_frames, n_markers, 3)
+        Capture frame, NaN unseen.
+    matrix : ndarray, shape (n_markers, n_muscles, 3)
+    contractions : ndarray, shape (n_frames, n_muscles)
+    """
+    scale = transform_scale(invert(take.alignment.capture2model))
+    head2world = take.head2world.copy()
+    for f in np.flatnonzero(~take.head_posed & np.isfinite(contractions).all(axis=1)):
+        predicted = take.neutral_model + np.einsum("nmk,m->nk", matrix, contractions[f])
+        head2world[f] = head_pose(predicted, positions[f], scale)
+    return head2world
 
 
 def solve_positions(t: np.ndarray, positions: np.ndarray, basis: Basis, markers: MarkerSet, neutral: NeutralChoice,
                     config: SolverConfig | None = None, progress: bool = False) -> OfflineSolution:
-    """Solve a take of labelled positions (module docstring, steps 3 to 5).
+    """Solve a take of labelled positions (module docstring, steps 3 to 6).
 
     Parameters
     ----------
@@ -264,11 +320,20 @@ def solve_positions(t: np.ndarray, positions: np.ndarray, basis: Basis, markers:
         A tqdm bar on stderr while solving.
     """
     positions = np.asarray(positions, dtype=np.float64)
-    alignment, head2world, displacements = model_displacements(positions, basis, markers, neutral.frame)
-    solver = ContractionSolver(basis, alignment.markers, config)
-    solution = solver.solve_take(displacements, progress=progress)
-    return OfflineSolution(np.asarray(t, dtype=np.float64), basis.names, alignment.markers, positions, displacements,
-                           head2world, alignment, neutral, solution)
+    take = model_displacements(positions, basis, markers, neutral.frame)
+    solver = ContractionSolver(basis, take.alignment.markers, config)
+    solution = solver.solve_take(take.displacements, progress=progress)
+    matrix = take.alignment.markers.displacement_matrix(basis)
+    for _ in range(MAX_POSE_ROUNDS if not take.head_posed.all() else 0):
+        # face-posed frames: the pose from what the contractions predict, the contractions from that pose, ...
+        head2world = refit_poses(take, positions, matrix, solution.contractions)
+        take = replace(take, head2world=head2world,
+                       displacements=_displacements(head2world, positions, take.neutral_model))
+        previous, solution = solution, solver.solve_take(take.displacements)
+        if np.sqrt(np.mean((solution.contractions - previous.contractions) ** 2)) < POSE_TOLERANCE:
+            break
+    return OfflineSolution(np.asarray(t, dtype=np.float64), basis.names, take.alignment.markers, positions,
+                           take.displacements, take.head2world, take.alignment, neutral, solution)
 
 
 def _to_model(head2world: np.ndarray, world: np.ndarray) -> np.ndarray:
