@@ -71,3 +71,18 @@ def test_cli_place_writes_a_marker_set_that_report_reads(tmp_path):
     assert MarkerSet.load(out).names == layout.names
     report = CliRunner().invoke(main, ["markers", "report", str(out)])
     assert report.exit_code == 0 and "condition number" in report.output, report.output
+
+
+def test_cli_solve_with_auto_markers_meets_ground_truth(tmp_path):
+    basis, layout, performance, world = _foreign_take(11)
+    Take(t=performance.t, marker_names=layout.names, positions=world).save(tmp_path / "take.npz")
+    out = tmp_path / "c.csv"
+    result = CliRunner().invoke(main, ["solve", str(tmp_path / "take.npz"), "--markers", "auto", "--out", str(out),
+                                       "--markers-out", str(tmp_path / "placed.toml")])
+    assert result.exit_code == 0, result.output
+    assert "least deformation from rest" in result.output and "head markers:" in result.output, result.output
+    written = np.loadtxt(out, delimiter=",", skiprows=1)
+    rmse = float(np.sqrt(np.mean((written[:, 1:] - performance.contractions) ** 2)))
+    print(f"livebridge solve --markers auto (seed 11): contraction RMSE {rmse:.4f}")
+    assert rmse <= 0.02
+    assert MarkerSet.load(tmp_path / "placed.toml").names == layout.names
