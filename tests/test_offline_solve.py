@@ -72,7 +72,9 @@ def test_without_head_markers_the_pose_comes_from_the_steadiest_face_markers(tak
     result = solve_positions(take.t, positions, basis, face, NeutralChoice(0, "given"))
     rmse = _rmse(result.solution.contractions, take.contractions)
     print(f"offline solve without head markers: contraction RMSE {rmse:.4f}")
-    assert rmse <= 0.05  # measured 0.040: the weighted rigid fit leans on markers the expression moves a little
+    # measured 0.0003 (0.040 from the weighted rigid fit alone, which leans on markers the expression moves a
+    # little): the pose refitted to the positions the solved contractions predict, until they settle
+    assert rmse <= 0.01
 
 
 def test_markers_are_matched_by_name_and_mismatches_named(take):

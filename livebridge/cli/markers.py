@@ -16,6 +16,24 @@ MAX_MARKERS = 1000
 """The most markers a layout option asks for (a face carries at most a few hundred)."""
 
 
+class NeutralFrame(click.ParamType):
+    """``--neutral-frame``: ``auto`` or a frame number from 0 (whether the take has it is known once read)."""
+
+    name = "FRAME|auto"
+
+    def convert(self, value, param, ctx) -> str | int:
+        if value == "auto" or isinstance(value, int):
+            return value
+        text = str(value).strip()
+        if not text.isdigit():
+            self.fail(f"expected 'auto' or a frame number from 0, got {value!r}", param, ctx)
+        return int(text)
+
+
+NEUTRAL_FRAME_HELP = ("Frame number (from 0) of the neutral face, or 'auto' for the frame closest to rest "
+                      "(see the README: how it chooses).")
+
+
 def load_basis(spec: str):
     """The basis named by a command-line value: a ``.npz`` file or ``builtin``.
 
@@ -189,25 +207,24 @@ def report(layout_file: Path, basis_spec: str, calibration: Path | None, min_vie
 @markers.command("place")
 @click.argument("marker_file", type=InputPath())
 @click.option("--basis", "basis_spec", type=BASIS_TYPE, default="builtin", show_default=True, help=BASIS_HELP)
-@click.option("--neutral-frame", default="auto", show_default=True,
-              help="Frame number (from 0) of the neutral face, or 'auto' for the frame closest to rest.")
+@click.option("--neutral-frame", type=NeutralFrame(), default="auto", show_default=True, help=NEUTRAL_FRAME_HELP)
 @click.option("--correspond", multiple=True, metavar="NAME=VERTEX",
               help="A marker at a basis vertex; >= 4 of them give the rough alignment instead of the shape fit.")
 @click.option("--units", type=click.Choice(["mm", "cm", "m"]), default=None,
               help="Unit of a file that does not say (default: the file's own, else mm).")
 @click.option("--out", required=True, type=OutputFile(), help="Marker set (.toml).")
 @force_option
-def place(marker_file: Path, basis_spec: str, neutral_frame: str, correspond: tuple[str, ...], units: str | None,
+def place(marker_file: Path, basis_spec: str, neutral_frame: str | int, correspond: tuple[str, ...], units: str | None,
           out: Path, force: bool) -> None:
     """Place the markers of MARKER_FILE (any layout) on the basis: surface sites, regions, head markers."""
     from livebridge.solve.offline import parse_neutral, place_from_positions
     from livebridge.take.trajectories import read_trajectories
 
+    pairs = parse_correspond(correspond)
     basis = load_basis(basis_spec)
     trajectories = read_trajectories(marker_file, units)
     frame = parse_neutral(neutral_frame, len(trajectories.t))
-    placement, choice = place_from_positions(trajectories.points, trajectories.names, basis, frame,
-                                             parse_correspond(correspond))
+    placement, choice = place_from_positions(trajectories.points, trajectories.names, basis, frame, pairs)
     placement.markers.save(out)
     click.echo(choice.reason)
     click.echo(f"rough alignment: {placement.how}")

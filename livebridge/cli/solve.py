@@ -9,7 +9,7 @@ import click
 import numpy as np
 
 from livebridge.cli._options import InputPath, OutputFile, force_option, parse_correspond, refuse_overwrite
-from livebridge.cli.markers import BASIS_HELP, BASIS_TYPE, load_basis
+from livebridge.cli.markers import BASIS_HELP, BASIS_TYPE, NEUTRAL_FRAME_HELP, NeutralFrame, load_basis
 
 
 def rms_path(out: Path) -> Path:
@@ -60,8 +60,7 @@ def plot_contractions(path: Path, t: np.ndarray, names, contractions: np.ndarray
 @click.option("--markers", "markers_spec", required=True,
               help="Marker set (.toml) whose names match the file's markers, or 'auto' to place the file's layout "
               "on the basis automatically.")
-@click.option("--neutral-frame", default="auto", show_default=True,
-              help="Frame number (from 0) of the neutral face, or 'auto' for the frame closest to rest.")
+@click.option("--neutral-frame", type=NeutralFrame(), default="auto", show_default=True, help=NEUTRAL_FRAME_HELP)
 @click.option("--mode", type=click.Choice(["split-compensated", "split", "joint"]), default="split-compensated",
               show_default=True, help="Solver region mode.")
 @click.option("--units", type=click.Choice(["mm", "cm", "m"]), default=None,
@@ -76,7 +75,7 @@ def plot_contractions(path: Path, t: np.ndarray, names, contractions: np.ndarray
 @click.option("--markers-out", type=OutputFile(), default=None,
               help="Also write the marker set solved with (placed on the surface; with 'auto' the layout found).")
 @force_option
-def solve(marker_file: Path, basis_spec: str, markers_spec: str, neutral_frame: str, mode: str, units: str | None,
+def solve(marker_file: Path, basis_spec: str, markers_spec: str, neutral_frame: str | int, mode: str, units: str | None,
           correspond: tuple[str, ...], out: Path, take_out: Path | None, markers_out: Path | None,
           force: bool) -> None:
     """Solve contractions from MARKER_FILE (labelled marker trajectories) with the live path's solver."""
@@ -96,6 +95,8 @@ def solve(marker_file: Path, basis_spec: str, markers_spec: str, neutral_frame: 
     pairs = parse_correspond(correspond)
     if pairs and markers_spec != "auto":
         raise click.BadParameter("only with --markers auto", param_hint="--correspond")
+    if markers_spec != "auto" and not Path(markers_spec).is_file():
+        raise InputError("marker set not found", markers_spec, "--markers")
     basis = load_basis(basis_spec)
     trajectories = read_trajectories(marker_file, units)
     frame = parse_neutral(neutral_frame, len(trajectories.t))
@@ -105,8 +106,6 @@ def solve(marker_file: Path, basis_spec: str, markers_spec: str, neutral_frame: 
         click.echo(f"placed {len(markers)} markers ({placement.how}); surface RMS {placement.rms_mm:.2f} mm; "
                    f"head markers: {', '.join(n for n, r in zip(markers.names, markers.roles) if r == 'head')}")
     else:
-        if not Path(markers_spec).is_file():
-            raise InputError("marker set not found", markers_spec, "--markers")
         markers = MarkerSet.load(markers_spec)
         positions = match_markers(trajectories, markers)
         choice = neutral_for_set(positions, basis, markers, frame)

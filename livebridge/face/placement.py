@@ -261,7 +261,7 @@ def fill_unseen(points: np.ndarray, neutral: int) -> np.ndarray:
 
 def place_markers(points: np.ndarray, names: tuple[str, ...], basis: Basis, neutral: int,
                   correspond: dict[str, int] | None = None,
-                  rigid_tolerance_mm: float = RIGID_TOLERANCE_MM) -> Placement:
+                  rigid_tolerance_mm: float = RIGID_TOLERANCE_MM, rough: np.ndarray | None = None) -> Placement:
     """Place a captured layout on ``basis`` (module docstring).
 
     Parameters
@@ -275,6 +275,9 @@ def place_markers(points: np.ndarray, names: tuple[str, ...], basis: Basis, neut
         At least 4: the rough alignment from them instead of from the cloud's shape.
     rigid_tolerance_mm : float
         Largest 95th-percentile deviation from rigid head motion of a head marker (model mm).
+    rough : ndarray, shape (4, 4), optional
+        A capture-to-model similarity already known (e.g. from a placement on another frame of the take):
+        the rough alignment, instead of finding one.
 
     Returns
     -------
@@ -287,7 +290,9 @@ def place_markers(points: np.ndarray, names: tuple[str, ...], basis: Basis, neut
         raise InputError(f"the neutral frame {neutral} shows {int(seen.sum())} markers; placement needs at least 4",
                          field="neutral-frame")
     surface = MeshSurface(basis.neutral, basis.triangles)
-    if correspond:
+    if rough is not None:
+        how = "carried over from a placement on another frame"
+    elif correspond:
         rough, how = correspondence_alignment(frame, names, correspond, basis)
     else:
         rough, how = rough_alignment(frame[seen], basis, surface)
