@@ -112,7 +112,7 @@ def test_openface_numbered_columns_match_by_landmark_number(style):
 
 def test_missing_and_extra_markers_are_named():
     markers = _set(["lm_00", "lm_01", "nose"])
-    with pytest.raises(InputError, match=r"not in the file: 'nose'"):
+    with pytest.raises(InputError, match=r"missing from the file: 'nose'"):
         match_markers(["0", "1"], markers)
     np.testing.assert_array_equal(match_markers(["0", "1"], markers, allow_missing=True), [0, 1, -1])
     with pytest.raises(InputError, match=r"not in the marker set: 'chin'"):

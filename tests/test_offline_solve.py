@@ -84,7 +84,7 @@ def test_markers_are_matched_by_name_and_mismatches_named(take):
     trajectories = Trajectories(names, take.t, take.marker_positions[:, order])
     np.testing.assert_array_equal(match_markers(trajectories, markers), take.marker_positions)
     renamed = Trajectories(("stray",) + names[1:], take.t, take.marker_positions[:, order])
-    with pytest.raises(InputError, match=f"missing from the file: {names[0]}.*not in the marker set: stray"):
+    with pytest.raises(InputError, match=f"missing from the file: '{names[0]}'.*not in the marker set: 'stray'"):
         match_markers(renamed, markers)
 
 

@@ -291,12 +291,15 @@ def match_markers(names, marker_set: MarkerSet, allow_missing: bool = False, ign
     used = set(index[index >= 0].tolist())
     extra = [name for k, name in enumerate(names) if k not in used]
     missing = [name for name, k in zip(marker_set.names, index) if k < 0]
-    if extra and not ignore_extra:
-        raise InputError(f"{len(extra)} marker{'s' if len(extra) > 1 else ''} not in the marker set: "
-                         f"{_listing(extra)}", source)
+    problems = []  # both at once: a renamed marker shows up as one missing and one extra
     if missing and not allow_missing:
-        raise InputError(f"{len(missing)} marker{'s' if len(missing) > 1 else ''} of the marker set not in the "
-                         f"file: {_listing(missing)}", source)
+        problems.append(f"{len(missing)} marker{'s' if len(missing) > 1 else ''} of the marker set missing from "
+                        f"the file: {_listing(missing)}")
+    if extra and not ignore_extra:
+        problems.append(f"{len(extra)} marker{'s' if len(extra) > 1 else ''} not in the marker set: "
+                        f"{_listing(extra)}")
+    if problems:
+        raise InputError("; ".join(problems), source)
     return index
 
 

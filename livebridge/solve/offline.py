@@ -25,6 +25,7 @@ import numpy as np
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
+from livebridge.face.markers import match_markers as match_names
 from livebridge.face.placement import Placement, fill_unseen, place_markers
 from livebridge.geometry.transforms import apply, invert, transform_scale, umeyama
 from livebridge.reconstruct.align import Alignment, align_to_model
@@ -93,19 +94,15 @@ class OfflineSolution:
 def match_markers(trajectories: Trajectories, markers: MarkerSet) -> np.ndarray:
     """The file's marker positions in the marker set's order, shape (n_frames, n_markers, 3).
 
+    Names match exactly, then by landmark number (OpenFace's numbered columns against a 68-point set):
+    :func:`livebridge.face.markers.match_markers`.
+
     Raises
     ------
     InputError
         Naming the markers the file lacks and those the set does not know.
     """
-    missing = [name for name in markers.names if name not in trajectories.names]
-    extra = [name for name in trajectories.names if name not in markers.names]
-    if missing or extra:
-        parts = ([f"missing from the file: {', '.join(missing)}"] if missing else []) + \
-                ([f"not in the marker set: {', '.join(extra)}"] if extra else [])
-        raise InputError("the file's markers do not match the marker set (" + "; ".join(parts) + ")",
-                         trajectories.source, "markers")
-    index = [trajectories.names.index(name) for name in markers.names]
+    index = match_names(trajectories.names, markers, source=trajectories.source)
     return trajectories.points[:, index]
 
 
