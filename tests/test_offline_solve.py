@@ -14,7 +14,7 @@ from livebridge.face.builtin import builtin_basis, builtin_markers
 from livebridge.solve.offline import NeutralChoice, match_markers, neutral_for_set, solve_positions
 from livebridge.solve.solver import ContractionSolver
 from livebridge.take.trajectories import Trajectories
-from simulators.performer import perform
+from livebridge.simulators.performer import perform
 
 
 @pytest.fixture(scope="module")
@@ -95,3 +95,48 @@ def test_neutral_frame_out_of_range_names_the_option(take, tmp_path):
     result = CliRunner().invoke(main, ["solve", str(path), "--markers", str(tmp_path / "markers.toml"),
                                        "--neutral-frame", "5000", "--out", str(tmp_path / "c.csv")])
     assert result.exit_code != 0 and "--neutral-frame" in result.output and "outside the take" in result.output
+
+
+def _solve_cli(path, tmp_path, *options) -> np.ndarray:
+    """``livebridge solve`` through the command line; the contractions it wrote, shape (n_frames, n_muscles)."""
+    out = tmp_path / f"{path.stem}-{path.suffix[1:]}.csv"
+    result = CliRunner().invoke(main, ["solve", str(path), "--out", str(out), *options])
+    assert result.exit_code == 0, result.output
+    return np.loadtxt(out, delimiter=",", skiprows=1)[:, 1:]
+
+
+def test_every_marker_file_format_solves_as_the_take_it_was_exported_from(take, tmp_path):
+    """The same take as .npz, TRC, CSV and C3D: the same contractions (C3D stores float32 coordinates)."""
+    from livebridge.take.trajectories import read_trajectories, write_trajectories
+
+    builtin_markers().save(tmp_path / "markers.toml")
+    options = ("--markers", str(tmp_path / "markers.toml"), "--neutral-frame", "0")
+    take.to_take().save(tmp_path / "take.npz")
+    reference = _solve_cli(tmp_path / "take.npz", tmp_path, *options)
+    trajectories = read_trajectories(tmp_path / "take.npz")
+    for suffix, atol in ((".trc", 1e-9), (".csv", 1e-9), (".c3d", 2e-3)):
+        write_trajectories(tmp_path / f"take{suffix}", trajectories)
+        contractions = _solve_cli(tmp_path / f"take{suffix}", tmp_path, *options)
+        np.testing.assert_allclose(contractions, reference, atol=atol, err_msg=suffix)
+    assert _rmse(reference, take.contractions) <= 0.02
+
+
+def test_an_openface_landmark_file_solves_with_the_68_point_set(tmp_path):
+    """OpenFace's CSV layout (3D landmarks X_0..Z_67 in mm with one decimal, as OpenFace writes them, numbered)
+    against builtin-68, matched by number."""
+    from livebridge.face.builtin import builtin_landmarks
+
+    performance = perform(builtin_basis(), builtin_landmarks(), 240, fps=30.0, seed=5, script="everyday")
+    points = performance.marker_positions
+    header = ["frame", " face_id", " timestamp", " confidence", " success"]
+    header += [f" {axis}_{k}" for axis in "XYZ" for k in range(68)] + [" AU01_r", " AU12_r"]
+    lines = [",".join(header)]
+    for k, frame in enumerate(points):
+        values = [str(k + 1), "0", f"{k / 30:.3f}", "0.98", "1"]
+        values += [f"{frame[j, axis]:.1f}" for axis in range(3) for j in range(68)] + ["0.00", "1.20"]
+        lines.append(", ".join(values))
+    (tmp_path / "openface.csv").write_text("\n".join(lines) + "\n")
+    contractions = _solve_cli(tmp_path / "openface.csv", tmp_path, "--markers", "builtin-68")
+    rmse = _rmse(contractions, performance.contractions)
+    print(f"OpenFace CSV layout, builtin-68: contraction RMSE {rmse:.4f}")
+    assert rmse <= 0.03

@@ -12,8 +12,8 @@ from livebridge.face.builtin import builtin_basis
 from livebridge.face.markers import MarkerSet
 from livebridge.solve.offline import place_from_positions, solve_positions
 from livebridge.take.npz import Take
-from simulators.performer import perform
-from simulators.rig import generate_markers
+from livebridge.simulators.performer import perform
+from livebridge.simulators.rig import generate_markers
 
 
 def _foreign_take(seed: int):

@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from livebridge.cli import main
 from livebridge.errors import InputError
 from livebridge.take.trajectories import Trajectories, read_trajectories, write_trajectories
-from simulators.performer import perform
+from livebridge.simulators.performer import perform
 
 FPS = 60.0
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from livebridge.cli._options import InputPath, OutputFile, force_option, parse_correspond, refuse_overwrite
 from livebridge.cli.markers import BASIS_HELP, BASIS_TYPE, NEUTRAL_FRAME_HELP, NeutralFrame, load_basis
+from livebridge.face import SHIPPED_MARKER_SETS
 
 
 def rms_path(out: Path) -> Path:
@@ -58,8 +59,8 @@ def plot_contractions(path: Path, t: np.ndarray, names, contractions: np.ndarray
 @click.argument("marker_file", type=InputPath())
 @click.option("--basis", "basis_spec", type=BASIS_TYPE, default="builtin", show_default=True, help=BASIS_HELP)
 @click.option("--markers", "markers_spec", required=True,
-              help="Marker set (.toml) whose names match the file's markers, or 'auto' to place the file's layout "
-              "on the basis automatically.")
+              help="Marker set whose names match the file's markers (.toml, or a shipped set: builtin, builtin-68, "
+              "ict-68), or 'auto' to place the file's layout on the basis automatically.")
 @click.option("--neutral-frame", type=NeutralFrame(), default="auto", show_default=True, help=NEUTRAL_FRAME_HELP)
 @click.option("--mode", type=click.Choice(["split-compensated", "split", "joint"]), default="split-compensated",
               show_default=True, help="Solver region mode.")
@@ -80,7 +81,7 @@ def solve(marker_file: Path, basis_spec: str, markers_spec: str, neutral_frame: 
           force: bool) -> None:
     """Solve contractions from MARKER_FILE (labelled marker trajectories) with the live path's solver."""
     from livebridge.errors import InputError
-    from livebridge.face.markers import MarkerSet
+    from livebridge.face.shipped import load_marker_set
     from livebridge.solve.offline import (
         match_markers,
         neutral_for_set,
@@ -95,7 +96,7 @@ def solve(marker_file: Path, basis_spec: str, markers_spec: str, neutral_frame: 
     pairs = parse_correspond(correspond)
     if pairs and markers_spec != "auto":
         raise click.BadParameter("only with --markers auto", param_hint="--correspond")
-    if markers_spec != "auto" and not Path(markers_spec).is_file():
+    if markers_spec not in ("auto", *SHIPPED_MARKER_SETS) and not Path(markers_spec).is_file():
         raise InputError("marker set not found", markers_spec, "--markers")
     basis = load_basis(basis_spec)
     trajectories = read_trajectories(marker_file, units)
@@ -106,7 +107,7 @@ def solve(marker_file: Path, basis_spec: str, markers_spec: str, neutral_frame: 
         click.echo(f"placed {len(markers)} markers ({placement.how}); surface RMS {placement.rms_mm:.2f} mm; "
                    f"head markers: {', '.join(n for n, r in zip(markers.names, markers.roles) if r == 'head')}")
     else:
-        markers = MarkerSet.load(markers_spec)
+        markers = load_marker_set(markers_spec)
         positions = match_markers(trajectories, markers)
         choice = neutral_for_set(positions, basis, markers, frame)
     click.echo(choice.reason)
