@@ -11,10 +11,10 @@ from click.testing import CliRunner
 from livebridge.cli import main
 from livebridge.errors import InputError
 from livebridge.face.builtin import builtin_basis, builtin_markers
+from livebridge.simulators.performer import perform
 from livebridge.solve.offline import NeutralChoice, match_markers, neutral_for_set, solve_positions
 from livebridge.solve.solver import ContractionSolver
 from livebridge.take.trajectories import Trajectories
-from livebridge.simulators.performer import perform
 
 
 @pytest.fixture(scope="module")

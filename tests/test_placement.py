@@ -10,10 +10,10 @@ from scipy.spatial.transform import Rotation
 from livebridge.cli import main
 from livebridge.face.builtin import builtin_basis
 from livebridge.face.markers import MarkerSet
-from livebridge.solve.offline import place_from_positions, solve_positions
-from livebridge.take.npz import Take
 from livebridge.simulators.performer import perform
 from livebridge.simulators.rig import generate_markers
+from livebridge.solve.offline import place_from_positions, solve_positions
+from livebridge.take.npz import Take
 
 
 def _foreign_take(seed: int):

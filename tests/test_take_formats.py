@@ -11,8 +11,8 @@ from click.testing import CliRunner
 
 from livebridge.cli import main
 from livebridge.errors import InputError
-from livebridge.take.trajectories import Trajectories, read_trajectories, write_trajectories
 from livebridge.simulators.performer import perform
+from livebridge.take.trajectories import Trajectories, read_trajectories, write_trajectories
 
 FPS = 60.0
 
