@@ -29,7 +29,7 @@ from livebridge.calibration.boards import Board
 from livebridge.calibration.extrinsics import average_transform
 
 AGREE_DEG = 20.0
-"""Proposals within this angle (and :data:`AGREE_DISTANCE` of the distance) agree; the labellings differ by >= 90 deg."""
+"""Proposals within this angle (and the position tolerance) agree; look-alike labellings differ by >= 90 deg."""
 AGREE_DISTANCE = 0.1
 """Position tolerance as a fraction of the median camera-to-board distance."""
 
