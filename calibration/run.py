@@ -49,6 +49,8 @@ class Calibration:
         Cameras in the final world frame (mm).
     board : Board
     detections : Detections
+        As given, with the corners of a symmetric chessboard in the order calibration chose
+        (:mod:`livebridge.calibration.orientation`).
     board2world : ndarray, shape (n_views, 4, 4); NaN for views not used
     errors : ndarray, shape (n_cams, n_views, n_corners)
         Final reprojection error (px) of every detected corner.
