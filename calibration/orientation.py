@@ -13,10 +13,10 @@ pose graph is built:
    a pose of the new camera; the proposal most views agree with (rotation and
    position) wins, and each view takes the labelling closest to it.
 2. Per view (the same turn for every camera, which no image can tell apart):
-   the reference view (most cameras, then most corners) has the board's +y
-   (down its columns as printed) pointing down in the images; every other view
-   the turn whose board axes are closest to the reference view's, so the board
-   axes do not jump between views.
+   the turn whose board +y (down its columns as printed) points most nearly down
+   the images of the cameras that see the view. A board held within 45 deg of
+   upright (the usual way) so gets its printed order in every view, and the
+   board axes do not jump between views.
 """
 
 from __future__ import annotations
@@ -32,6 +32,8 @@ AGREE_DEG = 20.0
 """Proposals within this angle (and the position tolerance) agree; look-alike labellings differ by >= 90 deg."""
 AGREE_DISTANCE = 0.1
 """Position tolerance as a fraction of the median camera-to-board distance."""
+MAX_SEED_VIEWS = 60
+"""Views whose proposals are tried as the consensus (see :func:`_consensus`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,7 +65,7 @@ class Orientation:
         return board2cam
 
 
-def resolve_orientation(board: Board, board2cam: np.ndarray, counts: np.ndarray) -> Orientation:
+def resolve_orientation(board: Board, board2cam: np.ndarray) -> Orientation:
     """Choose the corner labelling of every detection of a symmetric chessboard.
 
     Parameters
@@ -71,14 +73,12 @@ def resolve_orientation(board: Board, board2cam: np.ndarray, counts: np.ndarray)
     board : Board
     board2cam : ndarray, shape (n_cams, n_views, 4, 4)
         Board poses of the detections as labelled, NaN where not posed.
-    counts : ndarray, shape (n_cams, n_views)
-        Corners seen.
 
     Returns
     -------
     Orientation; all zero turns for a board without look-alike turns.
     """
-    turns = np.zeros(counts.shape, int)
+    turns = np.zeros(board2cam.shape[:2], int)
     options = {r.quarter_turns: r.board_transform for r in board.grid_rotations if r.keeps_colours}
     if len(options) == 1:
         return Orientation(turns)
@@ -86,7 +86,7 @@ def resolve_orientation(board: Board, board2cam: np.ndarray, counts: np.ndarray)
     distances = np.linalg.norm(board2cam[..., :3, 3][posed], axis=1)
     tolerance = AGREE_DISTANCE * (float(np.median(distances)) if distances.size else 1.0)
     world2cam = _place_cameras(board2cam, posed, options, turns, tolerance)
-    _choose_view_turns(board2cam, posed, counts, options, turns, world2cam)
+    _choose_view_turns(board2cam, posed, options, turns, world2cam)
     return Orientation(turns)
 
 
@@ -125,12 +125,20 @@ def _proposals(camera, placed, board2cam, posed, options, turns, world2cam) -> l
 
 
 def _consensus(proposals, tolerance) -> np.ndarray:
-    """The pose most views agree with: the proposal supported by most distinct views, averaged with its supporters."""
+    """The pose most views agree with: the proposal supported by most distinct views, averaged with its supporters.
+
+    Candidates come from at most :data:`MAX_SEED_VIEWS` views spread over the shared ones (memory stays
+    bounded for long videos); support is counted over every proposal.
+    """
     poses = np.stack([pose for _, _, pose in proposals])
     views = np.array([view for view, _, _ in proposals])
-    distance = _distances(poses, poses, tolerance)
+    distinct = np.unique(views)
+    seed_views = distinct[np.unique(np.linspace(0, len(distinct) - 1, min(len(distinct), MAX_SEED_VIEWS))
+                                    .round().astype(int))]
+    seeds = np.flatnonzero(np.isin(views, seed_views))
+    distance = _distances(poses[seeds], poses, tolerance)
     agree = distance <= 1.0
-    support = np.array([len(set(views[row])) for row in agree])
+    support = np.array([len(np.unique(views[row])) for row in agree])
     spread = np.where(agree, distance, 0.0).sum(axis=1)
     best = int(np.lexsort((spread, -support))[0])
     return average_transform(poses[agree[best]])
@@ -150,26 +158,15 @@ def _distances(a: np.ndarray, b: np.ndarray, tolerance: float) -> np.ndarray:
     return np.maximum(angle / AGREE_DEG, position / tolerance)
 
 
-def _choose_view_turns(board2cam, posed, counts, options, turns, world2cam) -> None:
-    """Add one turn per view (the same for every camera) so board axes point down and do not jump between views."""
-    n_cams, n_views = posed.shape
-    rotations = np.full((n_views, 3, 3), np.nan)
-    down = np.full((n_views, 3), np.nan)  # image-down of the cameras, summed, in the world frame
-    for v in range(n_views):
-        cameras = [c for c in range(n_cams) if posed[c, v] and np.isfinite(world2cam[c, 0, 0])]
+def _choose_view_turns(board2cam, posed, options, turns, world2cam) -> None:
+    """Add one turn per view (the same for every camera): the one whose board +y points most nearly down the
+    images of the cameras that see the view (right for a board held within 45 deg of upright)."""
+    for v in range(posed.shape[1]):
+        cameras = [c for c in np.flatnonzero(posed[:, v]) if np.isfinite(world2cam[c, 0, 0])]
         if not cameras:
             continue
         c = cameras[0]
-        board2world = np.linalg.inv(world2cam[c]) @ board2cam[c, v] @ options[int(turns[c, v])]
-        rotations[v] = board2world[:3, :3]
-        down[v] = sum(np.linalg.inv(world2cam[k])[:3, 1] for k in cameras)
-    usable = np.isfinite(rotations[:, 0, 0])
-    if not usable.any():
-        return
-    score = np.where(usable, (posed.sum(axis=0) * 10_000 + counts.sum(axis=0)), -1)
-    reference = int(np.argmax(score))
-    reference_turn = max(options, key=lambda t: (rotations[reference] @ options[t][:3, :3])[:, 1] @ down[reference])
-    target = rotations[reference] @ options[reference_turn][:3, :3]
-    for v in np.flatnonzero(usable):
-        turn = max(options, key=lambda t: np.trace(target.T @ rotations[v] @ options[t][:3, :3]))
+        rotation = (np.linalg.inv(world2cam[c]) @ board2cam[c, v] @ options[int(turns[c, v])])[:3, :3]
+        down = sum(np.linalg.inv(world2cam[k])[:3, 1] for k in cameras)  # image down of each camera, in the world
+        turn = max(options, key=lambda t: (rotation @ options[t][:3, :3])[:, 1] @ down)
         turns[:, v] = np.where(posed[:, v], (turns[:, v] + turn) % 4, 0)

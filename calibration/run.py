@@ -13,8 +13,8 @@ its rows. The frame is always right-handed.
 
 On a chessboard that looks the same turned (square, or COLS + ROWS even), corner 0
 is the one :mod:`livebridge.calibration.orientation` chooses: the same physical
-corner for every camera in a view, with the board's +y pointing down in the images
-of the best-seen view and the board axes kept from view to view.
+corner for every camera in a view, and in each view the one that puts the board's
++y most nearly down in the images (its printed order when held within 45 deg of upright).
 """
 
 from __future__ import annotations
@@ -171,7 +171,7 @@ def _calibrate(detections, board, fisheye, up, origin_view, board_pose, log) -> 
     board2cam = np.stack([board_poses(board, corners[c], intrinsics[c]) for c in range(len(names))])
     _check_front_side(board2cam, names, corners, log)
     counts = np.isfinite(corners[..., 0]).sum(axis=2)
-    orientation = resolve_orientation(board, board2cam, counts)
+    orientation = resolve_orientation(board, board2cam)
     if orientation.turns.any():
         log(f"board corner order: turned {int((orientation.turns != 0).sum())} detections of the symmetric "
             "board to agree across cameras and views")

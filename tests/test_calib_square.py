@@ -146,3 +146,26 @@ def test_board_grid_rotations_map_the_corner_grid_onto_itself():
         for rotation in board.grid_rotations if board.kind == "chessboard" and board.cols == board.rows else ():
             turned = np.rot90(image, -rotation.quarter_turns)
             assert np.array_equal(turned, image) == rotation.keeps_colours, (spec, rotation.quarter_turns)
+
+
+def test_many_views_of_a_four_way_symmetric_board_all_get_the_printed_order():
+    """200 views of an 8x8-corner board (all four turns look alike), each detection turned at random, the board
+    rolled +-25 deg and tilted +-30 deg between views: every view of both cameras gets its printed order back
+    (views rolled 50 deg apart must not pull each other into the neighbouring turn)."""
+    from livebridge.calibration.intrinsics import board_poses, calibrate_intrinsics
+    from livebridge.calibration.orientation import resolve_orientation
+
+    board, group, poses, detections = synthetic_detections(n_cams=2, n_views=200, noise_px=0.1, seed=2,
+                                                           board="chessboard:8x8:40")
+    rng = np.random.default_rng(1)
+    applied = rng.integers(0, 4, detections.corners.shape[:2])
+    corners = detections.corners.copy()
+    for c, v in np.ndindex(corners.shape[:2]):
+        corners[c, v] = corners[c, v, board.grid_rotations[applied[c, v]].order]
+    lenses = [calibrate_intrinsics(board, corners[c], detections.sizes[c]) for c in range(2)]
+    board2cam = np.stack([board_poses(board, corners[c], lenses[c]) for c in range(2)])
+    posed = np.isfinite(board2cam[:, :, 0, 0])
+    assert posed.sum() > 300
+    orientation = resolve_orientation(board, board2cam)
+    assert not np.any(posed & ((applied + orientation.turns) % 4 != 0))
+    np.testing.assert_array_equal(orientation.relabel(board, corners)[posed], detections.corners[posed])
