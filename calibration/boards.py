@@ -18,6 +18,15 @@ Millimetres; origin at the top-left outer corner of the square grid as printed,
 looking at the printed side sees the board's +z pointing away from it).
 ``object_points`` are the detectable corners in that frame; corner ``k`` of a
 chessboard is OpenCV's ``k``-th corner, of a ChArUco board the corner with id ``k``.
+
+Symmetric chessboards
+---------------------
+A chessboard's corner grid maps onto itself under a half turn, and a square one
+(COLS = ROWS) under quarter turns too. Some of these turns swap the square colours
+(the detector tells them apart: corner 0 sits at a dark square); the others
+(:meth:`Board.grid_rotations` with ``keeps_colours``) leave the printed board
+unchanged, so its corner order in one image is ambiguous: calibration resolves
+it across views and cameras (:mod:`livebridge.calibration.orientation`).
 """
 
 from __future__ import annotations
@@ -110,6 +119,17 @@ class Board:
         return np.asarray(self.cv_board.getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
 
     @cached_property
+    def grid_rotations(self) -> tuple[GridRotation, ...]:
+        """Turns of the board about its centre that map the corner grid onto itself, identity first.
+
+        A ChArUco board has only the identity (its markers fix the order).
+        """
+        if self.kind != "chessboard":
+            return (GridRotation(0, np.arange(self.n_corners), np.eye(4), True),)
+        turns = (0, 1, 2, 3) if self.cols == self.rows else (0, 2)
+        return tuple(_grid_rotation(self, turn) for turn in turns)
+
+    @cached_property
     def cv_board(self):
         """The ``cv2.aruco.CharucoBoard`` (ChArUco only)."""
         if self.kind != "charuco":
@@ -149,6 +169,45 @@ class Board:
         return image
 
 
+@dataclass(frozen=True, eq=False)
+class GridRotation:
+    """A relabelling of a chessboard's corners by a turn of the board about its centre.
+
+    Attributes
+    ----------
+    quarter_turns : int
+        0..3, about the board's +z (from +x towards +y).
+    order : ndarray of int, shape (n_corners,)
+        Corner ``k`` relabelled is corner ``order[k]`` as labelled before: ``corners[order]``.
+    board_transform : ndarray, shape (4, 4)
+        The turn in the board frame: ``object_points[order] == apply(board_transform, object_points)``, so
+        a pose ``board2cam`` of the old labelling becomes ``board2cam @ board_transform``.
+    keeps_colours : bool
+        The printed board looks the same after the turn (so no image tells the labellings apart).
+    """
+
+    quarter_turns: int
+    order: np.ndarray
+    board_transform: np.ndarray
+    keeps_colours: bool
+
+
+def _grid_rotation(board: Board, turn: int) -> GridRotation:
+    width, height = board.size_mm
+    centre = np.array([width / 2, height / 2, 0.0])
+    cos, sin = np.rint(np.cos(turn * np.pi / 2)), np.rint(np.sin(turn * np.pi / 2))
+    rotation = np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]])
+    transform = np.eye(4)
+    transform[:3, :3] = rotation
+    transform[:3, 3] = centre - rotation @ centre
+    points = board.object_points
+    turned = points @ rotation.T + transform[:3, 3]
+    order = np.argmin(np.linalg.norm(turned[:, None] - points[None], axis=2), axis=1)
+    first_square = rotation @ (np.array([0.5, 0.5, 0.0]) * board.square_mm - centre) + centre
+    column, row = np.floor(first_square[:2] / board.square_mm).astype(int)
+    return GridRotation(turn, order, transform, bool((column + row) % 2 == 0))
+
+
 MAX_SQUARES = 100
 """The most squares (or inner corners) a board spec has along a side."""
 
@@ -179,8 +238,6 @@ def parse_board(spec: str) -> Board:
     if kind == "chessboard":
         if cols < 2 or rows < 2:
             fail("a chessboard needs at least 2x2 inner corners")
-        if cols == rows:
-            fail("a square chessboard pattern is ambiguous under rotation: use COLS != ROWS")
         return Board("chessboard", cols, rows, square)
     if cols < 3 or rows < 3:
         fail("a ChArUco board needs at least 3x3 squares")

@@ -114,19 +114,22 @@ def _min_spacing(corners: np.ndarray, board: Board) -> float:
 
 
 def _orient_chessboard(board: Board, gray: np.ndarray, corners: np.ndarray) -> np.ndarray:
-    """Put corner 0 next to a dark square, as printed (OpenCV may return the grid rotated by 180 degrees).
+    """Put corner 0 next to a dark square, as printed (OpenCV may return the grid turned).
 
-    The square between corners 0, 1, COLS, COLS+1 is dark on the printed board; after a 180-degree
-    turn it is light when COLS + ROWS is odd. Boards with COLS + ROWS even are symmetric and left as found.
+    The square between corners 0, 1, COLS, COLS+1 is dark on the printed board. When the detector's order
+    has it light, the grid is turned by the first turn that swaps the colours (a half turn when COLS + ROWS
+    is odd, a quarter turn on a square board of odd COLS). Turns that keep the colours are left as found:
+    calibration resolves them across views (:mod:`livebridge.calibration.orientation`).
     """
-    if (board.cols + board.rows) % 2 == 0:
+    swapping = [r for r in board.grid_rotations if not r.keeps_colours]
+    if not swapping:
         return corners
     grid = corners.reshape(board.rows, board.cols, 2)
     first = grid[:2, :2].reshape(-1, 2).mean(axis=0)  # square (1, 1) counted from the outer corner: dark
     second = grid[:2, 1:3].reshape(-1, 2).mean(axis=0)  # its neighbour along x: light
     values = cv2.getRectSubPix(gray.astype(np.float32), (3, 3), tuple(first)).mean(), \
         cv2.getRectSubPix(gray.astype(np.float32), (3, 3), tuple(second)).mean()
-    return corners[::-1].copy() if values[0] > values[1] else corners
+    return corners[swapping[0].order].copy() if values[0] > values[1] else corners
 
 
 _DETECTORS: dict[Board, object] = {}

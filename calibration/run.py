@@ -10,10 +10,16 @@ makes +y up and +z out of the board towards the cameras (the face model's
 convention); ``--up z`` makes +z up and +y into the board. With the board
 lying ``flat`` (printed side up): up is the board's front normal, +x along
 its rows. The frame is always right-handed.
+
+On a chessboard that looks the same turned (square, or COLS + ROWS even), corner 0
+is the one :mod:`livebridge.calibration.orientation` chooses: the same physical
+corner for every camera in a view, and in each view the one that puts the board's
++y most nearly down in the images (its printed order when held within 45 deg of upright).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from collections.abc import Callable
@@ -27,6 +33,7 @@ from livebridge.calibration.cameras import Camera, CameraGroup
 from livebridge.calibration.detect import Detections
 from livebridge.calibration.extrinsics import initial_board_poses, initial_extrinsics
 from livebridge.calibration.intrinsics import board_poses, calibrate_intrinsics
+from livebridge.calibration.orientation import resolve_orientation
 from livebridge.calibration.threads import single_threaded
 from livebridge.errors import InputError
 from livebridge.geometry.transforms import rotation_vector
@@ -42,6 +49,8 @@ class Calibration:
         Cameras in the final world frame (mm).
     board : Board
     detections : Detections
+        As given, with the corners of a symmetric chessboard in the order calibration chose
+        (:mod:`livebridge.calibration.orientation`).
     board2world : ndarray, shape (n_views, 4, 4); NaN for views not used
     errors : ndarray, shape (n_cams, n_views, n_corners)
         Final reprojection error (px) of every detected corner.
@@ -161,8 +170,14 @@ def _calibrate(detections, board, fisheye, up, origin_view, board_pose, log) -> 
         log(f"{name}: lens from {len(intrinsics[-1].views)} views, RMS {intrinsics[-1].rms_px:.3f} px")
     board2cam = np.stack([board_poses(board, corners[c], intrinsics[c]) for c in range(len(names))])
     _check_front_side(board2cam, names, corners, log)
-    world2cam = initial_extrinsics(board2cam, names)
     counts = np.isfinite(corners[..., 0]).sum(axis=2)
+    orientation = resolve_orientation(board, board2cam)
+    if orientation.turns.any():
+        log(f"board corner order: turned {int((orientation.turns != 0).sum())} detections of the symmetric "
+            "board to agree across cameras and views")
+    corners, board2cam = orientation.relabel(board, corners), orientation.turn_poses(board, board2cam)
+    detections = dataclasses.replace(detections, corners=orientation.relabel(board, detections.corners))
+    world2cam = initial_extrinsics(board2cam, names)
     board2world = initial_board_poses(board2cam, world2cam, counts)
     result = bundle_adjust(board, corners, np.stack([i.matrix for i in intrinsics]),
                            np.stack([i.distortions for i in intrinsics]), world2cam, board2world, fisheye)

@@ -11,6 +11,7 @@ give the same image bit for bit.
 
 from __future__ import annotations
 
+import time
 from functools import lru_cache
 
 import cv2
@@ -18,6 +19,10 @@ import numpy as np
 
 from livebridge.calibration.boards import Board, parse_board
 from livebridge.calibration.cameras import Camera, CameraGroup, undistort_normalised
+from livebridge.capture.frame import Frame
+from livebridge.capture.sources import SourceBase
+from livebridge.devices.url import DeviceURL
+from livebridge.errors import InputError
 from livebridge.geometry.transforms import apply, look_at
 
 BACKGROUND = 110.0  # grey level behind the board
@@ -197,3 +202,74 @@ def project_board(board: Board | str, group: CameraGroup, board2world: np.ndarra
                 continue
             out[c, v, inside] = pixels[inside]
     return out
+
+
+# ---------------------------------------------------------------- a simulated rig filming a board (sim://rig?board=)
+
+BOARD_URL_KEYS = {"board", "cameras", "camera", "views", "seed", "size", "noise", "blur", "frames"}
+
+
+class BoardSource(SourceBase):
+    """One camera of :func:`example_rig` filming a board held still in each of :func:`example_board_poses`.
+
+    Frame ``seq`` shows pose ``seq % views`` (the poses repeat, like someone waving the board around again),
+    with noise seeded by ``(seed, camera, seq)``, so every source of one URL but ``camera`` shows the same
+    board at the same ``seq``. Unpaced; ``frames=N`` ends the source after N frames.
+    """
+
+    def __init__(self, board: Board, group: CameraGroup, camera: int, poses: np.ndarray, seed: int,
+                 noise: float, blur_px: float, n_frames: int | None):
+        self.board, self.group, self.camera, self.poses = board, group, int(camera), poses
+        self.seed, self.noise, self.blur_px, self.n_frames = seed, noise, blur_px, n_frames
+        self.source_id = group.cameras[self.camera].name
+        self.realtime = False
+        self._seq, self._running = 0, False
+
+    def start(self) -> None:
+        self._running = True
+
+    def stop(self) -> None:
+        self._running = False
+
+    @property
+    def calibration(self) -> Camera:
+        """The simulated camera (ground truth)."""
+        return self.group.cameras[self.camera]
+
+    def read(self, timeout: float | None = None) -> Frame | None:
+        if not self._running:
+            raise RuntimeError(f"{self.source_id}: read() before start()")
+        if self.n_frames is not None and self._seq >= self.n_frames:
+            self._end(None)  # the end of the simulated take, not a fault
+            return None
+        seq = self._seq
+        self._seq += 1
+        rng = np.random.default_rng((self.seed, self.camera, seq))
+        image = render_board_view(self.board, self.calibration, self.poses[seq % len(self.poses)], self.blur_px,
+                                  self.noise, rng, supersample=2)
+        return Frame(image=image, t_capture=time.monotonic(), seq=seq, source_id=self.source_id)
+
+
+def open_board_url(url: DeviceURL) -> list[BoardSource]:
+    """Sources of ``sim://rig?board=SPEC&cameras=2&camera=0&views=12&seed=0&size=640x480&noise=2&blur=0.7
+    &frames=N``: the cameras of :func:`example_rig` (``cameras``, ``size``, ``seed``) filming the board ``SPEC``
+    in ``views`` poses of :func:`example_board_poses` (seed ``seed + 1``); ``camera=i``: only camera ``i`` (one
+    source per URL, as ``livebridge calibrate run --sources`` wants)."""
+    url.check_known(BOARD_URL_KEYS)
+    try:
+        board = parse_board(url.query["board"])
+    except InputError as error:
+        raise InputError(error.message, url.url, "board") from None
+    n_cams = url.take("cameras", int, 2, within=(1, 16))
+    seed = url.take("seed", int, 0, within=(0, 2**31 - 1))
+    size = url.query.get("size", "640x480").lower().split("x")
+    if len(size) != 2 or not all(part.isdigit() and 64 <= int(part) <= 4096 for part in size):
+        raise InputError("size must look like 640x480 (64..4096 a side)", url.url, "size")
+    group = example_rig(n_cams, size=(int(size[0]), int(size[1])), seed=seed)
+    poses = example_board_poses(board, url.take("views", int, 12, within=(1, 10_000)), seed=seed + 1)
+    options = dict(seed=seed, noise=url.take("noise", float, 2.0, within=(0.0, 100.0)),
+                   blur_px=url.take("blur", float, 0.7, within=(0.0, 20.0)),
+                   n_frames=url.take("frames", int, None, within=(1, 10**9)))
+    camera = url.take("camera", int, None, within=(0, n_cams - 1))
+    chosen = range(n_cams) if camera is None else [camera]
+    return [BoardSource(board, group, c, poses, **options) for c in chosen]

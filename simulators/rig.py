@@ -1090,7 +1090,12 @@ def _rig_options(url: DeviceURL) -> tuple[RigConfig, dict]:
 
 def open_url(url: DeviceURL) -> list[SimCameraSource]:
     """The registry hook: one source per camera of the rig the URL describes (``frames=N``: the cameras end,
-    like a finished take, after rig frame ``N - 1``; default: never)."""
+    like a finished take, after rig frame ``N - 1``; default: never). ``board=SPEC``: the rig films a
+    calibration board instead (:func:`livebridge.simulators.board_render.open_board_url`)."""
+    if "board" in url.query:
+        from livebridge.simulators.board_render import open_board_url
+
+        return open_board_url(url)
     realtime = url.take("realtime", bool, True)
     rig = rig_from_url(url)  # checks frames too, before building the rig
     sources = rig.sources(realtime=realtime)

@@ -670,6 +670,13 @@ COMMANDS = (
         Bad("no scheme", ("--sources", "a=webcam0"), ("--sources", "scheme")),
         Bad("unknown scheme", ("--sources", "a=webcam://0"), ("--sources", "unknown camera URL scheme")),
         Bad("a parameter twice", ("--sources", "a=sim://rig?fps=30&fps=60"), ("--sources", "'fps'", "2 times")),
+        Bad("sim board spec malformed", ("--sources", "a=sim://rig?board=chessboard:7x7&camera=0"),
+            ("board", "3 ':'-separated")),
+        Bad("sim board camera out of range", ("--sources", "a=sim://rig?board=chessboard:7x7:40&camera=5"),
+            ("camera", "0..1")),
+        Bad("sim board unknown parameter", ("--sources", "a=sim://rig?board=chessboard:7x7:40&fps=30"),
+            ("fps", "unknown")),
+        Bad("sim board size", ("--sources", "a=sim://rig?board=chessboard:7x7:40&size=10x10"), ("size", "640x480")),
     )),
     Command("calibrate show", ("calibrate", "show", "{dir}/calibration.toml"), (
         Bad("PATH missing", ("calibrate", "show", "{dir}/nothing.toml"), ("PATH", "nothing.toml", "file not found"),

@@ -28,8 +28,9 @@ def test_board_specs_parse_and_reject_with_reasons():
     assert chess.n_corners == 40 and chess.squares == (9, 6)
     assert np.allclose(chess.object_points[1] - chess.object_points[0], [25, 0, 0])
     assert parse_board("charuco:6x6:30:20:DICT_5X5_100:legacy").legacy
+    assert parse_board("chessboard:7x7:25").n_corners == 49  # square boards: the corner order is resolved later
     for bad, words in [("charuco:7x5:40:45:DICT_4X4_50", "smaller"), ("charuco:7x5:40:30:NOPE", "dictionary"),
-                       ("chessboard:8x5", "fields"), ("hexboard:3x3:1", "kind"), ("chessboard:5x5:10", "square"),
+                       ("chessboard:8x5", "fields"), ("hexboard:3x3:1", "kind"), ("chessboard:1x5:10", "2x2"),
                        ("charuco:20x20:40:30:DICT_4X4_50", "markers"), ("chessboard:8x5:-1", "positive")]:
         with pytest.raises(InputError, match=words):
             parse_board(bad)
