@@ -154,7 +154,7 @@ class DynamixelBus(SerialServoBus):
         self.port = sdk_port(port, timeout_margin_ms)
         try:
             opened = self.port.openPort()
-        except Exception as error:  # pyserial raises SerialException (an OSError subclass) or ValueError
+        except (OSError, ValueError) as error:  # pyserial: SerialException (an OSError) or ValueError
             raise InputError(f"cannot open serial port ({error})", self.url) from None
         if not opened or not self.port.setBaudRate(int(baud)):
             raise InputError(f"cannot open the port at {baud} baud", self.url)
