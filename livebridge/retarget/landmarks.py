@@ -74,7 +74,7 @@ class LandmarkSet(MarkerSet):
         try:
             self.check_mesh(n_triangles)
         except InputError as error:
-            raise InputError(error.message, source, error.field.replace("marker ", "landmark ")) from None
+            raise InputError(error.message, source, error.field) from None
         return self
 
     def as_dict(self, vertices: np.ndarray, triangles: np.ndarray) -> dict[str, np.ndarray]:
@@ -109,7 +109,7 @@ def thesis_22_from_68(markers_68: MarkerSet, vertices: np.ndarray, triangles: np
         raise InputError(f"not a 68-point set: {', '.join(missing[:5])} missing", field="markers")
     positions = markers_68.positions(vertices, triangles)
     rows = {"triangles": [], "barycentric": [], "regions": [], "roles": []}
-    for name, source in THESIS_22:
+    for _, source in THESIS_22:
         number = SADDLE_BRIDGE if isinstance(source, tuple) else source
         k = where[landmark_name(number)]
         triangle, barycentric = markers_68.triangles[k], markers_68.barycentric[k]
@@ -209,10 +209,10 @@ def _region(name: str) -> str:
     return "upper" if isinstance(source, int) and source in LANDMARKS_68_UPPER else "lower"
 
 
-def place_at_vertices(vertex_ids: dict[str, int], triangles: np.ndarray, source=None) -> LandmarkSet:
+def place_at_vertices(vertex_ids: dict[str, int], n_vertices: int, triangles: np.ndarray,
+                      source=None) -> LandmarkSet:
     """Landmarks exactly at mesh vertices (``{name: vertex id}``); errors name ``source`` and the landmark."""
     triangles = np.asarray(triangles, dtype=np.int64)
-    n_vertices = int(triangles.max()) + 1 if triangles.size else 0
     chosen, bary = [], []
     for name, vertex in vertex_ids.items():
         rows, corners = np.nonzero(triangles == vertex)
