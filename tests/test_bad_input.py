@@ -418,6 +418,28 @@ CONTRACTION_CASES = _common_cases() + (
 )
 
 
+# ------------------------------------------------------------------------------------------------ landmark placing
+LANDMARK_IDS_CASES = _toml_cases() + (
+    Case("empty file", _text(""), ("no landmarks",)),
+    Case("id a string", _text('chin = "12"\n'), ("chin", "vertex id")),
+    Case("id fractional", _text("chin = 1.5\n"), ("chin", "vertex id")),
+    Case("id negative", _text("nose_tip = 3\nchin = -1\n"), ("chin", ">= 0")),
+    Case("id off the mesh", _text("nose_tip = 3\nchin = 999999\n"), ("chin", "vertex 999999", "does not exist")),
+    Case("a table", _text("[chin]\nvertex = 3\n"), ("chin", "vertex id")),
+    Case("22 required, 1 given", _text("chin = 3\n"), ("21 landmarks missing", "brow_outer_L")),
+)
+_ON_FACE = "chin,0,-80,89.94\n"
+LANDMARK_POINTS_CASES = _common_cases() + (
+    Case("not utf-8", _bytes(b"chin,0,\xff,1\n"), ("not UTF-8",)),
+    Case("empty file", _text(""), ("no landmarks",)),
+    Case("header only", _text("name,x,y,z\n"), ("no landmarks",)),
+    Case("three fields", _text(_ON_FACE + "nose_tip,0,-7\n"), ("line 2", "4 fields")),
+    Case("text coordinate", _text(_ON_FACE + "nose_tip,0,up,120\n"), ("line 2", "nose_tip", "numbers")),
+    Case("NaN coordinate", _text(_ON_FACE + "nose_tip,0,nan,120\n"), ("line 2", "nose_tip", "finite")),
+    Case("a landmark twice", _text(_ON_FACE + _ON_FACE), ("line 2", "'chin'", "twice")),
+    Case("far off the surface", _text(_ON_FACE + "nose_tip,0,-7,160\n"), ("nose_tip", "mm from the mesh surface")),
+)
+
 FORMATS = (
     Format("basis", "basis.npz", lambda path, folder: ["basis", "show", str(path), "--out", str(folder / "out.png")],
            BASIS_CASES),
@@ -427,6 +449,15 @@ FORMATS = (
     Format("calibration", "calibration.toml", lambda path, folder: ["calibrate", "show", str(path)],
            CALIBRATION_CASES),
     Format("session", "session.toml", lambda path, folder: ["run", str(path)], SESSION_CASES),
+    Format("landmark ids", "ids.toml", lambda path, folder: ["landmarks", "place", "builtin", "--vertices", str(path),
+                                                            "--require-22", "--out", str(folder / "lm.toml")],
+           LANDMARK_IDS_CASES),
+    Format("landmark points", "points.csv", lambda path, folder: ["landmarks", "place", "builtin", "--points",
+                                                                 str(path), "--out", str(folder / "lm.toml")],
+           LANDMARK_POINTS_CASES),
+    Format("landmarks", "landmarks.toml", lambda path, folder: ["landmarks", "show", str(folder / "basis.npz"),
+                                                               str(path), "--out", str(folder / "out.png")],
+           MARKER_CASES, setup=_write_basis),
     Format("contractions", "contractions.csv",
            lambda path, folder: ["play", str(path), "--rig", str(folder / "head.toml"), "--no-render"],
            CONTRACTION_CASES, setup=_write_rig),
@@ -729,6 +760,30 @@ COMMANDS = (
     Command("bench", ("bench",), (
         Bad("NAME unknown", ("fastest",), ("NAME", "'fastest'")),
     )),
+    Command("landmarks place", ("landmarks", "place", "builtin", "--vertices", "{dir}/ids.toml", "--out",
+                                "{dir}/lm.toml"), (
+        *_output_cases(suffix=".toml"),
+        *_input_cases("--vertices"),
+        *_input_cases("--points"),
+        *_numbers("--max-distance", _NOT_FINITE + ("0", "-1")),
+        Bad("--units unknown", ("--units", "inch"), ("--units", "inch")),
+        Bad("both --vertices and --points", ("--points", "{dir}/contractions.csv"), ("--vertices", "--points")),
+        Bad("MESH missing", ("landmarks", "place", "{dir}/nothing.obj", "--vertices", "{dir}/ids.toml", "--out",
+                             "{dir}/lm.toml"), ("MESH", "nothing.obj", "file not found"), True),
+        Bad("MESH of an unknown type", ("landmarks", "place", "{dir}/contractions.csv", "--vertices",
+                                        "{dir}/ids.toml", "--out", "{dir}/lm.toml"),
+            ("contractions.csv", "unknown mesh type", "'.csv'"), True),
+    )),
+    Command("landmarks show", ("landmarks", "show", "builtin", "builtin-22", "--out", "{dir}/lm.png"), (
+        *_output_cases(),
+        *_numbers("--yaw", _NOT_FINITE + ("91", "-91")),
+        *_numbers("--dpi", ("0", "601", "x")),
+        Bad("LANDMARKS missing", ("landmarks", "show", "builtin", "{dir}/nothing.toml", "--out", "{dir}/lm.png"),
+            ("LANDMARKS", "nothing.toml", "file not found"), True),
+        Bad("LANDMARKS not on this mesh", ("landmarks", "show", "{dir}/basis.npz", "builtin-22", "--out",
+                                           "{dir}/lm.png"), ("builtin-22", "marker brow_outer_L", "does not exist"),
+            True),
+    )),
     Command("take show", ("take", "show", "{dir}/take.npz"), (
         *_numbers("--rate", _NOT_FINITE + ("0", "-1", "1e9")),
         Bad("--units unknown", ("--units", "inch"), ("--units", "inch")),
@@ -757,6 +812,7 @@ def _option_work(folder: Path) -> None:
     _calibration()(folder / "calibration.toml")
     (folder / "session.toml").write_text(_SIM)
     (folder / "contractions.csv").write_text("t,jaw\n0,0.5\n")
+    (folder / "ids.toml").write_text("chin = 3\n")
     _write_rig(folder)
     (folder / "manifest.toml").write_text("x = 1\n")
     (folder / "take.npz").write_bytes(b"not read: the options are refused first")

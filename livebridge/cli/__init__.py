@@ -31,6 +31,7 @@ from livebridge.errors import InputError, os_error_reason
 _COMMANDS = (
     ("livebridge.cli.basis", "basis"),
     ("livebridge.cli.markers", "markers"),
+    ("livebridge.cli.landmarks", "landmarks"),
     ("livebridge.cli.calibrate", "calibrate"),
     ("livebridge.cli.cameras", "devices"),
     ("livebridge.cli.servo", "servo"),

@@ -1,0 +1,1 @@
+"""Expression transfer between faces: landmarks, control points and 3D thin-plate splines."""
