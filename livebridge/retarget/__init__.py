@@ -1,1 +1,1 @@
-"""Expression transfer between faces: landmarks, control points and 3D thin-plate splines."""
+"""Expression transfer between faces (Erdogdu, chapters 4-5): landmark sets and 3D thin-plate splines."""

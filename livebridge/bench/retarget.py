@@ -1,0 +1,119 @@
+"""Retargeting: TPS warps of a 10k-vertex face per frame vs refitting scipy's RBFInterpolator, and fit times."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+WARP_LIMIT_MS = 2.0
+CONTROL_COUNTS = (22, 60)
+FIT_COUNTS = (22, 500, 3000)
+
+
+def bench_face():
+    """(name, neutral vertices (m, 3) mm): the ICT neutral when the reference data is here, else the built-in face."""
+    from livebridge.bench.data import ict_basis
+
+    basis = ict_basis()
+    if basis is not None:
+        return "ict", basis.neutral
+    from livebridge.face.builtin import builtin_basis
+
+    return "builtin", builtin_basis().neutral
+
+
+def spread_vertices(vertices: np.ndarray, n: int) -> np.ndarray:
+    """n vertices (n, 3) spread over the mesh by farthest-point sampling (deterministic)."""
+    chosen = [int(np.argmin(vertices[:, 1]))]
+    distance = np.linalg.norm(vertices - vertices[chosen[0]], axis=1)
+    for _ in range(n - 1):
+        chosen.append(int(np.argmax(distance)))
+        distance = np.minimum(distance, np.linalg.norm(vertices - vertices[chosen[-1]], axis=1))
+    return vertices[chosen]
+
+
+def frame_targets(control: np.ndarray, n_frames: int, rng: np.random.Generator) -> np.ndarray:
+    """Control points moved by a few mm, smoothly over the face and differently every frame, (frames, n, 3)."""
+    centre, size = control.mean(axis=0), np.ptp(control, axis=0).max()
+    phases = rng.uniform(0, 2 * np.pi, (n_frames, 1, 3))
+    wave = np.sin((control - centre)[None] @ rng.normal(size=(n_frames, 3, 3)) * (3 / size) + phases)
+    return control[None] + 4.0 * wave
+
+
+def _time_warps(warp, frames: np.ndarray) -> tuple[float, np.ndarray]:
+    """(ms per frame, the last warped mesh)."""
+    warp(frames[0])  # first call pays for page faults of the output, not the warp
+    start = time.perf_counter()
+    for targets in frames:
+        warped = warp(targets)
+    return 1e3 * (time.perf_counter() - start) / len(frames), warped
+
+
+def _warp_figures(vertices, n, n_frames, n_peer_frames, rng, log):
+    from scipy.interpolate import RBFInterpolator
+
+    from livebridge.retarget.tps import Warp
+
+    control = spread_vertices(vertices, n)
+    frames = frame_targets(control, n_frames, rng)
+    warp = Warp(control, vertices)
+    ours_ms, _ = _time_warps(warp, frames)
+    peer_frames = frames[:n_peer_frames]
+    start = time.perf_counter()
+    peer = [RBFInterpolator(control, targets, kernel="linear", degree=1)(vertices) for targets in peer_frames]
+    peer_ms = 1e3 * (time.perf_counter() - start) / len(peer_frames)
+    diff = max(float(np.abs(theirs - warp(targets)).max()) for theirs, targets in zip(peer, peer_frames))
+    log(f"{n} control points, {len(vertices)} vertices: warp {ours_ms:.3f} ms/frame, "
+        f"RBFInterpolator refit {peer_ms:.2f} ms/frame (x{peer_ms / ours_ms:.1f}), max |diff| {diff:.2e} mm")
+    return ours_ms, peer_ms, diff
+
+
+def _fit_ms(vertices, n, rng, repeats):
+    """(our fit ms, RBFInterpolator fit ms) through n points near the face."""
+    from scipy.interpolate import RBFInterpolator
+
+    from livebridge.retarget.tps import fit_tps
+
+    if n <= len(vertices):
+        control = spread_vertices(vertices, n)
+    else:
+        control = vertices[rng.choice(len(vertices), n, replace=False)]
+    targets = frame_targets(control, 1, rng)[0]
+    timings = {}
+    for name, fit in (("ours", lambda: fit_tps(control, targets)),
+                      ("peer", lambda: RBFInterpolator(control, targets, kernel="linear", degree=1))):
+        if repeats > 1:
+            fit()  # first call pays for lazy set-up in both, not for the fit
+        start = time.perf_counter()
+        for _ in range(repeats):
+            fit()
+        timings[name] = 1e3 * (time.perf_counter() - start) / repeats
+    return timings["ours"], timings["peer"]
+
+
+def run(quick: bool, log) -> dict:
+    rng = np.random.default_rng(16)
+    face, vertices = bench_face()
+    n_frames, n_peer_frames = (100, 10) if quick else (500, 40)
+    warp_ms, ratio, diff = {}, {}, 0.0
+    for n in CONTROL_COUNTS:
+        ours, peer, worst = _warp_figures(vertices, n, n_frames, n_peer_frames, rng, log)
+        warp_ms[n], ratio[n], diff = ours, peer / ours, max(diff, worst)
+    fit_ms, peer_fit_ms = {}, {}
+    for n in FIT_COUNTS:
+        fit_ms[n], peer_fit_ms[n] = _fit_ms(vertices, n, rng, repeats=1 if n > 1000 else 5)
+        log(f"fit through {n} points: {fit_ms[n]:.2f} ms (RBFInterpolator {peer_fit_ms[n]:.2f} ms)")
+    worst_warp = max(warp_ms.values())
+    return {
+        "face": face, "vertices": len(vertices), "control_points": list(CONTROL_COUNTS), "frames": n_frames,
+        "warp_ms_per_frame": worst_warp,
+        "warp_ms_per_frame_by_control_points": warp_ms,
+        "warp_limit_ms": WARP_LIMIT_MS,
+        "warp_vs_rbfinterpolator": min(ratio.values()),
+        "warp_vs_rbfinterpolator_by_control_points": ratio,
+        "max_abs_diff_vs_rbfinterpolator": diff,
+        "fit_ms": fit_ms,
+        "fit_ms_rbfinterpolator": peer_fit_ms,
+        "pass": bool(worst_warp <= WARP_LIMIT_MS and diff < 1e-6),
+    }
