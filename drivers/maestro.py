@@ -99,8 +99,9 @@ class MaestroBus(PySerialServoBus):
         return out
 
     def _clamp(self, channel: int, value: float) -> int:
+        """``value`` (µs) in quarter-µs, inside the servo's limits after rounding to the wire's resolution."""
         setup = self.servos[channel]
-        return us_to_quarters(min(setup.high, max(setup.low, value)))
+        return min(math.floor(setup.high * 4), max(math.ceil(setup.low * 4), us_to_quarters(value)))
 
     def write(self, targets: Mapping[int, float]) -> None:
         quarters = {c: self._clamp(c, v) for c, v in targets.items() if c in self.servos and math.isfinite(v)}

@@ -75,3 +75,19 @@ def test_driver_on_simulator():
         assert sim.wait_until(lambda: sim.target[:6] == [0] * 6)
     finally:
         bus.close()
+
+
+def test_limits_off_the_quarter_microsecond_grid_are_kept_after_rounding():
+    """A limit of 64.625 us rounds to 258.5 quarters: the wire gets 259 (64.75 us), never 258 (64.5, past it)."""
+    bus = open_bus("simmaestro://?channels=2")
+    try:
+        sim = bus.companion
+        bus.serial.timeout = 2.0
+        bus.configure([ServoSetup(c, 64.625, 2000.375, 1500, name=f"c{c}") for c in (0, 1)], 0.02)
+        bus.activate()
+        logged = len(sim.target_log)
+        bus.write({0: 64.625, 1: 2000.375})
+        assert sim.wait_until(lambda: len(sim.target_log) >= logged + 2)
+        assert sim.target_log[logged:logged + 2] == [(0, 259), (1, 8001)]  # what went over the wire
+    finally:
+        bus.close()
