@@ -1,4 +1,5 @@
-"""Retargeting: TPS warps of a 10k-vertex face per frame vs refitting scipy's RBFInterpolator, and fit times."""
+"""Retargeting: TPS warps of a 10k-vertex face per frame vs refitting scipy's RBFInterpolator, fit times, and
+basis retargeting (time, self-transfer, a known warp against the naive nearest-vertex baseline)."""
 
 from __future__ import annotations
 
@@ -7,8 +8,78 @@ import time
 import numpy as np
 
 WARP_LIMIT_MS = 2.0
+TRANSFER_LIMIT_S = 1.0
+NAIVE_RATIO_LIMIT = 0.5
 CONTROL_COUNTS = (22, 60)
 FIT_COUNTS = (22, 500, 3000)
+
+
+def bench_basis():
+    """(name, basis, its landmark set): the ICT basis when the reference data is here, else the built-in face."""
+    from livebridge.bench.data import ict_basis
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    basis = ict_basis()
+    if basis is not None:
+        return "ict", basis, load_landmark_set("ict-22")
+    from livebridge.face.builtin import builtin_basis
+
+    return "builtin", builtin_basis(), load_landmark_set("builtin-22")
+
+
+def known_warp(points: np.ndarray, landmarks: dict[str, np.ndarray]) -> np.ndarray:
+    """phi: a smooth non-linear warp to other proportions, points (n, 3) mm -> (n, 3) mm.
+
+    Per-axis scale 0.85 / 1.2 / 0.9 (narrower, taller, flatter), a wider mouth (x stretched up to 25% near
+    the mouth), a longer nose (the nose tip region pushed down and out) and a bent face (z falls off with x^2).
+    """
+    mouth = 0.5 * (landmarks["mouth_corner_L"] + landmarks["mouth_corner_R"])
+    tip = landmarks["nose_tip"]
+    size = float(np.ptp(np.array(list(landmarks.values())), axis=0).max())
+    q = points - mouth
+    near_mouth = np.exp(-((q[:, 1] / (0.35 * size)) ** 2))
+    near_nose = np.exp(-np.sum(((points - tip) / (0.3 * size)) ** 2, axis=1))
+    x = 0.85 * q[:, 0] * (1 + 0.25 * near_mouth)
+    y = 1.2 * q[:, 1] - 0.08 * size * near_nose
+    z = 0.9 * q[:, 2] + 0.04 * size * near_nose - 0.25 * q[:, 0] ** 2 / size
+    return np.stack([x, y, z], axis=1) + mouth
+
+
+def transfer_figures(log) -> dict:
+    """Basis retargeting: time onto the warped face, self-transfer error, known-warp error vs the naive baseline."""
+    from livebridge.retarget.basis import naive_transfer, relative_errors, retarget_basis
+    from livebridge.retarget.tps import Kernel
+
+    face, basis, landmarks = bench_basis()
+    self_error = max(float(np.nanmax(relative_errors(
+        retarget_basis(basis, landmarks, basis.neutral, basis.triangles, landmarks, kernel).elements,
+        basis.elements))) for kernel in Kernel)
+    positions = landmarks.as_dict(basis.neutral, basis.triangles)
+    target = known_warp(basis.neutral, positions)
+    truth = np.stack([known_warp(basis.neutral + e, positions) - target for e in basis.elements])
+    naive = relative_errors(naive_transfer(basis, landmarks, target, basis.triangles, landmarks), truth)
+    errors, seconds = {}, {}
+    for kernel in Kernel:
+        start = time.perf_counter()
+        moved = retarget_basis(basis, landmarks, target, basis.triangles, landmarks, kernel)
+        seconds[kernel.value] = time.perf_counter() - start
+        errors[kernel.value] = relative_errors(moved.elements, truth)
+        log(f"basis transfer ({kernel.value}) of {basis.n_muscles} elements onto {len(target)} vertices: "
+            f"{seconds[kernel.value]:.3f} s, known-warp error worst {np.nanmax(errors[kernel.value]):.3f} "
+            f"(naive {np.nanmax(naive):.3f}) of element RMS")
+    ratio = {name: float(np.nanmax(e / naive)) for name, e in errors.items()}
+    log(f"self-transfer worst {self_error:.2e} of element RMS; error vs naive (worst element) {ratio}")
+    return {
+        "transfer_face": face,
+        "basis_transfer_s": seconds[Kernel.BIHARMONIC.value],
+        "basis_transfer_s_by_kernel": seconds,
+        "basis_transfer_limit_s": TRANSFER_LIMIT_S,
+        "error_vs_naive": ratio[Kernel.BIHARMONIC.value],
+        "error_vs_naive_by_kernel": ratio,
+        "known_warp_error": {name: float(np.nanmax(e)) for name, e in errors.items()},
+        "known_warp_error_naive": float(np.nanmax(naive)),
+        "self_transfer_error": self_error,
+    }
 
 
 def bench_face():
@@ -105,6 +176,7 @@ def run(quick: bool, log) -> dict:
         fit_ms[n], peer_fit_ms[n] = _fit_ms(vertices, n, rng, repeats=1 if n > 1000 else 5)
         log(f"fit through {n} points: {fit_ms[n]:.2f} ms (RBFInterpolator {peer_fit_ms[n]:.2f} ms)")
     worst_warp = max(warp_ms.values())
+    transfer = transfer_figures(log)
     return {
         "face": face, "vertices": len(vertices), "control_points": list(CONTROL_COUNTS), "frames": n_frames,
         "warp_ms_per_frame": worst_warp,
@@ -115,5 +187,7 @@ def run(quick: bool, log) -> dict:
         "max_abs_diff_vs_rbfinterpolator": diff,
         "fit_ms": fit_ms,
         "fit_ms_rbfinterpolator": peer_fit_ms,
-        "pass": bool(worst_warp <= WARP_LIMIT_MS and diff < 1e-6),
+        **transfer,
+        "pass": bool(worst_warp <= WARP_LIMIT_MS and diff < 1e-6 and transfer["basis_transfer_s"] <= TRANSFER_LIMIT_S
+                     and transfer["error_vs_naive"] <= NAIVE_RATIO_LIMIT),
     }

@@ -32,6 +32,7 @@ _COMMANDS = (
     ("livebridge.cli.basis", "basis"),
     ("livebridge.cli.markers", "markers"),
     ("livebridge.cli.landmarks", "landmarks"),
+    ("livebridge.cli.retarget", "retarget"),
     ("livebridge.cli.calibrate", "calibrate"),
     ("livebridge.cli.cameras", "devices"),
     ("livebridge.cli.servo", "servo"),
