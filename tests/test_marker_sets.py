@@ -122,3 +122,21 @@ def test_missing_and_extra_markers_are_named():
         match_markers(["X_1", "x1", "nose", "0"], markers)
     with pytest.raises(InputError, match="twice"):
         match_markers(["nose", "nose"], markers)
+
+
+def test_a_set_made_for_another_mesh_is_refused_even_where_its_indices_fit(tmp_path):
+    """ict-68 names triangles of the 18460-triangle ICT face region: on a bigger mesh (the full-head OBJ) every
+    index fits but points elsewhere, so the set's mesh fingerprint refuses it."""
+    from livebridge.face.shipped import shipped_marker_set
+
+    ict = shipped_marker_set("ict-68")
+    assert ict.mesh_triangles == 18460
+    ict.check_mesh(18460)
+    with pytest.raises(InputError, match="made for a mesh of 18460 triangles; this mesh has 52000"):
+        ict.check_mesh(52000)
+    ict.save(tmp_path / "copy.toml")
+    assert MarkerSet.load(tmp_path / "copy.toml").mesh_triangles == 18460
+    assert ict.subset(ict.face_mask).mesh_triangles == 18460
+    (tmp_path / "bad.toml").write_text((tmp_path / "copy.toml").read_text().replace("18460", "-3", 1))
+    with pytest.raises(InputError, match="mesh_triangles"):
+        MarkerSet.load(tmp_path / "bad.toml")

@@ -37,6 +37,9 @@ class MarkerSet:
         ``upper`` or ``lower``: which half of the face solve uses the marker.
     roles : tuple of str, length n_markers
         ``face`` (moves with expression) or ``head`` (rigid head rig).
+    mesh_triangles : int or None
+        The triangle count of the mesh the set was made for, when known (the shipped sets of another
+        topology carry it): a mesh of another count is refused even where every index fits.
     """
 
     names: tuple[str, ...]
@@ -44,6 +47,7 @@ class MarkerSet:
     barycentric: np.ndarray
     regions: tuple[str, ...]
     roles: tuple[str, ...]
+    mesh_triangles: int | None = None
 
     def __post_init__(self):
         n = len(self.names)
@@ -93,11 +97,14 @@ class MarkerSet:
         index = np.flatnonzero(mask) if np.asarray(mask).dtype == bool else np.asarray(mask)
         return MarkerSet(
             tuple(self.names[i] for i in index), self.triangles[index], self.barycentric[index],
-            tuple(self.regions[i] for i in index), tuple(self.roles[i] for i in index),
+            tuple(self.regions[i] for i in index), tuple(self.roles[i] for i in index), self.mesh_triangles,
         )
 
     def check_mesh(self, n_triangles: int) -> None:
-        """Raise if a marker refers to a triangle the mesh does not have."""
+        """Raise if the set was made for another mesh, or a marker refers to a triangle the mesh does not have."""
+        if self.mesh_triangles is not None and n_triangles != self.mesh_triangles:
+            raise InputError(f"made for a mesh of {self.mesh_triangles} triangles; this mesh has {n_triangles} "
+                             "(another topology: place the markers on this mesh)", field="mesh_triangles")
         bad = np.flatnonzero((self.triangles < 0) | (self.triangles >= n_triangles))
         if bad.size:
             raise InputError(f"triangle {self.triangles[bad[0]]} does not exist (mesh has {n_triangles})",
@@ -149,9 +156,11 @@ class MarkerSet:
 
     def save(self, path: str | Path) -> None:
         """Write the marker set as TOML."""
+        mesh = {} if self.mesh_triangles is None else {"mesh_triangles": int(self.mesh_triangles)}
         save_toml(path, {
             "format": MARKERS_FORMAT,
             "version": MARKERS_VERSION,
+            **mesh,
             "marker": [
                 {"name": n, "triangle": int(t), "barycentric": [float(b) for b in bary], "region": r, "role": o}
                 for n, t, bary, r, o in zip(self.names, self.triangles, self.barycentric, self.regions, self.roles)
@@ -162,7 +171,7 @@ class MarkerSet:
     def load(cls, path: str | Path) -> MarkerSet:
         """Read a marker set written by :meth:`save`; every error names the file and the marker's field."""
         data = load_toml(path)
-        unknown = sorted(set(data) - {"format", "version", "marker"})
+        unknown = sorted(set(data) - {"format", "version", "mesh_triangles", "marker"})
         if unknown:
             raise InputError(f"unknown key {unknown[0]!r}", path, unknown[0])
         if data.get("format") != MARKERS_FORMAT:
@@ -179,8 +188,12 @@ class MarkerSet:
         for k, row in enumerate(rows):
             for key, value in zip(fields, _marker_row(row, path, f"marker[{k}]")):
                 fields[key].append(value)
+        mesh_triangles = data.get("mesh_triangles")
+        if mesh_triangles is not None and (isinstance(mesh_triangles, bool) or not isinstance(mesh_triangles, int)
+                                           or mesh_triangles < 1):
+            raise InputError(f"expected a whole number >= 1, got {mesh_triangles!r}", path, "mesh_triangles")
         try:
-            return cls(**fields)
+            return cls(**fields, mesh_triangles=mesh_triangles)
         except InputError as error:
             raise InputError(error.message, path, error.field) from None
 

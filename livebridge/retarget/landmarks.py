@@ -119,7 +119,7 @@ def thesis_22_from_68(markers_68: MarkerSet, vertices: np.ndarray, triangles: np
             triangle, barycentric = snapped[0], bary[0]
         for key, value in zip(rows, (triangle, barycentric, markers_68.regions[k], markers_68.roles[k])):
             rows[key].append(value)
-    return LandmarkSet(THESIS_22_NAMES, **rows)
+    return LandmarkSet(THESIS_22_NAMES, **rows, mesh_triangles=markers_68.mesh_triangles)
 
 
 # ------------------------------------------------------------------------------------------------ the surface
