@@ -8,6 +8,7 @@ from typing import Any
 
 import tomli_w
 
+from livebridge.atomic import write_bytes_atomically
 from livebridge.errors import InputError, file_error
 
 if sys.version_info >= (3, 11):
@@ -33,10 +34,7 @@ def load_toml(path: str | Path) -> dict[str, Any]:
 
 def save_toml(path: str | Path, data: dict[str, Any]) -> None:
     """Write ``data`` as TOML, atomically (a crash never leaves half a file)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(tomli_w.dumps(data).encode())
-    tmp.replace(path)
+    write_bytes_atomically(path, tomli_w.dumps(data).encode(), "TOML file")
 
 
 def require(table: dict[str, Any], key: str, kind: type | tuple[type, ...], path: str | Path,

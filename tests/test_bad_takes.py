@@ -280,13 +280,13 @@ def test_the_good_take_exports(good_take, tmp_path):
 def test_a_failed_export_leaves_no_partial_file_and_the_old_file_intact(good_take, tmp_path, monkeypatch):
     import errno
 
-    import livebridge.take.atomic
+    import livebridge.atomic
 
     def disk_full(descriptor):  # the half-written file reaches the disk, and the disk is full
         raise OSError(errno.ENOSPC, "No space left on device")
 
     folder = _copy(good_take, tmp_path)
-    monkeypatch.setattr(livebridge.take.atomic.os, "fsync", disk_full)
+    monkeypatch.setattr(livebridge.atomic.os, "fsync", disk_full)
     output = _run(Case("disk-full", _nothing, (*_EXPORT, "--force"), ("markers.c3d", "No space left")), folder)
     assert "cannot write" in output
 

@@ -168,7 +168,7 @@ def test_limits_keeps_comments_and_layout_and_a_backup(tmp_path):
     assert backup_path(path).read_bytes() == RIG.encode() and str(backup_path(path)) in result.output
     jaw = load_rig(path).servo("jaw")
     assert (jaw.minimum, jaw.neutral, jaw.maximum) == (1850, 2000.5, 2600)
-    assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]  # the atomic write left nothing
+    assert not [p for p in os.listdir(tmp_path) if p.endswith((".tmp", ".partial"))]  # the atomic write left nothing
 
 
 def test_limits_edits_other_layouts(tmp_path):

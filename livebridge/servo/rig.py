@@ -39,10 +39,7 @@ from __future__ import annotations
 
 import difflib
 import math
-import os
-import shutil
 import sys
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,6 +48,7 @@ import numpy as np
 import tomlkit
 import tomlkit.exceptions
 
+from livebridge.atomic import write_bytes_atomically
 from livebridge.devices.registry import bus_facts
 from livebridge.errors import InputError
 from livebridge.servo.bus import BusFacts
@@ -442,8 +440,8 @@ def set_servo_limits(path: str | Path, servo: str, minimum=None, neutral=None, m
     text = tomlkit.dumps(document)
     rig = rig_from_dict(tomllib.loads(text), path)  # exactly what will be on disk
     try:
-        _write_atomically(backup_path(path), original, like=path)
-        _write_atomically(path, text.encode("utf-8"), like=path)
+        write_bytes_atomically(backup_path(path), original, "backup of the rig file", like=path)
+        write_bytes_atomically(path, text.encode("utf-8"), "rig file", like=path)
     except OSError as error:
         raise InputError(f"cannot write the rig file ({error.strerror or error})", path) from None
     return rig
@@ -471,25 +469,6 @@ def _toml_number(value: float, path: Path, field: str) -> int | float:
     """A raw limit as it reads best in the file: whole numbers without ``.0``."""
     value = _in_range(value, -math.inf, math.inf, False, str(path), field)
     return int(value) if value.is_integer() else value
-
-
-def _write_atomically(path: Path, data: bytes, like: Path) -> None:
-    """Replace ``path`` by ``data`` (a crash leaves the old file or the new one, never half of one).
-
-    The new file gets the permission bits of ``like``; a symbolic link is followed, not replaced.
-    """
-    target = Path(os.path.realpath(path))
-    handle, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(handle, "wb") as stream:
-            stream.write(data)
-            stream.flush()
-            os.fsync(stream.fileno())
-        shutil.copymode(like, tmp)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def demo_rig(url: str = "simdynamixel://?ids=1-16&model=XL330-M288", muscle_names=None) -> Rig:

@@ -15,5 +15,5 @@
   other systems' C3D files read;
 - :mod:`~livebridge.take.trc`: TRC files (OpenSim, Pose2Sim, Motive), read and written;
 - :mod:`~livebridge.take.marker_csv`: marker CSV files (one column per coordinate; OpenFace), read and written;
-- :mod:`~livebridge.take.text_table`, :mod:`~livebridge.take.atomic`: shared by the text readers and the writers.
+- :mod:`~livebridge.take.text_table`: shared by the text readers (files are written with :mod:`livebridge.atomic`).
 """

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from livebridge.atomic import write_atomically
 from livebridge.errors import InputError
-from livebridge.take.atomic import write_atomically
 from livebridge.take.directory import (
     C3D_NAME,
     CONTRACTIONS,

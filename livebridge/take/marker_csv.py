@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from livebridge.atomic import write_atomically
 from livebridge.errors import InputError
-from livebridge.take.atomic import write_atomically
 from livebridge.take.text_table import (
     format_number,
     increasing_times,
