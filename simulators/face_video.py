@@ -240,6 +240,10 @@ class FaceVideo:
         self._elements = basis.elements.reshape(basis.n_muscles, -1)
         self._triangles = np.ascontiguousarray(basis.triangles, dtype=np.int64)
         self._strain = skin.strain_reference(basis.neutral, self._triangles, self.skin.vertex_texels)
+        # the texture level whose texels are about as large as the pixels' footprint on the face (a
+        # pre-filtered texture: no aliasing of pores and freckles, and it stays in the cache)
+        mm_per_pixel = (config.distance_mm - (basis.neutral[:, 2].max() - self._target[2])) / self._matrix[0, 0]
+        self._maps = self.skin.level(mm_per_pixel)
         n_vertices = basis.n_vertices
         self._pixels = np.zeros((n_vertices, 2))
         self._depth = np.zeros(n_vertices)
@@ -349,10 +353,10 @@ class FaceVideo:
             halfway /= np.linalg.norm(halfway)
             lighting = np.array([config.skin_level * config.exposure, light.intensity, config.ambient,
                                  config.specular, config.shininess, config.wrinkle])
-            texture = self.skin
+            maps = self._maps
             gbuffer = self._gbuffer
             skin.shade(gbuffer.ids, gbuffer.bary, gbuffer.front, self._triangles, self._normals,
-                       texture.vertex_texels, self._compression, texture.albedo, texture.lines_u, texture.lines_v,
+                       maps.vertex_texels, self._compression, maps.albedo, maps.lines_u, maps.lines_v,
                        direction, halfway, lighting, config.background_level * config.exposure, self._shaded)
             image = np.clip(self._shaded + 0.5, 0.0, 255.0).astype(np.uint8)
             leds = np.full((4, 2), np.nan)
@@ -398,7 +402,10 @@ class FaceVideo:
         width, height = self.config.size
         inside = np.isfinite(pixels).all(axis=1) & (depth > raster.NEAR_MM)
         inside &= (pixels[:, 0] >= 0) & (pixels[:, 0] <= width - 1) & (pixels[:, 1] >= 0) & (pixels[:, 1] <= height - 1)
-        surface = np.array([self._gbuffer.depth_at(p) if ok else 0.0 for p, ok in zip(pixels, inside)])
+        x = np.rint(np.where(inside, pixels[:, 0], 0)).astype(np.int64)
+        y = np.rint(np.where(inside, pixels[:, 1], 0)).astype(np.int64)
+        inverse = self._gbuffer.inverse_depth[y, x].astype(np.float64)
+        surface = np.where(inverse > 0, 1.0 / np.maximum(inverse, 1e-12), np.inf)
         return inside & (depth < surface - 0.5)
 
     # ------------------------------------------------------------------------------------ the take
