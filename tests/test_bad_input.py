@@ -664,6 +664,28 @@ COMMANDS = (
         Bad("FILE missing", ("solve", "{dir}/nothing.c3d", "--markers", "auto", "--out", "{dir}/c.csv"),
             ("MARKER_FILE", "nothing.c3d", "file not found"), True),
     )),
+    Command("process", ("process", "{dir}/checked", "--out", "{dir}/results", "--workers", "0"), (
+        Bad("--out missing", ("--out", _MISSING), ("--out", "folder not found")),
+        Bad("--out a file", ("--out", "{dir}/basis.npz"), ("--out", "is a file")),
+        Bad("--stage unknown", ("--stage", "all"), ("--stage", "all")),
+        Bad("--mode unknown", ("--mode", "fast"), ("--mode", "fast")),
+        *_numbers("--workers", ("-1", "x", "1.5", "2000")),
+        Bad("--scheduler and --workers", ("--scheduler", "tcp://127.0.0.1:8786"), ("--workers", "not both")),
+        *(Bad(f"--scheduler {address}", ("process", "{dir}/checked", "--out", "{dir}/results", "--scheduler",
+                                        address), ("--scheduler", address), True)
+          for address in ("http://127.0.0.1:8786", "tcp://127.0.0.1", "tcp://:8786", "tcp://127.0.0.1:0",
+                          "tcp://127.0.0.1:99999", "127.0.0.1:8786")),
+        Bad("--calibration with --stage solve", ("--calibration", "{dir}/calibration.toml"),
+            ("--calibration", "only with")),
+        Bad("--markers missing", ("--markers", "{dir}/nothing.toml"), ("--markers", "nothing.toml", "not found")),
+        *_input_cases("--basis"),
+        Bad("TAKES missing", ("process", "{dir}/nothing", "--out", "{dir}/results"),
+            ("TAKES", "nothing", "folder not found"), True),
+        Bad("TAKES given twice", ("process", "{dir}/checked", "{dir}/checked", "--out", "{dir}/results"),
+            ("checked", "given twice"), True),
+        Bad("results exist", ("process", "{dir}/checked", "--out", "{dir}", "--workers", "0"),
+            ("checked", "already exists", "--force"), True),
+    )),
     Command("markers place", ("markers", "place", "{dir}/take.npz", "--out", "{dir}/new.toml"), (
         *_output_cases(suffix=".toml"),
         *_numbers("--neutral-frame", ("-1", "2.5", "first")),
@@ -822,6 +844,7 @@ def _option_work(folder: Path) -> None:
     for name in ("existing.png", "existing.npz", "existing.toml"):
         (folder / name).write_bytes(b"keep me")
     (folder / "checked").mkdir()
+    (folder / "results").mkdir()
     (folder / "checked" / "take.basis-check.txt").write_text("keep me")
 
 
