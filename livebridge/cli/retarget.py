@@ -6,8 +6,9 @@ from pathlib import Path
 
 import click
 
-from livebridge.cli._options import InputPath, OutputFile, force_option
+from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option
 from livebridge.cli.landmarks import MESH_TYPE, UNITS_TO_MM, load_mesh
+from livebridge.errors import InputError
 from livebridge.retarget.landmarks import SHIPPED_LANDMARK_SETS
 
 LANDMARKS_TYPE = InputPath(builtins=SHIPPED_LANDMARK_SETS)
@@ -39,21 +40,80 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
     import numpy as np
 
     from livebridge.retarget.basis import retarget_basis
-    from livebridge.retarget.landmarks import load_landmark_set
 
-    if source_spec == "builtin":
-        from livebridge.face.builtin import builtin_basis
-
-        source = builtin_basis()
-    else:
-        from livebridge.face.basis import Basis
-
-        source = Basis.load(source_spec)
+    source = _load_source(source_spec)
     vertices, triangles = load_mesh(target_spec, units)
-    on_source = load_landmark_set(source_landmarks).checked_on(len(source.triangles), source_landmarks)
-    on_target = load_landmark_set(target_landmarks).checked_on(len(triangles), target_landmarks)
+    on_source, on_target = _landmarks(source_landmarks, source, target_landmarks, vertices, triangles)
     result = retarget_basis(source, on_source, vertices, triangles, on_target, kernel)
     result.save(out)
     moving = int(np.count_nonzero(np.abs(result.elements).max(axis=(1, 2)) > 0))
     click.echo(f"wrote {out}: {result.n_muscles} elements ({moving} moving) on {result.n_vertices} vertices, "
                f"kernel {kernel}")
+
+
+@retarget.command("au")
+@click.option("--source", "source_spec", required=True, type=InputPath(builtins=("builtin",)),
+              help="Source actuation basis (.npz) or 'builtin': each AU's muscle recipe makes the expression.")
+@click.option("--source-landmarks", required=True, type=LANDMARKS_TYPE, help="Landmarks on the source.")
+@click.option("--target", "target_spec", required=True, type=MESH_TYPE,
+              help="Target face: a mesh (.obj), a basis (.npz, its neutral) or 'builtin'.")
+@click.option("--target-landmarks", required=True, type=LANDMARKS_TYPE, help="Landmarks on the target.")
+@click.option("--au", "aus", required=True, multiple=True,
+              help="Action unit (1, 2, 4, 12, 14, 15, 17, 20) or a muscle name; repeat to combine.")
+@click.option("--magnitude", type=FiniteFloat(0, 1), default=1.0, show_default=True, help="m in [0, 1].")
+@click.option("--side", type=click.Choice(["both", "left", "right"]), default="both", show_default=True,
+              help="Move one side's control points only (the subject's left: +x).")
+@click.option("--control-points", default="thesis", type=InputPath(builtins=("thesis",)), show_default=True,
+              help="Control point set: 'thesis' (shipped) or a control-point TOML file.")
+@click.option("--out", required=True, type=OutputFile(), help="AU mesh to write (.obj, mm).")
+@force_option
+@click.option("--kernel", type=click.Choice(["r", "r2lnr2"]), default="r", show_default=True,
+              help="TPS kernel: r (3D biharmonic) or r2lnr2 (the thesis's).")
+@click.option("--units", type=click.Choice(sorted(UNITS_TO_MM)), default="mm", show_default=True,
+              help="Units of an OBJ target (a basis is in mm).")
+def au(source_spec, source_landmarks, target_spec, target_landmarks, aus, magnitude: float, side: str,
+       control_points, out: Path, force: bool, kernel: str, units: str) -> None:
+    """Write the target face showing action units carried from the source (Erdoğdu §5.5-5.6) as OBJ."""
+    import numpy as np
+
+    from livebridge.retarget.au import parse_aus, prepare_transfer, save_obj
+    from livebridge.retarget.control_points import load_control_points
+
+    source = _load_source(source_spec)
+    vertices, triangles = load_mesh(target_spec, units)
+    on_source, on_target = _landmarks(source_landmarks, source, target_landmarks, vertices, triangles)
+    points = load_control_points(control_points)
+    sides = {"both": ("L", "R", "C"), "left": ("L",), "right": ("R",)}[side]
+    transfer = prepare_transfer(points, parse_aus(aus), source, on_source, (vertices, triangles), on_target, sides,
+                                kernel)
+    moved = transfer.mesh(magnitude)
+    save_obj(out, moved, triangles)
+    click.echo(f"wrote {out}: {', '.join(aus)} at m = {magnitude:g} ({side}); largest move "
+               f"{np.linalg.norm(moved - vertices, axis=1).max():.2f} mm")
+
+
+def _load_source(spec):
+    if spec == "builtin":
+        from livebridge.face.builtin import builtin_basis
+
+        return builtin_basis()
+    from livebridge.face.basis import Basis
+
+    return Basis.load(spec)
+
+
+def _landmarks(source_spec, source, target_spec, vertices, triangles):
+    """(source landmarks, target landmarks), checked on their meshes; errors name the file and the landmark."""
+    from livebridge.retarget.checks import check_landmarks_on
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    on_source = load_landmark_set(source_spec).checked_on(len(source.triangles), source_spec)
+    on_target = load_landmark_set(target_spec).checked_on(len(triangles), target_spec)
+    try:
+        on_target.index_of(on_source.names)
+    except InputError as error:
+        raise InputError(error.message + f" (the source set {source_spec} names them)", target_spec,
+                         "landmarks") from None
+    check_landmarks_on(on_source, source.neutral, source.triangles, source_spec)
+    check_landmarks_on(on_target, vertices, triangles, target_spec)
+    return on_source, on_target
