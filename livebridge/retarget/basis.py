@@ -27,6 +27,10 @@ SURFACE_SMOOTHING = 1.0
 """Smoothing (:func:`~livebridge.retarget.tps.fit_tps`) of the surface-pinned splines, mm."""
 BOUNDARY_STEP = 0.2
 """How far a boundary vertex looks into its own triangles for its point on the other face (:func:`inside_boundary`)."""
+STRETCH_LIMIT = 1.6
+"""Largest local stretch of a carried motion, relative to the landmark map's overall scale (either way)."""
+COVERED, UNCOVERED = 0.02, 0.08
+"""A target vertex farther than these fractions of the face from the source surface starts to / stops moving."""
 LINEAR_MOVE = 0.03
 """Moves shorter than this fraction of the landmarks' extent are carried by the spline's Jacobian."""
 PAIR_SPACING = 0.01
@@ -87,6 +91,14 @@ def correspond(target_vertices: np.ndarray, target_triangles: np.ndarray, to_sou
     return Correspondence(triangle, barycentric, distance)
 
 
+def edge_counts(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (k, 2) as sorted vertex ids, how many triangles share each (k,)) of a triangle mesh."""
+    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    base = int(edges.max()) + 1
+    keys, counts = np.unique(edges[:, 0].astype(np.int64) * base + edges[:, 1], return_counts=True)
+    return np.stack([keys // base, keys % base], axis=1), counts
+
+
 def inside_boundary(vertices: np.ndarray, triangles: np.ndarray, step: float = BOUNDARY_STEP) -> np.ndarray:
     """``vertices`` (n, 3) with each seam vertex moved ``step`` of the way towards the centroid of its triangles'
     centroids (the others unchanged): a seam vertex is on a boundary edge and has a twin, another boundary
@@ -96,8 +108,7 @@ def inside_boundary(vertices: np.ndarray, triangles: np.ndarray, step: float = B
     doubled) leaves two coincident copies of each seam vertex, one in the upper lip, one in the lower lip,
     facing the same way; moved into its own triangles each copy finds its own lip on the other face.
     """
-    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    unique, counts = edge_counts(triangles)
     boundary = np.unique(unique[counts == 1])
     if len(boundary) < 2:
         return vertices
@@ -159,10 +170,12 @@ def spread_surface_points(mesh, n: int) -> tuple[np.ndarray, np.ndarray]:
     used = np.unique(triangles)
     points = vertices[used]
     chosen = [int(np.argmin(points[:, 1]))]
-    distance = np.linalg.norm(points - points[chosen[0]], axis=1)
+    offsets = points - points[chosen[0]]
+    distance = np.einsum("nd,nd->n", offsets, offsets)  # squared: the same farthest point, no square roots
     for _ in range(min(n, len(points)) - 1):
         chosen.append(int(np.argmax(distance)))
-        distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=1))
+        offsets = points - points[chosen[-1]]
+        np.minimum(distance, np.einsum("nd,nd->n", offsets, offsets), out=distance)
     normals = vertex_normals(vertices, triangles)[used]
     return points[chosen], normals[chosen]
 
@@ -209,13 +222,40 @@ def transfer_elements(elements: np.ndarray, source: Basis, correspondence: Corre
     out = np.zeros(moves.shape)
     if not moving.any():
         return out
-    out[:, moving] = np.einsum("noi,kni->kno", to_target.jacobian(points[moving]), moves[:, moving])
+    jacobian = bounded_stretch(to_target.jacobian(points[moving]), to_target)
+    out[:, moving] = np.einsum("noi,kni->kno", jacobian, moves[:, moving])
     limit = LINEAR_MOVE * float(np.ptp(to_target.centres, axis=0).max())
     element, vertex = np.nonzero(np.linalg.norm(moves, axis=2) > limit)
     if len(vertex):
         start = points[vertex]
         out[element, vertex] = to_target(start + moves[element, vertex]) - to_target(start)
-    return out
+    return out * uncovered_fade(correspondence.distance, limit / LINEAR_MOVE)[None, :, None]
+
+
+def bounded_stretch(jacobian: np.ndarray, spline: ThinPlateSpline) -> np.ndarray:
+    """Jacobians (n, 3, 3) with their singular values clipped to :data:`STRETCH_LIMIT` times the spline's overall
+    scale either way (the cube root of its affine part's determinant).
+
+    Far from every control point (the back of a head, behind the ears) a spline extrapolates, ``r^2 ln r^2``
+    most of all, and its local stretch can grow many times a face's real proportions; a small motion there
+    would be blown up into spikes.
+    """
+    scale = abs(float(np.linalg.det(spline.affine[1:]))) ** (1.0 / 3.0)
+    u, stretch, vt = np.linalg.svd(jacobian)
+    stretch = np.clip(stretch, scale / STRETCH_LIMIT, scale * STRETCH_LIMIT)
+    return np.einsum("nij,nj,njk->nik", u, stretch, vt)
+
+
+def uncovered_fade(distance: np.ndarray, extent: float) -> np.ndarray:
+    """Weight (n,) of each target vertex's carried motion by how far its source point is: 1 up to
+    :data:`COVERED` of ``extent``, smoothly 0 at :data:`UNCOVERED`.
+
+    Where the target reaches beyond the source surface (a whole head onto a face mask: the scalp, the ears,
+    the neck) the closest source point is on the source's border, and copying the border's motion outwards
+    would tear those regions; the motion fades out instead.
+    """
+    t = np.clip((distance / extent - COVERED) / (UNCOVERED - COVERED), 0.0, 1.0)
+    return 1.0 - t * t * (3.0 - 2.0 * t)
 
 
 def retarget_basis(source: Basis, source_landmarks: LandmarkSet, target_neutral: np.ndarray,

@@ -13,8 +13,9 @@ DEGENERATE_AREA = 1e-12
 
 def non_manifold_edges(triangles: np.ndarray) -> np.ndarray:
     """Edges (k, 2) (sorted vertex ids) shared by more than two triangles."""
-    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    from livebridge.retarget.basis import edge_counts
+
+    unique, counts = edge_counts(triangles)
     return unique[counts > 2]
 
 
