@@ -792,6 +792,7 @@ COMMANDS = (
         Bad("a non-manifold target", ("--target", "{dir}/fan.obj"), ("builtin-22", "non-manifold")),
         Bad("a landmark off the surface", ("--target", "{dir}/collapsed.obj"),
             ("builtin-22", "nose_tip", "off the surface")),
+        Bad("a hole at a landmark", ("--target", "{dir}/holed.obj"), ("builtin-22", "nose_tip", "hole")),
         Bad("--source-landmarks missing", ("--source-landmarks", "{dir}/nothing.toml"),
             ("--source-landmarks", "nothing.toml", "file not found")),
     )) for verb, extra in (("basis", ("--out", "{dir}/target.npz")),
@@ -855,7 +856,11 @@ def _retarget_work(folder: Path) -> None:
     collapsed = basis.triangles.copy()
     vertex = collapsed[landmarks.triangles[landmarks.names.index("nose_tip")], 0]
     collapsed[landmarks.triangles[landmarks.names.index("nose_tip")]] = [vertex, vertex, vertex]
-    for name, triangles in (("fan.obj", fan), ("collapsed.obj", collapsed)):
+    holed = basis.triangles.copy()  # the triangles around nose_tip's collapsed onto one far vertex: a hole
+    own = landmarks.triangles[landmarks.names.index("nose_tip")]
+    around = np.flatnonzero(np.isin(holed, holed[own]).any(axis=1))
+    holed[around[around != own]] = holed[0, 0]
+    for name, triangles in (("fan.obj", fan), ("collapsed.obj", collapsed), ("holed.obj", holed)):
         lines = [f"v {x} {y} {z}" for x, y, z in basis.neutral] + [f"f {i + 1} {j + 1} {k + 1}"
                                                                    for i, j, k in triangles]
         (folder / name).write_text("\n".join(lines) + "\n")

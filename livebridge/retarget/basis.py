@@ -92,8 +92,11 @@ def correspond(target_vertices: np.ndarray, target_triangles: np.ndarray, to_sou
 
 
 def edge_counts(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(edges (k, 2) as sorted vertex ids, how many triangles share each (k,)) of a triangle mesh."""
+    """(edges (k, 2) as sorted vertex ids, how many triangles share each (k,)) of a triangle mesh.
+
+    A collapsed triangle's zero-length edges (a vertex to itself) are not edges."""
     edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    edges = edges[edges[:, 0] != edges[:, 1]]
     base = int(edges.max()) + 1
     keys, counts = np.unique(edges[:, 0].astype(np.int64) * base + edges[:, 1], return_counts=True)
     return np.stack([keys // base, keys % base], axis=1), counts

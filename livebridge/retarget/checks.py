@@ -7,6 +7,9 @@ import numpy as np
 from livebridge.errors import InputError
 from livebridge.retarget.landmarks import LandmarkSet
 
+OPENING_LANDMARKS = ("lip_", "mouth_", "eye_", "lm_")
+"""Landmarks that may sit on the rim of an opening (the mouth, the eyes; iBUG ``lm_NN`` points include the lids
+and the inner lips)."""
 DEGENERATE_AREA = 1e-12
 """A triangle with less area than this fraction of the mesh's mean triangle area has no surface."""
 
@@ -24,8 +27,10 @@ def check_landmarks_on(landmarks: LandmarkSet, vertices: np.ndarray, triangles: 
     carry a transfer at that landmark.
 
     Faults: a vertex of a landmark's triangle is not finite; a landmark's triangle has no area (the landmark is
-    off any surface); the mesh has an edge shared by more than two triangles (non-manifold: "the closest
-    surface point" and the normals have no single answer there; the error names the landmark nearest it).
+    off any surface); a landmark's triangle is on the rim of a hole (a boundary edge; landmarks of the lips,
+    mouth corners and eyes may sit on the mouth and eye openings); the mesh has an edge shared by more than two
+    triangles (non-manifold: "the closest surface point" and the normals have no single answer there; the error
+    names the landmark nearest it).
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
@@ -41,6 +46,18 @@ def check_landmarks_on(landmarks: LandmarkSet, vertices: np.ndarray, triangles: 
         if not areas[triangle] > DEGENERATE_AREA * mean_area:
             raise InputError(f"off the surface: its triangle {int(triangle)} has no area (its corners coincide or "
                              "lie on a line)", source, name)
+    from livebridge.retarget.basis import edge_counts
+
+    edges, counts = edge_counts(triangles)
+    base = len(vertices) + 1
+    rim = set((edges[counts == 1, 0] * base + edges[counts == 1, 1]).tolist())
+    for name, triangle in zip(landmarks.names, landmarks.triangles):
+        if name.startswith(OPENING_LANDMARKS):
+            continue
+        a, b, c = np.sort(triangles[triangle])
+        if {int(a) * base + int(b), int(b) * base + int(c), int(a) * base + int(c)} & rim:
+            raise InputError(f"on the rim of a hole in the mesh: its triangle {int(triangle)} has an edge no other "
+                             "triangle shares (fill the hole, or place the landmark on closed surface)", source, name)
     bad = non_manifold_edges(triangles)
     if len(bad):
         middle = vertices[bad[0]].mean(axis=0)
