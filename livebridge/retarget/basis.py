@@ -27,6 +27,8 @@ SURFACE_SMOOTHING = 1.0
 """Smoothing (:func:`~livebridge.retarget.tps.fit_tps`) of the surface-pinned splines, mm."""
 BOUNDARY_STEP = 0.2
 """How far a boundary vertex looks into its own triangles for its point on the other face (:func:`inside_boundary`)."""
+CORRESPOND_NEAR = 5
+"""Nearest source vertices whose triangles are searched for each target vertex's closest point."""
 STRETCH_LIMIT = 1.6
 """Largest local stretch of a carried motion, relative to the landmark map's overall scale (either way)."""
 COVERED, UNCOVERED = 0.02, 0.08
@@ -87,7 +89,7 @@ def correspond(target_vertices: np.ndarray, target_triangles: np.ndarray, to_sou
     carried = to_source(inside_boundary(target_vertices, target_triangles))
     normals = vertex_normals(carried, target_triangles)
     triangle, barycentric, distance = closest_surface_points(carried, source_vertices, source_triangles,
-                                                             normals=normals)
+                                                             near=CORRESPOND_NEAR, normals=normals)
     return Correspondence(triangle, barycentric, distance)
 
 
