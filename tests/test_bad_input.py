@@ -573,6 +573,8 @@ def _held_port() -> tuple[object, int]:
 _DEMO = ("demo", "--frames", "1", "--no-servo", "--unpaced", "--size", "160x100", "--port", "0")
 _RIG = ("--cameras", "{dir}/calibration.toml")
 _CONVERT = ("take", "convert", "{dir}/take.npz", "{dir}/out.csv")
+_RETARGET = ("--source", "builtin", "--source-landmarks", "builtin-22", "--target", "builtin", "--target-landmarks",
+             "builtin-22")
 _QUALITY = ("--basis", "{dir}/basis.npz", "--markers", "{dir}/markers.toml", "--take", "{dir}/take.npz")
 
 COMMANDS = (
@@ -809,6 +811,22 @@ COMMANDS = (
                                            "{dir}/lm.png"), ("builtin-22", "marker brow_outer_L", "does not exist"),
             True),
     )),
+    *[Command(f"retarget {verb}", ("retarget", verb, *_RETARGET, *extra), (
+        Bad("a landmark missing on the target", ("--target-landmarks", "{dir}/lm21.toml"),
+            ("lm21.toml", "nose_tip", "missing")),
+        Bad("a non-manifold target", ("--target", "{dir}/fan.obj"), ("builtin-22", "non-manifold")),
+        Bad("a landmark off the surface", ("--target", "{dir}/collapsed.obj"),
+            ("builtin-22", "nose_tip", "off the surface")),
+        Bad("a hole at a landmark", ("--target", "{dir}/holed.obj"), ("builtin-22", "nose_tip", "hole")),
+        Bad("--source-landmarks missing", ("--source-landmarks", "{dir}/nothing.toml"),
+            ("--source-landmarks", "nothing.toml", "file not found")),
+    )) for verb, extra in (("basis", ("--out", "{dir}/target.npz")),
+                           ("au", ("--au", "12", "--out", "{dir}/au.obj")))],
+    Command("retarget au options", ("retarget", "au", *_RETARGET, "--au", "12", "--out", "{dir}/au.obj"), (
+        *_numbers("--magnitude", _NOT_FINITE + ("1.5", "-0.1")),
+        Bad("--au unknown", ("--au", "99"), ("au99", "no control points")),
+        Bad("--side unknown", ("--side", "up"), ("--side", "up")),
+    )),
     Command("take show", ("take", "show", "{dir}/take.npz"), (
         *_numbers("--rate", _NOT_FINITE + ("0", "-1", "1e9")),
         Bad("--units unknown", ("--units", "inch"), ("--units", "inch")),
@@ -846,6 +864,32 @@ def _option_work(folder: Path) -> None:
     (folder / "checked").mkdir()
     (folder / "results").mkdir()
     (folder / "checked" / "take.basis-check.txt").write_text("keep me")
+    _retarget_work(folder)
+
+
+def _retarget_work(folder: Path) -> None:
+    """Landmarks without nose_tip; the built-in face as OBJ made non-manifold, and with nose_tip's triangle
+    collapsed (the landmark off any surface); same triangle counts, so the shipped landmarks fit them."""
+    from livebridge.face.builtin import builtin_basis
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    landmarks = load_landmark_set("builtin-22")
+    landmarks.subset(np.array([n != "nose_tip" for n in landmarks.names])).save(folder / "lm21.toml")
+    basis = builtin_basis()
+    fan = basis.triangles.copy()
+    a, b = fan[0, :2]
+    fan[-2:] = [[a, b, fan[100, 2]], [a, b, fan[200, 2]]]  # edge (a, b) in four triangles
+    collapsed = basis.triangles.copy()
+    vertex = collapsed[landmarks.triangles[landmarks.names.index("nose_tip")], 0]
+    collapsed[landmarks.triangles[landmarks.names.index("nose_tip")]] = [vertex, vertex, vertex]
+    holed = basis.triangles.copy()  # the triangles around nose_tip's collapsed onto one far vertex: a hole
+    own = landmarks.triangles[landmarks.names.index("nose_tip")]
+    around = np.flatnonzero(np.isin(holed, holed[own]).any(axis=1))
+    holed[around[around != own]] = holed[0, 0]
+    for name, triangles in (("fan.obj", fan), ("collapsed.obj", collapsed), ("holed.obj", holed)):
+        lines = [f"v {x} {y} {z}" for x, y, z in basis.neutral] + [f"f {i + 1} {j + 1} {k + 1}"
+                                                                   for i, j, k in triangles]
+        (folder / name).write_text("\n".join(lines) + "\n")
 
 
 @pytest.mark.parametrize("command,case", OPTION_CASES)

@@ -17,6 +17,20 @@ from livebridge.runtime.preflight import check_calibration_used, check_cameras, 
 from livebridge.runtime.session import Session
 
 
+def display_face(session, basis):
+    """The basis the render client shows: ``[face] display`` (same muscles in the same order), else ``basis``."""
+    if session.display is None:
+        return basis
+    from livebridge.face.basis import Basis
+
+    shown = Basis.load(session.display)
+    if shown.names != basis.names:
+        raise InputError(f"the display face's muscles ({', '.join(shown.names)}) are not the solving basis's "
+                         f"({', '.join(basis.names)}): retarget the solving basis onto it", session.display,
+                         "face.display")
+    return shown
+
+
 def load_face(session: Session):
     """The session's basis and marker set (``builtin`` / ``ict`` or files; a simulated rig films this face)."""
     from livebridge.face.basis import Basis
@@ -157,7 +171,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
         if session.render.enabled:
             from livebridge.output.render_server import RenderServer
 
-            render = RenderServer(basis, markers, session.render.host, session.render.port,
+            render = RenderServer(display_face(session, basis), markers, session.render.host, session.render.port,
                                   servo_names=servo.servo_names if servo is not None else (),
                                   allowed_origins=session.render.allowed_origins)
         outputs = []
