@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from livebridge.cli._attach import attach
 from livebridge.cli._options import InputPath, OutputFile, force_option
 from livebridge.cli.landmarks import MESH_TYPE, UNITS_TO_MM, load_mesh
 from livebridge.retarget.landmarks import SHIPPED_LANDMARK_SETS
@@ -57,3 +58,7 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
     moving = int(np.count_nonzero(np.abs(result.elements).max(axis=(1, 2)) > 0))
     click.echo(f"wrote {out}: {result.n_muscles} elements ({moving} moving) on {result.n_vertices} vertices, "
                f"kernel {kernel}")
+
+
+
+attach(retarget, (("livebridge.cli.retarget_scans", "scans"),))

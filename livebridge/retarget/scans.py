@@ -132,7 +132,8 @@ def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
     """One element per expression scan (by muscle name) on the neutral's grid mesh."""
     elements = np.stack([expression_element(neutral, face, kernel=kernel, source=name)
                          for name, face in expressions.items()])
-    muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks) for name, element in zip(expressions, elements))
+    muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks)
+                    for name, element in zip(expressions, elements))
     return Basis(neutral.vertices, neutral.triangles, elements, muscles)
 
 
