@@ -440,6 +440,58 @@ LANDMARK_POINTS_CASES = _common_cases() + (
     Case("far off the surface", _text(_ON_FACE + "nose_tip,0,-7,160\n"), ("nose_tip", "mm from the mesh surface")),
 )
 
+# ------------------------------------------------------------------------------------------------ scans
+_PLY = "ply\nformat {} 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n{}end_header\n"
+_FACE_HEADER = "element face 1\nproperty list uchar int vertex_indices\n"
+
+
+def _ply_binary(n_header: int, n_points: int, faces: bytes = b"", face_header: str = "") -> Callable[[Path], None]:
+    points = np.arange(3 * n_points, dtype="<f4").tobytes()
+    return _bytes(_PLY.format("binary_little_endian", n_header, face_header).encode() + points + faces)
+
+
+PLY_CASES = _common_cases() + (
+    Case("empty file", _text(""), ("empty file",)),
+    Case("not a PLY", _text("hello\n"), ("not a PLY",)),
+    Case("no end_header", _text("ply\nformat ascii 1.0\nelement vertex 1\n"), ("end_header",)),
+    Case("unknown format", _text(_PLY.format("binary_middle_endian", 1, "") + "0 0 0\n"), ("header line 2",
+                                                                                           "binary_middle_endian")),
+    Case("unknown type", _text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float128 x\nend_header\n"),
+         ("header line 4", "float128")),
+    Case("no z", _text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+                       "end_header\n0 0\n"), ("vertex", "no property z")),
+    Case("ascii too few vertices", _text(_PLY.format("ascii", 3, "") + "0 0 0\n1 1 1\n"),
+         ("vertex 2 of 3", "ends")),
+    Case("ascii short row", _text(_PLY.format("ascii", 2, "") + "0 0 0\n1 1\n"), ("line 9", "vertex 1")),
+    Case("ascii text", _text(_PLY.format("ascii", 1, "") + "0 up 0\n"), ("line 8", "vertex 0")),
+    Case("ascii NaN", _text(_PLY.format("ascii", 2, "") + "0 0 0\n1 nan 1\n"), ("vertex 1", "not finite")),
+    Case("binary truncated", _ply_binary(5, 4), ("vertex 4 of 5", "ends")),
+    Case("binary face past the end", _ply_binary(3, 3, b"\x03" + np.array([0, 1, 7], "<i4").tobytes(),
+                                                 _FACE_HEADER), ("face", "vertex 7", "does not exist")),
+    Case("binary face truncated", _ply_binary(3, 3, b"\x03\x00\x00", _FACE_HEADER), ("face 0 of 1", "ends")),
+    Case("no vertices", _text(_PLY.format("ascii", 0, "")), ("no points",)),
+)
+XYZ_CASES = _common_cases() + (
+    Case("empty file", _text(""), ("empty file",)),
+    Case("blank lines only", _text("\n  \n"), ("empty file",)),
+    Case("header only", _text("x y z\n"), ("no points",)),
+    Case("not utf-8", _bytes(b"1 2 3\n1 \xff 3\n"), ("not UTF-8",)),
+    Case("two columns", _text("1 2 3\n4 5\n"), ("line 2", "at least 3 values")),
+    Case("text", _text("1 2 3\n4 five 6\n"), ("line 2", "numbers")),
+    Case("NaN", _text("1 2 3\n4 5 nan\n"), ("line 2", "finite")),
+    Case("header with numbers after", _text("label 2 3\n"), ("line 1", "numbers")),
+)
+_SCANS = ("retarget", "scans", "--neutral-landmarks", "{dir}/lm.csv", "--expression", "jaw={dir}/jaw.ply")
+
+
+def _write_scan_landmarks(folder: Path) -> None:
+    (folder / "lm.csv").write_text("nose_tip,0,0,0\n")
+
+
+def _scans(path: Path, folder: Path) -> list[str]:
+    return [arg.format(dir=folder) for arg in _SCANS] + ["--neutral", str(path), "--out", str(folder / "b.npz")]
+
+
 FORMATS = (
     Format("basis", "basis.npz", lambda path, folder: ["basis", "show", str(path), "--out", str(folder / "out.png")],
            BASIS_CASES),
@@ -461,6 +513,8 @@ FORMATS = (
     Format("contractions", "contractions.csv",
            lambda path, folder: ["play", str(path), "--rig", str(folder / "head.toml"), "--no-render"],
            CONTRACTION_CASES, setup=_write_rig),
+    Format("scan ply", "neutral.ply", _scans, PLY_CASES, setup=_write_scan_landmarks),
+    Format("scan xyz", "neutral.xyz", _scans, XYZ_CASES, setup=_write_scan_landmarks),
 )
 CASES = [pytest.param(fmt, case, id=f"{fmt.name}: {case.name}") for fmt in FORMATS for case in fmt.cases]
 
@@ -786,6 +840,22 @@ COMMANDS = (
     )),
     Command("bench", ("bench",), (
         Bad("NAME unknown", ("fastest",), ("NAME", "'fastest'")),
+    )),
+    Command("retarget scans", ("retarget", "scans", "--neutral", "{dir}/contractions.csv", "--neutral-landmarks",
+                               "{dir}/contractions.csv", "--expression", "jaw={dir}/contractions.csv", "--out",
+                               "{dir}/b.npz"), (
+        *_output_cases(suffix=".npz"),
+        *_output_cases("--grid-obj", ".toml"),
+        *_input_cases("--neutral"),
+        *_input_cases("--neutral-landmarks"),
+        *_input_cases("--reference"),
+        *_numbers("--crop-radius", _NOT_FINITE + ("0", "-1")),
+        Bad("--grid not WxH", ("--grid", "150"), ("--grid", "WxH")),
+        Bad("--grid too small", ("--grid", "1x150"), ("--grid",)),
+        Bad("--expression without =", ("--expression", "jaw"), ("--expression", "NAME=SCAN[:LM]")),
+        Bad("--expression twice", ("--expression", "jaw=a.ply"), ("--expression", "'jaw'", "twice")),
+        Bad("--normalise unknown", ("--normalise", "warp"), ("--normalise", "warp")),
+        Bad("--units unknown", ("--units", "inch"), ("--units", "inch")),
     )),
     Command("landmarks place", ("landmarks", "place", "builtin", "--vertices", "{dir}/ids.toml", "--out",
                                 "{dir}/lm.toml"), (

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from livebridge.cli._attach import attach
 from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option
 from livebridge.cli.basis_show import _draw_mesh, _view
 from livebridge.cli.landmarks import MESH_TYPE, UNITS_TO_MM, load_mesh
@@ -207,3 +208,6 @@ def render_take(faces, contractions: np.ndarray, muscle_names, path, frames: int
     fig.tight_layout()
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
+
+
+attach(retarget, (("livebridge.cli.retarget_scans", "scans"),))
