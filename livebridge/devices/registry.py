@@ -3,8 +3,8 @@
 The schemes are declared as plain data by their owners: the real drivers in :mod:`livebridge.drivers`,
 the simulators in :mod:`livebridge.simulators` (``CAMERA_SCHEMES``, ``BUS_SCHEMES``); recorded takes
 (``replay://``) and camera nodes (``node://``) are the registry's own. An implementation is named by a
-``"module:attribute"`` string and imported only when its scheme is used, so opening a simulated rig never imports a hardware SDK. The
-implementations import :mod:`livebridge.devices.url`, :mod:`livebridge.capture.sources` and
+``"module:attribute"`` string and imported only when its scheme is used, so opening a simulated rig never
+imports a hardware SDK. The implementations import :mod:`livebridge.devices.url`, :mod:`livebridge.capture.sources` and
 :mod:`livebridge.servo.bus`, never this module.
 
 =========================================================  ==================================================
