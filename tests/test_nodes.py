@@ -206,7 +206,8 @@ def _reference_and_nodes(nodes, rig_url, layout, n_frames):
     from livebridge.simulators.rig import rig_from_url
 
     n_cameras = sum(len(cams) for cams in layout)
-    url = f"{rig_url}&cameras={n_cameras}&realtime=0&frames={n_frames}"
+    # t0: one time base for the rig in every process (each would start its own clock), as one trigger gives
+    url = f"{rig_url}&cameras={n_cameras}&realtime=0&frames={n_frames}&t0=1000"
     rig = rig_from_url(url)
     results = {}
     for kind in ("process", "nodes"):
