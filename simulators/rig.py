@@ -1004,15 +1004,15 @@ class SimCameraSource(SourceBase):
 
 _URL_KEYS = {"frames", "cameras", "seed", "fps", "noise", "drop", "jitter_ms", "spurious", "blur", "sync", "realtime",
              "size", "calibration", "script", "occlusion", "occlusion_rate", "diameter_mm", "basis", "markers",
-             "lead_in_s"}
+             "lead_in_s", "camera", "t0"}
 
 
 def rig_from_url(url: DeviceURL | str) -> SimRig:
     """A :class:`SimRig` from ``sim://rig?cameras=4&seed=1&fps=60&noise=2&drop=0.01&jitter_ms=0.5&spurious=0.1
     &blur=1&sync=hardware|free&size=1280x800&script=mixed&occlusion=1&occlusion_rate=0.05&diameter_mm=3
-    &calibration=PATH&basis=PATH.npz&markers=PATH.toml&lead_in_s=2`` (``frames`` and ``realtime`` are the
-    sources', see :func:`open_url`; ``lead_in_s``: the performer first holds a still, neutral face this long,
-    :class:`~livebridge.simulators.lead_in.LeadIn`)."""
+    &calibration=PATH&basis=PATH.npz&markers=PATH.toml&lead_in_s=2`` (``frames``, ``realtime``, ``camera`` and
+    ``t0`` are the sources', see :func:`open_url`; ``lead_in_s``: the performer first holds a still, neutral face
+    this long, :class:`~livebridge.simulators.lead_in.LeadIn`)."""
     from livebridge.simulators.lead_in import scripted_performer
 
     if isinstance(url, str):
@@ -1090,8 +1090,11 @@ def _rig_options(url: DeviceURL) -> tuple[RigConfig, dict]:
 
 def open_url(url: DeviceURL) -> list[SimCameraSource]:
     """The registry hook: one source per camera of the rig the URL describes (``frames=N``: the cameras end,
-    like a finished take, after rig frame ``N - 1``; default: never). ``board=SPEC``: the rig films a
-    calibration board instead (:func:`livebridge.simulators.board_render.open_board_url`)."""
+    like a finished take, after rig frame ``N - 1``; default: never). ``camera=K``: only camera ``K``, so
+    several processes (camera nodes) can each film one camera of the same rig. ``t0=SECONDS``: frame 0 at
+    that ``time.monotonic()`` time, which every process of one machine shares, so their paced cameras expose
+    together. ``board=SPEC``: the rig films a calibration board instead
+    (:func:`livebridge.simulators.board_render.open_board_url`)."""
     if "board" in url.query:
         from livebridge.simulators.board_render import open_board_url
 
@@ -1099,6 +1102,14 @@ def open_url(url: DeviceURL) -> list[SimCameraSource]:
     realtime = url.take("realtime", bool, True)
     rig = rig_from_url(url)  # checks frames too, before building the rig
     sources = rig.sources(realtime=realtime)
+    camera = url.take("camera", int, within=(0, rig.n_cameras - 1))
+    if camera is not None:  # one camera of the shared rig (e.g. the one a camera node films)
+        sources = [sources[camera]]
+    t0 = url.take("t0", float)
+    if t0 is not None:
+        if not math.isfinite(t0):
+            raise InputError(f"parameter 't0' must be a finite number of seconds, got {t0}", url.url, "t0")
+        rig.start(t0)
     frames = url.take("frames", int)
     if frames is not None:
         for source in sources:

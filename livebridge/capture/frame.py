@@ -32,6 +32,10 @@ class Frame:
         Analogue gain or ISO as the source reports it (NaN when unknown).
     sync_domain : str
         Cameras triggered by one hardware clock share a domain; a free-running camera has its own.
+    centroids : ndarray, shape (n_blobs, 2), or None
+        Marker centroids already detected where the frame was taken (a camera node), distorted pixels,
+        read-only; None: the host detects them in ``image``. A frame that carries centroids may carry no
+        pixels (``image`` of shape (0, 0)) or a thumbnail.
     """
 
     image: np.ndarray
@@ -41,6 +45,7 @@ class Frame:
     exposure_us: float = float("nan")
     gain: float = float("nan")
     sync_domain: str = ""
+    centroids: np.ndarray | None = None
 
     def __post_init__(self):
         image = np.asarray(self.image)
@@ -55,6 +60,10 @@ class Frame:
         object.__setattr__(self, "seq", int(self.seq))
         if not self.sync_domain:
             object.__setattr__(self, "sync_domain", self.source_id)
+        if self.centroids is not None:
+            centroids = np.array(self.centroids, dtype=np.float64).reshape(-1, 2)
+            centroids.setflags(write=False)
+            object.__setattr__(self, "centroids", centroids)
 
     @property
     def size(self) -> tuple[int, int]:

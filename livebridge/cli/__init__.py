@@ -37,6 +37,7 @@ _COMMANDS = (
     ("livebridge.cli.cameras", "devices"),
     ("livebridge.cli.servo", "servo"),
     ("livebridge.cli.sim", "sim"),
+    ("livebridge.cli.node", "node"),
     ("livebridge.cli.bench", "bench"),
     ("livebridge.cli.runtime", "run"),
     ("livebridge.cli.runtime", "demo"),

@@ -2,9 +2,9 @@
 
 The schemes are declared as plain data by their owners: the real drivers in :mod:`livebridge.drivers`,
 the simulators in :mod:`livebridge.simulators` (``CAMERA_SCHEMES``, ``BUS_SCHEMES``); recorded takes
-(``replay://``) are the registry's own. An implementation is named by a ``"module:attribute"`` string and
-imported only when its scheme is used, so opening a simulated rig never imports a hardware SDK. The
-implementations import :mod:`livebridge.devices.url`, :mod:`livebridge.capture.sources` and
+(``replay://``) and camera nodes (``node://``) are the registry's own. An implementation is named by a
+``"module:attribute"`` string and imported only when its scheme is used, so opening a simulated rig never
+imports a hardware SDK. The implementations import :mod:`livebridge.devices.url`, :mod:`livebridge.capture.sources` and
 :mod:`livebridge.servo.bus`, never this module.
 
 =========================================================  ==================================================
@@ -13,6 +13,8 @@ implementations import :mod:`livebridge.devices.url`, :mod:`livebridge.capture.s
                                                            ``any``; no socket: both mono cameras)
 ``replay://PATH?realtime=0``                               a recorded take
 ``sim://rig?cameras=4&seed=1&fps=60&noise=2``              the simulated rig (one source per camera)
+``node://HOST:PORT?camera=ID``                             one camera of a camera node (``livebridge node``):
+                                                           its centroids, detected on the node, over ZeroMQ
 ``dynamixel:///dev/ttyUSB0?baud=1000000``                  a DYNAMIXEL Protocol 2.0 bus
 ``maestro:///dev/ttyACM0?device=12``                       a Pololu Maestro (``device``: Pololu protocol)
 ``ssc32:///dev/ttyUSB1?baud=115200``                       a Lynxmotion SSC-32U
@@ -37,7 +39,7 @@ from livebridge.errors import InputError
 if TYPE_CHECKING:
     from livebridge.servo.bus import BusFacts, ServoBus
 
-_OWN_CAMERA_SCHEMES = {"replay": "livebridge.take.replay:open_url"}
+_OWN_CAMERA_SCHEMES = {"replay": "livebridge.take.replay:open_url", "node": "livebridge.nodes.source:open_url"}
 _OWNERS = ("livebridge.drivers", "livebridge.simulators")
 
 

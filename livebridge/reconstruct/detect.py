@@ -615,7 +615,9 @@ class DetectingSource(SourceWrapper):
 
     Wraps any :class:`~livebridge.capture.sources.CameraSource`; ``read`` returns the frame as the inner
     source does, after storing its :class:`Detection`, which the reconstruct stage looks up with
-    :meth:`result`.
+    :meth:`result`. A frame that arrives with its centroids already detected (``Frame.centroids``: a camera
+    node ran :func:`detect_blobs` on it) is only undistorted; a source that detects where its frames are
+    taken has a ``detect_with(config)`` method and is told this wrapper's config, so both detect alike.
 
     Parameters
     ----------
@@ -634,6 +636,9 @@ class DetectingSource(SourceWrapper):
         super().__init__(source)
         self._camera, self._config = camera, config
         self._clock = clock
+        detect_with = getattr(source, "detect_with", None)
+        if detect_with is not None:
+            detect_with(config)
         self._results: dict[int, Detection] = {}
         self._order: deque[int] = deque()
         self._keep = keep
@@ -647,7 +652,10 @@ class DetectingSource(SourceWrapper):
             return None
         arrived = self._clock()
         cpu = time.thread_time()
-        points = detect_undistorted(frame.image, self._camera, self._config)
+        if frame.centroids is None:
+            points = detect_undistorted(frame.image, self._camera, self._config)
+        else:  # detected where the frame was taken (a camera node): undistorted here, with the host's calibration
+            points = self._camera.undistort_points(frame.centroids)
         self.cpu_s += time.thread_time() - cpu
         self.frames += 1
         with self._lock:
@@ -664,4 +672,6 @@ class DetectingSource(SourceWrapper):
         if found is not None:
             return found
         now = self._clock()  # not seen by read (should not happen): detect here
+        if frame.centroids is not None:
+            return Detection(self._camera.undistort_points(frame.centroids), now, self._clock())
         return Detection(detect_undistorted(frame.image, self._camera, self._config), now, self._clock())
