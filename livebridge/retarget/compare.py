@@ -45,3 +45,27 @@ def motion_agreement(retargeted: Basis, own: Basis, landmarks: LandmarkSet) -> d
 def _at(landmarks: LandmarkSet, field: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """A per-vertex field (n_vertices, 3) at the landmarks, shape (n_landmarks, 3)."""
     return np.einsum("nk,nkd->nd", landmarks.barycentric, field[triangles[landmarks.triangles]])
+
+
+BESIDE_GAP = 0.15
+"""Gap between two faces shown side by side, as a fraction of the first face's width."""
+
+
+def side_by_side(first: Basis, second: Basis, gap: float = BESIDE_GAP) -> Basis:
+    """One basis holding both faces as two meshes, ``second`` to the right of ``first`` (+x, the viewer's right
+    when the face looks along +z), its bounding box centred on ``first``'s in y and z; both move with the same
+    contractions.
+
+    The two must have the same muscles in the same order (a retargeted face has). ``first`` keeps its place, so
+    whatever is drawn in its frame (markers) stays on it.
+    """
+    if first.names != second.names:
+        raise ValueError("side by side needs the same muscles in the same order")
+    low, high = first.neutral.min(axis=0), first.neutral.max(axis=0)
+    other_low, other_high = second.neutral.min(axis=0), second.neutral.max(axis=0)
+    shift = 0.5 * (low + high) - 0.5 * (other_low + other_high)
+    shift[0] = high[0] + gap * (high[0] - low[0]) - other_low[0]
+    neutral = np.vstack([first.neutral, second.neutral + shift])
+    triangles = np.vstack([first.triangles, second.triangles + first.n_vertices])
+    elements = np.concatenate([first.elements, second.elements], axis=1)
+    return Basis(neutral, triangles, elements, first.muscles)

@@ -32,11 +32,14 @@ AUS = (
     (12, "lip corner puller (zygomatic major)", "lower", {"zygomatic_major_L": 1.0, "zygomatic_major_R": 1.0},
      (("corner", "muscle", "mouth_corner", 0, 0), ("cheek", "muscle", "mouth_corner", 10, 12),
       ("nasolabial", "wrinkle", "mouth_corner", 4, 14))),
-    (14, "dimpler (buccinator)", "lower", {"risorius_L": 0.6, "risorius_R": 0.6, "lips_pressor": 0.4},
+    (14, "dimpler (buccinator); stand-in recipe: the Choe-Ko basis has no buccinator, risorius 0.6 with lips "
+         "pressor 0.4 pulls the corners back and in", "lower",
+     {"risorius_L": 0.6, "risorius_R": 0.6, "lips_pressor": 0.4},
      (("corner", "muscle", "mouth_corner", 4, 0), ("dimple", "wrinkle", "mouth_corner", 10, -4))),
     (15, "lip corner depressor (triangularis)", "lower", {"depressor_anguli_oris": 1.0},
      (("corner", "muscle", "mouth_corner", 0, -4), ("below", "muscle", "mouth_corner", 2, -16))),
-    (17, "chin raiser (mentalis)", "lower", {"lips_pressor": 1.0},
+    (17, "chin raiser (mentalis); stand-in recipe: the Choe-Ko basis has no mentalis, the lips pressor pushes the "
+         "lower lip and chin up", "lower", {"lips_pressor": 1.0},
      (("chin_side", "muscle", "chin", 10, 8), ("lip_lower", "muscle", "lip_lower_outer", 8, 0))),
     (20, "lip stretcher (risorius)", "lower", {"risorius_L": 1.0, "risorius_R": 1.0},
      (("corner", "muscle", "mouth_corner", 0, 0), ("lateral", "muscle", "mouth_corner", 8, -2))),
@@ -95,5 +98,25 @@ def thesis_control_points() -> ControlPointSet:
                            np.array(positions), "builtin-22", recipes)
 
 
+HEADER = """\
+# Muscle and wrinkle control points (Erdogdu's thesis, section 5.5) on the built-in face, in mm, with the
+# landmark set they were placed against (`reference`). Written by `python -m livebridge.retarget.thesis_points
+# OUT.toml`; edit a copy by hand and pass it with `livebridge retarget au --control-points my_points.toml`.
+#
+# How to edit:
+# - [[group]]: one action unit (au1 ... au20) or one Choe-Ko muscle. `muscles` is its recipe: which elements of
+#   the source basis, contracted how far (0-1), make the expressive source face the control points are read on.
+#   AU14 and AU17 are STAND-IN recipes: the 16-muscle basis has no buccinator and no mentalis, so AU14 uses
+#   risorius + lips pressor and AU17 the lips pressor. Give your own recipe if your basis has those muscles.
+# - [[point]]: name (unique), group (a group's name), kind (muscle | wrinkle), region (upper | lower: which
+#   per-region spline moves it), side (L | R | C: --side left/right keeps only that side's points), position
+#   (x, y, z on the reference face: x to the face's left, y up, z out of the face). A point off the surface is
+#   snapped to the nearest surface point when carried to a face.
+"""
+
 if __name__ == "__main__":
-    thesis_control_points().save(sys.argv[1])
+    from pathlib import Path
+
+    out = Path(sys.argv[1])
+    thesis_control_points().save(out)
+    out.write_text(HEADER + "\n" + out.read_text())

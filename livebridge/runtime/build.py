@@ -18,7 +18,9 @@ from livebridge.runtime.session import Session
 
 
 def display_face(session, basis):
-    """The basis the render client shows: ``[face] display`` (same muscles in the same order), else ``basis``."""
+    """The basis the render client shows: ``[face] display`` (same muscles in the same order) instead of
+    ``basis``, or both side by side (``display_mode = "beside"``: the solving face stays in place, the display
+    face to its right), else ``basis``."""
     if session.display is None:
         return basis
     from livebridge.face.basis import Basis
@@ -28,6 +30,10 @@ def display_face(session, basis):
         raise InputError(f"the display face's muscles ({', '.join(shown.names)}) are not the solving basis's "
                          f"({', '.join(basis.names)}): retarget the solving basis onto it", session.display,
                          "face.display")
+    if session.display_mode == "beside":
+        from livebridge.retarget.compare import side_by_side
+
+        return side_by_side(basis, shown)
     return shown
 
 

@@ -17,6 +17,7 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
     markers = "markers.toml"      # or a shipped set: "builtin", "builtin-68", "ict-68"
     # display = "target.npz"      # the render client shows this face instead of the basis (same muscles, any
                                   # topology: from `livebridge retarget basis`)
+    # display_mode = "instead"    # or "beside": the solving face and the display face side by side
 
     [reconstruct]
     tolerance_px = 2.0            # epipolar gate
@@ -152,6 +153,9 @@ class Session:
     display : Path or None
         A basis ``.npz`` the render client shows instead of ``basis`` (same muscles, any topology: a
         retargeted face), or None.
+    display_mode : str
+        ``"instead"`` (the display face alone) or ``"beside"`` (the solving face and the display face side by
+        side).
     """
 
     path: Path | None
@@ -170,6 +174,10 @@ class Session:
     frames: int = 0
     labelling_timeout_s: float = LABELLING_TIMEOUT_S
     display: Path | None = None
+    display_mode: str = "instead"
+
+
+DISPLAY_MODES = ("instead", "beside")
 
 
 class _Table:
@@ -271,6 +279,10 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     display = face.path_value("display")
     if display is not None and Path(display).suffix != ".npz":
         raise InputError("a basis .npz file to show (e.g. from `livebridge retarget basis`)", path, "face.display")
+    display_mode = face.get("display_mode", str, "instead")
+    if display_mode not in DISPLAY_MODES:
+        raise InputError(f"must be one of {', '.join(DISPLAY_MODES)}, got {display_mode!r}", path,
+                         "face.display_mode")
     face.check_known()
 
     calibration = top.path_value("calibration")
@@ -325,7 +337,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
 
     return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_config,
                    solver_config, servo_rig, render, vmc, recording, status_interval, frames, labelling_timeout_s,
-                   display)
+                   display, display_mode)
 
 
 def _reconstruct(table: _Table, path: Path | None) -> ReconstructConfig:
