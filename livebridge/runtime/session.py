@@ -289,7 +289,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     vmc = VMCOptions(v.get("enabled", bool, False), v.get("host", str, "127.0.0.1"),
                      _port(v.get("port", int, 39539), path, "outputs.vmc.port"), v.get("case", str, "camel"), mapping)
     v.check_known()
-    from livebridge.output.vmc import CASES
+    from livebridge.output.blendshapes import CASES
 
     if vmc.case not in CASES:
         raise InputError(f"must be one of {CASES}, got {vmc.case!r}", path, "outputs.vmc.case")
