@@ -110,3 +110,30 @@ class BlendshapeMap:
         """Blendshape values in [0, 1], shape (n_blendshapes,), from contractions (n_muscles,); NaN -> 0."""
         values = self.matrix @ np.nan_to_num(np.asarray(contractions, dtype=np.float64), nan=0.0)
         return np.clip(values, 0.0, 1.0)
+
+    def rows_for(self, names: Sequence[str]) -> np.ndarray:
+        """The map's rows in the order of ``names`` (zero rows for names it does not drive).
+
+        Parameters
+        ----------
+        names : sequence of str, length n_names
+            Blendshape names as this map spells them.
+
+        Returns
+        -------
+        ndarray, shape (n_names, n_muscles)
+
+        Raises
+        ------
+        InputError
+            When the map drives a blendshape that ``names`` lacks (its value would be lost).
+        """
+        index = {name: k for k, name in enumerate(names)}
+        unknown = [name for name in self.names if name not in index]
+        if unknown:
+            raise InputError(f"the map drives {unknown[0]!r}, which is not one of the receiver's blendshapes",
+                             field="mapping")
+        rows = np.zeros((len(index), self.matrix.shape[1]))
+        for row, name in enumerate(self.names):
+            rows[index[name]] += self.matrix[row]
+        return rows
