@@ -38,6 +38,7 @@ with a short reason (:data:`REASONS`) the receiver counts.
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 
@@ -53,6 +54,7 @@ REASONS = ("short", "version", "name", "count", "length", "non-finite", "range")
 _INT = struct.Struct(">i")
 _TIME = struct.Struct(">ifii")
 _VALUES = np.dtype(">f4")
+_VALUE_STRUCT = struct.Struct(f">{N_VALUES}f")
 MIN_SIZE = 1 + 4 + 4 + _TIME.size + 1 + 4 * N_VALUES  # empty names: 270 bytes
 MAX_SIZE = MIN_SIZE + 2 * MAX_NAME_BYTES
 
@@ -160,13 +162,17 @@ def decode_packet(data: bytes) -> LiveLinkPacket:
     if len(data) != end:
         raise PacketError("short" if len(data) < end else "length",
                           f"{len(data)} bytes; this packet's fields make {end}")
-    values = np.frombuffer(data, _VALUES, N_VALUES, offset).astype(np.float64)
-    if not (np.isfinite(values).all() and np.isfinite(sub_frame)):
+    # builtins over the unpacked tuple: a packet is 61 numbers, where numpy's per-call overhead would dominate
+    values = _VALUE_STRUCT.unpack_from(data, offset)
+    if not (all(map(math.isfinite, values)) and math.isfinite(sub_frame)):
         raise PacketError("non-finite", "NaN or infinity among the values")
     weights = values[:N_BLENDSHAPES]
-    if weights.min() < -WEIGHT_SLACK or weights.max() > 1.0 + WEIGHT_SLACK:
-        raise PacketError("range", f"a weight outside [0, 1] ({weights.min():.4g} .. {weights.max():.4g})")
-    if np.abs(values[N_BLENDSHAPES:]).max() > MAX_ROTATION:
+    low, high = min(weights), max(weights)
+    if low < -WEIGHT_SLACK or high > 1.0 + WEIGHT_SLACK:
+        raise PacketError("range", f"a weight outside [0, 1] ({low:.4g} .. {high:.4g})")
+    if max(map(abs, values[N_BLENDSHAPES:])) > MAX_ROTATION:
         raise PacketError("range", "a rotation outside [-1, 1] (a quarter turn)")
-    np.clip(weights, 0.0, 1.0, out=weights)
+    values = np.array(values)
+    if low < 0.0 or high > 1.0:
+        np.clip(values[:N_BLENDSHAPES], 0.0, 1.0, out=values[:N_BLENDSHAPES])
     return LiveLinkPacket(device_id, subject, frame_number, sub_frame, (numerator, denominator), values)
