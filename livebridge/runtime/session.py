@@ -41,6 +41,15 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
     case = "camel"                # "pascal", "lower", "snake"
     mapping = { jaw = { jawOpen = 1.0 } }   # optional; default ARKit names
 
+    [outputs.livelink]            # Live Link Face packets to Unreal Engine
+    enabled = false
+    host = "127.0.0.1"
+    port = 11111
+    subject = "livebridge"        # the Live Link subject name
+    device_id = "..."             # default: a UUID stable on this machine
+    fps = 60                      # the frame rate of the packets' frame time
+    # the muscle -> blendshape map is [outputs.vmc]'s (one map, two transports)
+
     [recording]
     enabled = false
     directory = "takes"           # each run writes a new take directory inside
@@ -91,6 +100,16 @@ class VMCOptions:
     port: int = 39539
     case: str = "camel"
     mapping: Any = None  # None (ARKit), "identity", or {muscle: {blendshape: weight}}
+
+
+@dataclass(frozen=True)
+class LiveLinkOptions:
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = 11111
+    subject: str = "livebridge"
+    device_id: str | None = None  # None: stable per machine
+    fps: int = 60
 
 
 @dataclass(frozen=True)
@@ -161,6 +180,7 @@ class Session:
     render: RenderOptions = RenderOptions()
     vmc: VMCOptions = VMCOptions()
     recording: RecordingOptions = RecordingOptions()
+    livelink: LiveLinkOptions = LiveLinkOptions()
     status_interval: float = 1.0
     frames: int = 0
     labelling_timeout_s: float = LABELLING_TIMEOUT_S
@@ -276,7 +296,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     servo.check_known()
 
     outputs = top.table("outputs")
-    outputs.check_known({"render", "vmc"})
+    outputs.check_known({"render", "vmc", "livelink"})
     r = outputs.table("render")
     render = RenderOptions(r.get("enabled", bool, True), r.get("host", str, "127.0.0.1"),
                            _port(r.get("port", int, 8765), path, "outputs.render.port", any_free=True),
@@ -293,6 +313,8 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
 
     if vmc.case not in CASES:
         raise InputError(f"must be one of {CASES}, got {vmc.case!r}", path, "outputs.vmc.case")
+
+    livelink = _livelink(outputs.table("livelink"), path)
 
     rec = top.table("recording")
     recording = RecordingOptions(rec.get("enabled", bool, False),
@@ -315,7 +337,24 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     runtime.check_known()
 
     return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_config,
-                   solver_config, servo_rig, render, vmc, recording, status_interval, frames, labelling_timeout_s)
+                   solver_config, servo_rig, render, vmc, recording, status_interval, frames, labelling_timeout_s,
+                   livelink)
+
+
+def _livelink(table: _Table, path: Path | None) -> LiveLinkOptions:
+    """``[outputs.livelink]``: names of at most 256 bytes (what Unreal reads), a whole frame rate."""
+    options = LiveLinkOptions(table.get("enabled", bool, False), table.get("host", str, "127.0.0.1"),
+                              _port(table.get("port", int, 11111), path, "outputs.livelink.port"),
+                              table.get("subject", str, "livebridge"), table.get("device_id", str),
+                              table.get("fps", int, 60))
+    table.check_known()
+    for key in ("subject", "device_id"):
+        value = getattr(options, key)
+        if value is not None and not 1 <= len(value.encode("utf-8")) <= 256:
+            raise InputError("must be 1..256 bytes of text", path, f"outputs.livelink.{key}")
+    if not 1 <= options.fps <= 1000:
+        raise InputError(f"must be 1..1000 frames per second, got {options.fps}", path, "outputs.livelink.fps")
+    return options
 
 
 def _reconstruct(table: _Table, path: Path | None) -> ReconstructConfig:
