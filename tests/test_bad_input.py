@@ -715,6 +715,9 @@ COMMANDS = (
         Bad("sim board unknown parameter", ("--sources", "a=sim://rig?board=chessboard:7x7:40&fps=30"),
             ("fps", "unknown")),
         Bad("sim board size", ("--sources", "a=sim://rig?board=chessboard:7x7:40&size=10x10"), ("size", "640x480")),
+        Bad("sim face unknown parameter", ("--sources", "a=sim://face?cameras=2"), ("cameras", "unknown")),
+        Bad("sim face size", ("--sources", "a=sim://face?size=10x10"), ("size", "32..4096")),
+        Bad("sim face head rig", ("--sources", "a=sim://face?head_rig=helmet"), ("head_rig", "leds, none")),
     )),
     Command("calibrate show", ("calibrate", "show", "{dir}/calibration.toml"), (
         Bad("PATH missing", ("calibrate", "show", "{dir}/nothing.toml"), ("PATH", "nothing.toml", "file not found"),
