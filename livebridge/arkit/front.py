@@ -1,14 +1,17 @@
 """The Live Link Face front: packets from an iPhone become solved frames on the pipeline's front thread.
 
-A :class:`~livebridge.runtime.front.Front` (FRONT.md): :meth:`LiveLinkFront.read` takes the newest valid
-packet off the receiver (:mod:`livebridge.arkit.receiver`; older ones are superseded, never queued), solves
-its 52 ARKit weights into contractions (:class:`~livebridge.arkit.solve.ArkitSolver`) and turns its head
-rotation into the frame's head pose (rotation only, about the head's origin: the phone reports no
-translation). Contractions leave finite and in [0, 1] whatever the packet held.
+A :class:`~livebridge.runtime.front.Front`: :meth:`LiveLinkFront.read` takes the newest valid packet off the
+receiver (:mod:`livebridge.arkit.receiver`; older ones are superseded, never queued), solves its 52 ARKit
+weights into contractions (:class:`~livebridge.arkit.solve.ArkitSolver`) and turns its head rotation into
+the frame's head pose (rotation only, about the face model's origin: the phone reports no translation).
+Contractions leave finite and in [0, 1] whatever the packet held (a muscle the solver holds keeps its last
+value).
 
-The frame's timing: ``capture`` and ``complete`` are the packet's arrival off the socket (the phone's own
-clock is another device's), ``solved`` the end of the solve; the pipeline fills in ``servo`` and
-``outputs``, and :meth:`done` keeps the arrival -> servo-bytes latency of recent frames for the status line.
+The frame's timing: ``capture`` and ``complete`` are the packet's arrival at this machine (the kernel's
+receive time where the system gives one, else the receiver thread's; the phone's own clock is another
+device's), ``solved`` the end of the solve; the pipeline fills in ``servo`` (so its "latency servo" is
+packet arrival -> servo bytes written) and ``outputs``. ``seq`` is the packet's frame number, ``index``
+the front's own count.
 """
 
 from __future__ import annotations
@@ -21,37 +24,54 @@ from collections.abc import Callable
 import numpy as np
 
 from livebridge.arkit.head import head_pose_from_rotation
+from livebridge.arkit.names import N_BLENDSHAPES
 from livebridge.arkit.receiver import LiveLinkReceiver
 from livebridge.arkit.solve import ArkitSolver
 from livebridge.runtime.frame import FrameTiming, SolvedFrame
+from livebridge.runtime.front import FrontStats
 
-_WINDOW = 120  # frames of latency and rate kept for the status line (2 s at 60 Hz)
+_WINDOW = 120  # packets kept for the rate (2 s at 60 Hz)
+SILENT_S = 1.0  # no valid packet for this long: the phone is reported silent
 
 
 class LiveLinkFront:
-    """Live Link Face packets -> solved frames.
+    """Live Link Face packets -> solved frames (see the module docstring).
 
     Parameters
     ----------
     receiver : LiveLinkReceiver
-        Not yet started (:meth:`start` starts it).
+        Open or not; :meth:`start` starts it.
     solver : ArkitSolver
     clock : callable
         Host monotonic seconds (the receiver's clock).
     """
 
     kind = "livelink"
+    input_name = "phone"
     realtime = True
 
     def __init__(self, receiver: LiveLinkReceiver, solver: ArkitSolver, clock: Callable[[], float] = time.monotonic):
         self.receiver, self.solver, self.clock = receiver, solver, clock
+        self.muscle_names = tuple(solver.solver.basis.names)
         self.state = solver.initial_state()
-        self.seq = 0
+        self.frames = 0
+        self.cpu_s = 0.0
+        self._last = np.zeros(len(self.muscle_names))
         self._arrivals: deque[float] = deque(maxlen=_WINDOW)
-        self._latency: deque[float] = deque(maxlen=_WINDOW)
+        self._started = math.nan
         self._stopped = False
 
+    @property
+    def name(self) -> str:
+        """The phone as log lines name it: its device id once heard, else the bound address."""
+        return self.receiver.device or self.receiver.url
+
+    def warm_up(self) -> None:
+        """The solver once (its compiled kernels load on first use), from a throw-away state."""
+        self.solver.step(self.solver.initial_state(), np.zeros(N_BLENDSHAPES))
+
     def start(self) -> None:
+        self._started = self.clock()
         self.receiver.start()
 
     def read(self, timeout: float) -> SolvedFrame | None:
@@ -59,19 +79,23 @@ class LiveLinkFront:
         arrival = self.receiver.get(timeout)
         if arrival is None:
             return None
+        t0 = time.thread_time()
         dequeued = self.clock()
         self.state, result = self.solver.step(self.state, arrival.packet.weights)
-        contractions = np.clip(np.nan_to_num(result.contractions, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+        x = np.where(np.isfinite(result.contractions), result.contractions, self._last)  # held: last value
+        contractions = np.clip(x, 0.0, 1.0)
+        self._last = contractions
         solved = self.clock()
         t = arrival.t_arrival
-        frame = SolvedFrame(seq=self.seq, index=arrival.packet.frame_number,
+        frame = SolvedFrame(seq=arrival.packet.frame_number, index=self.frames,
                             timing=FrameTiming(t, t, t, dequeued, dequeued, solved),
                             contractions=contractions, held=result.held,
-                            quality=(("upper mm", float(result.rms_error_mm[0])),
-                                     ("lower mm", float(result.rms_error_mm[1]))),
+                            quality=(("residual upper mm", float(result.rms_error_mm[0])),
+                                     ("residual lower mm", float(result.rms_error_mm[1]))),
                             head_pose=head_pose_from_rotation(arrival.packet.head_rotation))
-        self.seq += 1
+        self.frames += 1
         self._arrivals.append(t)
+        self.cpu_s += time.thread_time() - t0
         return frame
 
     @property
@@ -80,19 +104,57 @@ class LiveLinkFront:
         return self._stopped
 
     def done(self, frame: SolvedFrame) -> None:
-        """Keep the frame's packet -> servo-bytes latency (when servos wrote it)."""
-        if math.isfinite(frame.timing.servo):
-            self._latency.append(frame.timing.servo - frame.timing.capture)
+        """Nothing: the phone sends at its own pace."""
 
-    def status(self) -> str:
-        """``livelink 60.0 packets/s, packets N lost N ... , packet->servo p50 0.4 ms``."""
+    def faults(self) -> dict[str, str]:
+        return {}
+
+    def packets_per_s(self) -> float:
+        """Valid packets solved per second over the last ~2 s (0 once the phone is silent)."""
         arrivals = list(self._arrivals)
-        span = arrivals[-1] - arrivals[0] if len(arrivals) > 1 else 0.0
-        rate = (len(arrivals) - 1) / span if span > 0 else 0.0
-        text = f"livelink {rate:.1f} packets/s, {self.receiver.status()}"
-        if self._latency:
-            text += f", packet->servo p50 {1000 * float(np.median(self._latency)):.2f} ms"
-        return text
+        if len(arrivals) < 2 or self.clock() - arrivals[-1] > SILENT_S:
+            return 0.0
+        return (len(arrivals) - 1) / max(arrivals[-1] - arrivals[0], 1e-9)
+
+    def waiting(self) -> str | None:
+        if self.frames:
+            return None
+        heard = self.receiver.received
+        refused = self._refused_part()
+        return (f"waiting for Live Link Face packets on {self.receiver.url}"
+                + (f" ({heard} datagrams, none valid: {refused})" if heard else
+                   ": in the app, add this machine's address and port under Live Link targets"))
+
+    def status(self, summary=None) -> str:
+        """``phone 60.0 packets/s | lost N | refused N (reason n, ...) | superseded N | residual ...``.
+
+        The pipeline's own "latency servo" figures in the same line are packet arrival -> servo bytes.
+        """
+        receiver = self.receiver
+        line = (f"phone {self.packets_per_s():.1f} packets/s | lost {receiver.lost} | refused "
+                f"{self._refused_part()} | superseded {receiver.superseded}")
+        if self.frames and self.clock() - self._arrivals[-1] > SILENT_S:
+            line += f" | SILENT for {self.clock() - self._arrivals[-1]:.1f} s"
+        quality = dict(summary.quality) if summary is not None else {}
+        upper, lower = quality.get("residual upper mm", math.nan), quality.get("residual lower mm", math.nan)
+        if math.isfinite(upper) or math.isfinite(lower):
+            line += f" | residual upper {upper:.3f} lower {lower:.3f} mm"
+        return line
+
+    def _refused_part(self) -> str:
+        dropped = self.receiver.dropped
+        total = sum(dropped.values())
+        reasons = ", ".join(f"{reason} {count}" for reason, count in sorted(dropped.items()))
+        return f"{total}" + (f" ({reasons})" if reasons else "")
+
+    def stats(self) -> FrontStats:
+        receiver = self.receiver
+        silent = not self._arrivals or self.clock() - self._arrivals[-1] > SILENT_S
+        refused = sum(receiver.dropped.values())
+        return FrontStats(inputs=1, dead=(self.name,) if silent and not math.isnan(self._started) else (),
+                          frames_skipped=((self.name, refused),) if refused else (),
+                          dropped=receiver.superseded, input_frame_drops=receiver.lost, attempts=self.frames,
+                          cpu_s=self.cpu_s)
 
     def stop(self) -> None:
         self._stopped = True

@@ -11,11 +11,16 @@ flood the consumer sees the latest face and the older packets are counted as sup
 Refusals are counted by reason (:data:`livebridge.arkit.packet.REASONS`, plus ``other-device`` and
 ``stale``: a frame number at or behind the last one taken, i.e. reordered). Gaps in the frame numbers are
 counted as ``lost`` (packets the network or the socket buffer dropped).
+
+Arrival times are the kernel's receive time of each datagram (``SO_TIMESTAMPNS``, Linux) carried onto the
+receiver's clock, so the time a datagram waited in the socket for the reader thread counts in every
+latency measured from arrival; elsewhere, the moment the reader thread took it.
 """
 
 from __future__ import annotations
 
 import socket
+import struct
 import threading
 import time
 from collections import Counter
@@ -32,6 +37,8 @@ DEFAULT_BIND = "127.0.0.1"
 DEFAULT_PORT = 11111
 RESTART_S = 2.0  # a frame number this far behind the last one is a restarted phone, not a reordered packet
 _RECV_BYTES = 2048
+_TIMESPEC = struct.Struct("@qq")  # struct timespec on 64-bit Linux
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", None)
 
 
 @dataclass(frozen=True)
@@ -112,6 +119,12 @@ class LiveLinkReceiver:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
+    @property
+    def url(self) -> str:
+        """The ``livelinkface://`` URL listened on (the bound port once open)."""
+        host, port = self.bound if self._socket is not None else (self.address.host, self.address.port)
+        return f"{SCHEME}://{f'[{host}]' if ':' in host else host}:{port}"
+
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> tuple[str, int]:
         """Bind the socket (the port is taken now); returns the bound ``(host, port)``."""
@@ -124,6 +137,8 @@ class LiveLinkReceiver:
             raise InputError(f"cannot listen on {self.address.host}:{self.address.port} ({error.strerror})",
                              f"{SCHEME}://{self.address.host}:{self.address.port}") from None
         sock.settimeout(0.1)  # the reader wakes to notice stop()
+        if _SO_TIMESTAMPNS is not None:
+            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         self._socket = sock
         return sock.getsockname()[:2]
 
@@ -153,14 +168,25 @@ class LiveLinkReceiver:
 
     def _run(self) -> None:
         sock = self._socket
+        ancillary = socket.CMSG_SPACE(_TIMESPEC.size) if _SO_TIMESTAMPNS is not None else 0
         while not self._stop.is_set():
             try:
-                data = sock.recv(_RECV_BYTES)
+                data, cmsgs, _, _ = sock.recvmsg(_RECV_BYTES, ancillary)
             except TimeoutError:
                 continue
             except OSError:  # closed under us by stop()
                 return
-            self.ingest(data, self.clock())
+            self.ingest(data, self._arrival_time(cmsgs))
+
+    def _arrival_time(self, cmsgs) -> float:
+        """The datagram's kernel receive time on :attr:`clock` (now, less how long it waited in the socket)."""
+        now = self.clock()
+        for level, kind, payload in cmsgs:
+            if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
+                seconds, nanoseconds = _TIMESPEC.unpack_from(payload)
+                waited = time.time() - (seconds + 1e-9 * nanoseconds)
+                return now - min(max(waited, 0.0), 1.0)  # a wall clock stepped meanwhile: at most 1 s
+        return now
 
     # ------------------------------------------------------------------ packets
     def ingest(self, data: bytes, t_arrival: float) -> Arrival | None:

@@ -7,6 +7,17 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
                                       # film with these cameras; not needed by a sim rig of its own or by
                                       # replay:// of a recorded take (its calibration.toml is used)
 
+    [source]                      # optional; what the pipeline reads: "cameras" (default, [cameras])
+    kind = "cameras"              # or "livelinkface": an iPhone running Live Link Face, no cameras
+    url = "livelinkface://127.0.0.1:11111"  # livelinkface only: where to listen (default this one); only
+                                  # a named address hears the network: "livelinkface://0.0.0.0:11111";
+                                  # "?device=ID" follows one phone (default: the first heard)
+    arkit_shapes = "face_region.npz"  # livelinkface only, optional: ARKit-named shapes on the basis's mesh
+                                  # (.npz of names (n,) and deltas (n, V, 3), ICT-FaceKit's layout; names
+                                  # ARKit's or NAME_L/NAME_R); default: synthesised from the basis's muscles
+    arkit_shapes_units = "cm"     # of arkit_shapes: "mm", "cm" (ICT-FaceKit's face_region.npz), "m"
+    # a livelinkface session has no [cameras], calibration or [recording]
+
     [cameras]
     urls = ["v4l2:///dev/video0?fps=60", "v4l2:///dev/video2?fps=60"]
     # or ["sim://rig?cameras=4&seed=1"], or ["replay://takes/take-20250101-120000?realtime=0"]
@@ -82,7 +93,22 @@ if TYPE_CHECKING:
 
 BUILTIN_NAMES = ("builtin",)
 LABELLING_TIMEOUT_S = 10.0  # default [runtime] labelling_timeout_s
-_TOP_KEYS = {"cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime"}
+_TOP_KEYS = {"source", "cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime"}
+
+
+SOURCE_KINDS = ("cameras", "livelinkface")
+
+
+@dataclass(frozen=True)
+class SourceOptions:
+    """``[source]``: ``kind`` "cameras" (the session's ``camera_urls``) or "livelinkface" (``url``, the receiver's
+    ``livelinkface://`` URL; ``arkit_shapes``, an ARKit shape set on the basis's mesh, None: synthesised from
+    the basis's muscles, in ``arkit_shapes_units``)."""
+
+    kind: str = "cameras"
+    url: str = "livelinkface://127.0.0.1:11111"
+    arkit_shapes: Path | None = None
+    arkit_shapes_units: str = "cm"
 
 
 @dataclass(frozen=True)
@@ -145,6 +171,7 @@ class Session:
     path : Path or None
         The session file (None for a session built in code).
     camera_urls : tuple of str
+        Empty for a session whose source is not cameras.
     sync_tolerance : float
         Frame periods.
     basis : Path or str
@@ -160,7 +187,8 @@ class Session:
     servo_rig : Path or Rig or None
         A servo rig file (read with the face's muscle names when the pipeline is built), or a rig made in
         code (the demo's).
-    render, vmc, recording : option records
+    render, vmc, recording, livelink : option records
+    source : SourceOptions
     status_interval : float
     frames : int
         0: run until stopped.
@@ -184,6 +212,7 @@ class Session:
     status_interval: float = 1.0
     frames: int = 0
     labelling_timeout_s: float = LABELLING_TIMEOUT_S
+    source: SourceOptions = SourceOptions()
 
 
 class _Table:
@@ -266,14 +295,22 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     top = _Table(data, path, "")
     top.check_known(_TOP_KEYS)
 
-    cameras = top.table("cameras")
-    urls = cameras.get("urls", list, required=True)
-    if not urls or not all(isinstance(u, str) and "://" in u for u in urls):
-        raise InputError("a non-empty list of camera URLs (scheme://...)", path, "cameras.urls")
-    sync_tolerance = _positive(cameras.get("sync_tolerance", float, 0.5), path, "cameras.sync_tolerance")
-    if sync_tolerance > 0.5:
-        raise InputError("at most half a frame period", path, "cameras.sync_tolerance")
-    cameras.check_known()
+    source = _source(top.table("source"), path)
+    urls, sync_tolerance = [], 0.5
+    if source.kind == "cameras":
+        cameras = top.table("cameras")
+        urls = cameras.get("urls", list, required=True)
+        if not urls or not all(isinstance(u, str) and "://" in u for u in urls):
+            raise InputError("a non-empty list of camera URLs (scheme://...)", path, "cameras.urls")
+        sync_tolerance = _positive(cameras.get("sync_tolerance", float, 0.5), path, "cameras.sync_tolerance")
+        if sync_tolerance > 0.5:
+            raise InputError("at most half a frame period", path, "cameras.sync_tolerance")
+        cameras.check_known()
+    else:
+        for key in ("cameras", "calibration", "recording"):
+            if key in data:
+                raise InputError(f"a {source.kind} session has no {key} (the phone sends ARKit weights, "
+                                 "not images)", path, key)
 
     face = top.table("face")
     basis = face.path_value("basis", BUILTIN_NAMES, default="builtin")
@@ -285,7 +322,8 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     face.check_known()
 
     calibration = top.path_value("calibration")
-    if calibration is None and not all(u.startswith(("sim://", "replay://")) for u in urls):
+    if source.kind == "cameras" and calibration is None and not all(u.startswith(("sim://", "replay://"))
+                                                                    for u in urls):
         raise InputError("real cameras need a calibration file", path, "calibration")
 
     reconstruct_config = _reconstruct(top.table("reconstruct"), path)
@@ -338,7 +376,35 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
 
     return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_config,
                    solver_config, servo_rig, render, vmc, recording, status_interval, frames, labelling_timeout_s,
-                   livelink)
+                   livelink, source)
+
+
+def _source(table: _Table, path: Path | None) -> SourceOptions:
+    """``[source]``: the kind, and for a phone its receiver URL (checked now) and ARKit shape set."""
+    from livebridge.arkit.receiver import parse_receiver_url
+    from livebridge.arkit.shapes import UNITS_TO_MM
+
+    kind = table.get("kind", str, "cameras")
+    if kind not in SOURCE_KINDS:
+        raise InputError(f"must be one of {', '.join(map(repr, SOURCE_KINDS))}, got {kind!r}", path, "source.kind")
+    if kind == "cameras":
+        table.check_known({"kind"})
+        return SourceOptions()
+    url = table.get("url", str, SourceOptions.url)
+    try:
+        parse_receiver_url(url)
+    except InputError as error:
+        inner = f"{error.field}: {error.message}" if error.field else error.message
+        raise InputError(f"{url}: {inner}", path, "source.url") from None
+    shapes = table.path_value("arkit_shapes")
+    if shapes is not None and shapes.suffix != ".npz":
+        raise InputError("an .npz of ARKit-named shapes (names, deltas)", path, "source.arkit_shapes")
+    units = table.get("arkit_shapes_units", str, "cm")
+    if units not in UNITS_TO_MM:
+        raise InputError(f"must be one of {', '.join(map(repr, UNITS_TO_MM))}, got {units!r}", path,
+                         "source.arkit_shapes_units")
+    table.check_known()
+    return SourceOptions(kind, url, shapes, units)
 
 
 def _livelink(table: _Table, path: Path | None) -> LiveLinkOptions:
