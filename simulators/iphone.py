@@ -27,6 +27,7 @@ from livebridge.simulators.performer import ContractionScript, HeadMotion
 
 DEVICE_ID = "5A1E0D2C-1F3B-4C6D-8E9F-0A1B2C3D4E5F"  # the app sends the phone's UUID
 SUBJECT = "iPhoneSim"
+SEND_TIMES_KEPT = 36_000  # packets whose send time is kept (10 min at 60 Hz): a demo runs for hours
 
 
 class SimulatedIPhone:
@@ -60,7 +61,7 @@ class SimulatedIPhone:
         self.device_id, self.subject = device_id, subject
         self.address = (host, port)
         self.sent = 0
-        self.send_times: dict[int, float] = {}  # frame number -> host monotonic time sent
+        self.send_times: dict[int, float] = {}  # frame number -> host monotonic time sent (the recent ones)
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
@@ -84,26 +85,29 @@ class SimulatedIPhone:
         return encode_packet(self.packet(frame))
 
     # ------------------------------------------------------------------ sending
-    def run(self, n_frames: int, realtime: bool = True) -> int:
-        """Send ``n_frames`` packets (paced at ``fps``, or as fast as possible); returns the number sent."""
-        with socket.socket(socket.AF_INET6 if ":" in self.address[0] else socket.AF_INET, socket.SOCK_DGRAM) as sock:
+    def run(self, n_frames: int | None, realtime: bool = True) -> int:
+        """Send ``n_frames`` packets (None: until :meth:`stop`), paced at ``fps`` or as fast as possible; returns
+        the number sent."""
+        family = socket.AF_INET6 if ":" in self.address[0] else socket.AF_INET
+        with socket.socket(family, socket.SOCK_DGRAM) as sock:
             t0 = time.monotonic()
-            for k in range(n_frames):
-                if self._stop.is_set():
-                    break
+            k = 0
+            while (n_frames is None or k < n_frames) and not self._stop.is_set():
                 if realtime:
                     delay = t0 + k / self.fps - time.monotonic()
                     if delay > 0:
-                        time.sleep(delay)
+                        self._stop.wait(delay)
                 frame = self.frame0 + k
                 data = self.datagram(frame)
                 self.send_times[frame] = time.monotonic()
+                self.send_times.pop(frame - SEND_TIMES_KEPT, None)
                 sock.sendto(data, self.address)
                 self.sent += 1
+                k += 1
         return self.sent
 
-    def start(self, n_frames: int, realtime: bool = True) -> None:
-        """Send in a background thread."""
+    def start(self, n_frames: int | None = None, realtime: bool = True) -> None:
+        """Send in a background thread (None: until :meth:`stop`)."""
         self._stop.clear()
         self._thread = threading.Thread(target=self.run, args=(n_frames, realtime), name="iphone-sim", daemon=True)
         self._thread.start()

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -30,7 +29,6 @@ from livebridge.arkit.solve import ArkitSolver
 from livebridge.runtime.frame import FrameTiming, SolvedFrame
 from livebridge.runtime.front import FrontStats
 
-_WINDOW = 120  # packets kept for the rate (2 s at 60 Hz)
 SILENT_S = 1.0  # no valid packet for this long: the phone is reported silent
 
 
@@ -57,7 +55,6 @@ class LiveLinkFront:
         self.frames = 0
         self.cpu_s = 0.0
         self._last = np.zeros(len(self.muscle_names))
-        self._arrivals: deque[float] = deque(maxlen=_WINDOW)
         self._started = math.nan
         self._stopped = False
 
@@ -94,7 +91,6 @@ class LiveLinkFront:
                                      ("residual lower mm", float(result.rms_error_mm[1]))),
                             head_pose=head_pose_from_rotation(arrival.packet.head_rotation))
         self.frames += 1
-        self._arrivals.append(t)
         self.cpu_s += time.thread_time() - t0
         return frame
 
@@ -110,8 +106,8 @@ class LiveLinkFront:
         return {}
 
     def packets_per_s(self) -> float:
-        """Valid packets solved per second over the last ~2 s (0 once the phone is silent)."""
-        arrivals = list(self._arrivals)
+        """Valid packets the phone delivered per second over the last ~2 s (0 once it is silent)."""
+        arrivals = list(self.receiver.recent)
         if len(arrivals) < 2 or self.clock() - arrivals[-1] > SILENT_S:
             return 0.0
         return (len(arrivals) - 1) / max(arrivals[-1] - arrivals[0], 1e-9)
@@ -120,7 +116,7 @@ class LiveLinkFront:
         if self.frames:
             return None
         heard = self.receiver.received
-        refused = self._refused_part()
+        refused = self.refused_text()
         return (f"waiting for Live Link Face packets on {self.receiver.url}"
                 + (f" ({heard} datagrams, none valid: {refused})" if heard else
                    ": in the app, add this machine's address and port under Live Link targets"))
@@ -132,26 +128,34 @@ class LiveLinkFront:
         """
         receiver = self.receiver
         line = (f"phone {self.packets_per_s():.1f} packets/s | lost {receiver.lost} | refused "
-                f"{self._refused_part()} | superseded {receiver.superseded}")
-        if self.frames and self.clock() - self._arrivals[-1] > SILENT_S:
-            line += f" | SILENT for {self.clock() - self._arrivals[-1]:.1f} s"
+                f"{self.refused_text()} | superseded {receiver.superseded}")
+        silent = self._silent_s()
+        if silent > SILENT_S:
+            line += f" | SILENT for {silent:.1f} s"
         quality = dict(summary.quality) if summary is not None else {}
         upper, lower = quality.get("residual upper mm", math.nan), quality.get("residual lower mm", math.nan)
         if math.isfinite(upper) or math.isfinite(lower):
             line += f" | residual upper {upper:.3f} lower {lower:.3f} mm"
         return line
 
-    def _refused_part(self) -> str:
+    def refused_text(self) -> str:
+        """Refused datagrams: ``N (reason n, ...)``."""
         dropped = self.receiver.dropped
         total = sum(dropped.values())
         reasons = ", ".join(f"{reason} {count}" for reason, count in sorted(dropped.items()))
         return f"{total}" + (f" ({reasons})" if reasons else "")
 
+    def _silent_s(self) -> float:
+        """Seconds since the last valid packet (since the start before the first; 0 before the start)."""
+        recent = self.receiver.recent
+        since = recent[-1] if recent else self._started
+        return self.clock() - since if math.isfinite(since) else 0.0
+
     def stats(self) -> FrontStats:
         receiver = self.receiver
-        silent = not self._arrivals or self.clock() - self._arrivals[-1] > SILENT_S
+        silent = self._silent_s() > SILENT_S
         refused = sum(receiver.dropped.values())
-        return FrontStats(inputs=1, dead=(self.name,) if silent and not math.isnan(self._started) else (),
+        return FrontStats(inputs=1, dead=(self.name,) if silent else (),
                           frames_skipped=((self.name, refused),) if refused else (),
                           dropped=receiver.superseded, input_frame_drops=receiver.lost, attempts=self.frames,
                           cpu_s=self.cpu_s)

@@ -23,7 +23,7 @@ import socket
 import struct
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -114,6 +114,7 @@ class LiveLinkReceiver:
         self.received = self.accepted = self.lost = 0
         self.dropped: Counter[str] = Counter()
         self.device = self.address.device
+        self.recent: deque[float] = deque(maxlen=120)  # arrival times of the last valid packets (the rate)
         self._last: LiveLinkPacket | None = None
         self._socket: socket.socket | None = None
         self._thread: threading.Thread | None = None
@@ -214,6 +215,7 @@ class LiveLinkReceiver:
                 self.lost += gap - 1
         self._last = packet
         self.accepted += 1
+        self.recent.append(t_arrival)
         arrival = Arrival(packet, t_arrival)
         self._queue.put(arrival)
         return arrival

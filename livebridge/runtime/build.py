@@ -146,6 +146,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
         fps = _fps(sources)
     opened = []
     try:
+        front = _livelink_front(session, basis, markers, opened, log) if cameras is None else None
         servo = None
         if session.servo_rig is not None:
             from livebridge.servo.output import ServoOutput
@@ -175,9 +176,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             sources = recorder.wrap_sources(sources)
             log(f"recording to {directory}" + (" (with raw frames)" if session.recording.raw_frames else ""))
         log("set-up: warming up the per-frame kernels (compiled on their first use)")
-        if cameras is None:
-            front = _livelink_front(session, basis, markers, opened, log)
-        else:
+        if front is None:
             from livebridge.runtime.markers_front import MarkerFront
 
             front = MarkerFront(sources, cameras, basis, markers, 1.0 / fps, session.reconstruct, session.solver,
