@@ -1,22 +1,23 @@
 """The session file: everything one live run needs, in one TOML file, checked before anything starts.
 
-Example (every table but ``[cameras]`` is optional; paths are relative to the session file; top-level
-keys such as ``calibration`` must come before the first ``[table]``, or TOML puts them in that table)::
+Example (every table but ``[cameras]`` is optional, and a phone session has none; paths are relative to
+the session file; top-level keys such as ``calibration`` must come before the first ``[table]``, or TOML
+puts them in that table)::
 
     calibration = "calibration.toml"  # written by `livebridge calibrate` (save_calibration); sim:// rigs
                                       # film with these cameras; not needed by a sim rig of its own or by
                                       # replay:// of a recorded take (its calibration.toml is used)
 
-    [source]                      # optional; what the pipeline reads: "cameras" (default, [cameras])
-    kind = "cameras"              # or "livelinkface": an iPhone running Live Link Face, no cameras
-    url = "livelinkface://127.0.0.1:11111"  # livelinkface only: where to listen (default this one); only
-                                  # a named address hears the network: "livelinkface://0.0.0.0:11111";
-                                  # "?device=ID" follows one phone (default: the first heard)
-    arkit_shapes = "face_region.npz"  # livelinkface only, optional: ARKit-named shapes on the basis's mesh
-                                  # (.npz of names (n,) and deltas (n, V, 3), ICT-FaceKit's layout; names
-                                  # ARKit's or NAME_L/NAME_R); default: synthesised from the basis's muscles
-    arkit_shapes_units = "cm"     # of arkit_shapes: "mm", "cm" (ICT-FaceKit's face_region.npz), "m"
-    # a livelinkface session has no [cameras], calibration or [recording]
+    [source]                      # optional; what the pipeline reads
+    kind = "cameras"              # default: the [cameras] below; or "livelinkface": an iPhone running Live
+                                  # Link Face (then no [cameras], calibration or [recording]), with:
+    # url = "livelinkface://127.0.0.1:11111"   # where to listen (this default); the network is heard only
+    #                             # on a named address: "livelinkface://0.0.0.0:11111"; "?device=ID" follows
+    #                             # one phone (default: the first heard)
+    # arkit_shapes = "face_region.npz"  # optional: ARKit-named shapes on the basis's mesh (.npz of names (n,)
+    #                             # and deltas (n, V, 3), ICT-FaceKit's layout; ARKit names or NAME_L/NAME_R);
+    #                             # default: synthesised from the basis's muscles
+    # arkit_shapes_units = "cm"   # of arkit_shapes: "mm", "cm" (ICT-FaceKit's face_region.npz), "m"
 
     [cameras]
     urls = ["v4l2:///dev/video0?fps=60", "v4l2:///dev/video2?fps=60"]
@@ -93,7 +94,8 @@ if TYPE_CHECKING:
 
 BUILTIN_NAMES = ("builtin",)
 LABELLING_TIMEOUT_S = 10.0  # default [runtime] labelling_timeout_s
-_TOP_KEYS = {"source", "cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime"}
+_TOP_KEYS = {"source", "cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording",
+             "runtime"}
 
 
 SOURCE_KINDS = ("cameras", "livelinkface")
@@ -375,8 +377,9 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     runtime.check_known()
 
     return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_config,
-                   solver_config, servo_rig, render, vmc, recording, status_interval, frames, labelling_timeout_s,
-                   livelink, source)
+                   solver_config, servo_rig, render, vmc, recording, livelink=livelink,
+                   status_interval=status_interval, frames=frames, labelling_timeout_s=labelling_timeout_s,
+                   source=source)
 
 
 def _source(table: _Table, path: Path | None) -> SourceOptions:
