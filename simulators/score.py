@@ -70,3 +70,44 @@ class GroundTruthScore:
     @property
     def rmse(self) -> float:
         return math.sqrt(self.squared / self.count) if self.count else math.nan
+
+
+class ContractionScore:
+    """Contraction error of solved frames against a truth looked up by the frame's ``seq``.
+
+    For sources that say which moment of the performance a frame is (a simulated phone's frame number:
+    :meth:`livebridge.simulators.iphone.SimulatedIPhone.truth`), so input latency and superseded packets do
+    not count as error.
+
+    Parameters
+    ----------
+    truth : callable
+        ``truth(seq) -> ndarray (n_muscles,)``.
+    skip : int
+        Solved frames ignored at the start.
+    """
+
+    swaps = 0  # no markers to swap
+
+    def __init__(self, truth, skip: int = 0):
+        self.truth, self.skip = truth, skip
+        self._lock = threading.Lock()
+        self.squared = 0.0
+        self.count = 0
+        self.frames = 0
+        self.worst_abs = 0.0
+
+    def __call__(self, frame) -> None:
+        with self._lock:
+            self.frames += 1
+            if self.frames <= self.skip:
+                return
+        error = np.asarray(frame.contractions) - self.truth(frame.seq)
+        with self._lock:
+            self.squared += float(np.sum(error**2))
+            self.count += error.size
+            self.worst_abs = max(self.worst_abs, float(np.max(np.abs(error))))
+
+    @property
+    def rmse(self) -> float:
+        return math.sqrt(self.squared / self.count) if self.count else math.nan

@@ -320,6 +320,41 @@ def _session_with_bad(name: str, write: Callable[[Path], None], text: str) -> Ca
     return write_both
 
 
+# A Live Link Face session ([source] kind = "livelinkface"): no cameras; the render client off, so that nothing
+# but the case's own fault can stop it.
+_PHONE = '[source]\nkind = "livelinkface"\n'
+_PHONE_TAIL = "[outputs.render]\nenabled = false\n"
+
+
+def _phone(source_keys: str, companion: str | None = None) -> Callable[[Path], None]:
+    """A phone session with more ``[source]`` keys (and an empty companion file of that name beside it)."""
+    def write(path: Path) -> None:
+        if companion is not None:
+            (path.parent / companion).write_bytes(b"not an npz")
+        path.write_text(_PHONE + source_keys + _PHONE_TAIL)
+    return write
+
+
+def _phone_shapes(names=("jawOpen",), vertices=None, value=0.1) -> Callable[[Path], None]:
+    """A phone session whose ARKit shapes (``shapes.npz``) are malformed."""
+    def write(path: Path) -> None:
+        from livebridge.face.builtin import builtin_basis
+
+        n = builtin_basis().n_vertices if vertices is None else vertices
+        np.savez(path.parent / "shapes.npz", names=np.array(names), deltas=np.full((len(names), n, 3), value))
+        path.write_text(_PHONE + 'arkit_shapes = "shapes.npz"\n' + _PHONE_TAIL)
+    return write
+
+
+def _phone_port_in_use(path: Path):
+    import socket
+
+    busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    busy.bind(("127.0.0.1", 0))
+    path.write_text(_PHONE + f'url = "livelinkface://127.0.0.1:{busy.getsockname()[1]}"\n' + _PHONE_TAIL)
+    return busy  # held until the command has run
+
+
 def _render_port_in_use(path: Path):
     import socket
 
@@ -365,6 +400,42 @@ SESSION_CASES = _toml_cases() + (
     Case("vmc port 0", _session("[outputs.vmc]\nenabled = true\nport = 0\n"), ("outputs.vmc.port", "1..65535")),
     Case("vmc host broadcast", _session('[outputs.vmc]\nenabled = true\nhost = "255.255.255.255"\n'),
          ("outputs.vmc.host",)),
+    Case("livelink port 0", _session("[outputs.livelink]\nport = 0\n"), ("outputs.livelink.port", "1..65535")),
+    Case("livelink port text", _session('[outputs.livelink]\nport = "11111"\n'), ("outputs.livelink.port",)),
+    Case("livelink empty subject", _session('[outputs.livelink]\nsubject = ""\n'), ("outputs.livelink.subject",)),
+    Case("livelink long device id", _session(f'[outputs.livelink]\ndevice_id = "{"x" * 300}"\n'),
+         ("outputs.livelink.device_id", "256 bytes")),
+    Case("livelink fps 0", _session("[outputs.livelink]\nfps = 0\n"), ("outputs.livelink.fps",)),
+    Case("livelink unknown key", _session("[outputs.livelink]\nsubjct = 1\n"), ("outputs.livelink.subjct",)),
+    Case("source kind unknown", _session('[source]\nkind = "iphone"\n'), ("source.kind", "livelinkface")),
+    Case("source url for cameras", _session('[source]\nurl = "livelinkface://"\n'), ("source.url", "unknown")),
+    Case("livelinkface with cameras", _session(_PHONE), ("cameras", "livelinkface")),
+    Case("livelinkface with calibration", _text('calibration = "c.toml"\n' + _PHONE), ("calibration",)),
+    *(Case(f"livelinkface url {name}", _phone(f'url = "{url}"\n'), ("source.url", *words))
+      for name, url, words in (
+          ("other scheme", "udp://127.0.0.1:11111", ("livelinkface://",)),
+          ("port too big", "livelinkface://127.0.0.1:99999", ("0..65535",)),
+          ("port text", "livelinkface://127.0.0.1:abc", ("abc",)),
+          ("a path", "livelinkface://127.0.0.1:11111/face", ("/face",)),
+          ("a host name", "livelinkface://phone.local:11111", ("phone.local", "IP address")),
+          ("unknown parameter", "livelinkface://:11111?devcie=A", ("devcie",)),
+          ("empty device", "livelinkface://:11111?device=", ("device",)),
+          ("not a URL", "11111", ()))),
+    Case("livelinkface url not text", _phone("url = 11111\n"), ("source.url", "str")),
+    Case("livelinkface port in use", _phone_port_in_use, ("source.url", "cannot listen")),
+    Case("livelinkface shapes missing", _phone('arkit_shapes = "nothing.npz"\n'),
+         ("source.arkit_shapes", "file not found")),
+    Case("livelinkface shapes not npz", _phone('arkit_shapes = "shapes.txt"\n', "shapes.txt"),
+         ("source.arkit_shapes", ".npz")),
+    Case("livelinkface shapes units", _phone('arkit_shapes_units = "inch"\n'),
+         ("source.arkit_shapes_units", "inch")),
+    Case("livelinkface shapes not ARKit names", _phone_shapes(names=["smile"]),
+         ("source.arkit_shapes", "shapes.npz", "smile")),
+    Case("livelinkface shapes on another mesh", _phone_shapes(vertices=5),
+         ("source.arkit_shapes", "vertices")),
+    Case("livelinkface shapes NaN", _phone_shapes(value=float("nan")), ("source.arkit_shapes", "NaN")),
+    Case("livelinkface shapes not an npz", _phone('arkit_shapes = "shapes.npz"\n', "shapes.npz"),
+         ("source.arkit_shapes", "shapes.npz")),
     Case("unknown output", _session("[outputs.osc]\nport = 1\n"), ("outputs.osc",)),
     Case("recording without folder", _session("[recording]\nenabled = true\n"), ("recording.directory",)),
     Case("recording format", _session('[recording]\nframe_format = "jpg"\n'), ("recording.frame_format",)),
@@ -654,6 +725,8 @@ COMMANDS = (
         Bad("--record in a missing folder", ("--record", f"{_MISSING}/take"), ("--record", "does not exist")),
         Bad("--record exists", ("--record", "{dir}"), ("--record", "already exists")),
         Bad("--record-frames without --record", ("--record-frames",), ("--record-frames", "--record")),
+        Bad("--source unknown", ("--source", "iphone"), ("--source", "iphone")),
+        Bad("--source livelinkface with a rig option", ("--source", "livelinkface"), ("--size", "simulated rig")),
     )),
     Command("basis import", ("basis", "import", "{dir}/manifest.toml", "--out", "{dir}/new.npz"), (
         *_output_cases(suffix=".npz"),

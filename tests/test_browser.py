@@ -78,8 +78,17 @@ def test_page_draws_the_face_and_follows_the_contractions(browser, face_basis, t
         changed = np.abs(moved - neutral).sum(axis=-1) > 30
         assert changed.mean() > 0.002, "the face did not change with the contractions"
 
+        turned = np.eye(4)  # the head turned a quarter turn about its up axis: the page turns the face
+        turned[:3, :3] = [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]
+        server.publish(RenderFrame(3, time.monotonic(), x, markers.marker_positions(basis, x), (0.1, 0.2),
+                                   np.array([0.9]), turned))
+        page.wait_for_function("window.livebridge.drawnSeq >= 3", timeout=10_000)
+        profile = _canvas_pixels(page)
+        changed = np.abs(profile - moved).sum(axis=-1) > 30
+        assert changed.mean() > 0.02, "the face did not turn with the head pose"
+
         assert page.evaluate("window.livebridge.error") is None
-        assert page.evaluate("window.livebridge.framesReceived") == 2
+        assert page.evaluate("window.livebridge.framesReceived") == 3
         page.close()
     assert not errors, errors
     out = os.environ.get("LIVEBRIDGE_SCREENSHOT_DIR")

@@ -130,9 +130,16 @@ def test_client_gets_init_mesh_then_frames(server):
         assert frame.seq == 7 and np.allclose(frame.contractions, x)
         assert np.allclose(frame.markers, markers, equal_nan=True)
         assert frame.region_errors == (0.25, 0.5) and np.allclose(frame.servo_targets, [0, 1])
+        assert np.isnan(frame.head_pose).all()  # no head pose: unknown
+        pose = np.eye(4)
+        pose[:3, :3] = [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]
+        pose[:3, 3] = [1, 2, 3]
+        server.publish(RenderFrame(8, time.monotonic(), x, None, servo_targets=None, head_pose=pose))
+        frame = decode_frame(ws.recv(timeout=5))
+        assert np.allclose(frame.head_pose, pose) and np.isnan(frame.markers).all()
         server.publish_status({"line": "fps 60"})
         assert json.loads(ws.recv(timeout=5)) == {"type": "status", "line": "fps 60"}
-    assert len(server.sent_latencies()) == 1 and 0 <= server.sent_latencies()[0] < 5
+    assert len(server.sent_latencies()) == 2 and 0 <= server.sent_latencies()[0] < 5
 
 
 def test_a_stalled_client_never_slows_the_publisher_or_the_other_clients(rng):

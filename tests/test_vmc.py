@@ -11,15 +11,13 @@ from pythonosc.osc_message import OscMessage
 
 from livebridge.errors import InputError
 from livebridge.face.basis import CHOE_KO_MUSCLES
+from livebridge.output.blendshapes import ARKIT_MAPPING, BlendshapeMap, convert_case
 from livebridge.output.vmc import (
     APPLY_ADDRESS,
-    ARKIT_MAPPING,
     DEFAULT_PORT,
     VAL_ADDRESS,
-    BlendshapeMap,
     VMCEncoder,
     VMCOutput,
-    convert_case,
 )
 
 NAMES = tuple(m.name for m in CHOE_KO_MUSCLES)

@@ -36,7 +36,10 @@ def _announce_outputs(pipeline) -> None:
         click.echo(output.describe())
 
 
-def _print_summary(summary, score=None) -> None:
+def _print_summary(summary, score=None, pipeline=None) -> None:
+    if pipeline is not None and pipeline.front.kind == "livelink":
+        _print_livelink_summary(summary, score, pipeline)
+        return
     click.echo(f"frame sets solved: {summary.solved} ({summary.framesets} reconstructed), "
                f"{summary.fps:.1f} per second, {summary.drops} dropped")
     click.echo(f"latency (frame set complete -> servo bytes written): p50 {summary.latency_p50_ms:.2f} ms, "
@@ -51,6 +54,21 @@ def _print_summary(summary, score=None) -> None:
     if score is not None:
         click.echo(f"contraction RMSE vs ground truth: {score.rmse:.4f} (worst {score.worst_abs:.3f}), "
                    f"label swaps: {score.swaps}")
+
+
+def _print_livelink_summary(summary, score, pipeline) -> None:
+    """The summary of a Live Link Face run: packets instead of frame sets and markers."""
+    front = pipeline.front
+    receiver = front.receiver
+    click.echo(f"packets solved: {summary.solved}, {summary.fps:.1f} per second; superseded by a newer one "
+               f"{receiver.superseded}")
+    what = "servo bytes written" if pipeline.servo is not None else "solved"
+    click.echo(f"latency (packet arrival -> {what}): p50 {summary.latency_p50_ms:.2f} ms, p99 "
+               f"{summary.latency_p99_ms:.2f} ms; render message sent: p50 {summary.render_latency_p50_ms:.2f} ms, "
+               f"p99 {summary.render_latency_p99_ms:.2f} ms")
+    click.echo(f"phone: {receiver.received} datagrams, {receiver.lost} lost, refused {front.refused_text()}")
+    if score is not None:
+        click.echo(f"contraction RMSE vs ground truth: {score.rmse:.4f} (worst {score.worst_abs:.3f})")
 
 
 EXIT_CAMERA_FAILED = 1
@@ -103,12 +121,18 @@ def run(session: str, frames: int | None, allow_remote: bool) -> None:
 
     summary = run_until_stopped(pipeline, frames if frames is not None else loaded.frames, log=_log,
                                 on_start=started)
-    _print_summary(summary)
+    _print_summary(summary, pipeline=pipeline)
     _exit_on_camera_errors(summary)
 
 
+RIG_ONLY = ("cameras", "fps", "size", "unpaced", "record", "record_frames")
+
+
 @click.command()
-@click.option("--frames", type=FRAMES, default=0, help="End after N frame sets and print a summary.")
+@click.option("--source", type=click.Choice(["rig", "livelinkface"]), default="rig", show_default=True,
+              help="rig: a simulated 4-camera rig filming a face with markers; livelinkface: a simulated iPhone "
+                   "sending Live Link Face packets (60 Hz, loopback).")
+@click.option("--frames", type=FRAMES, default=0, help="End after N frame sets (packets) and print a summary.")
 @click.option("--cameras", type=click.IntRange(2, 8), default=4, show_default=True, help="Simulated cameras.")
 @click.option("--seed", type=SEED, default=1, show_default=True)
 @click.option("--fps", type=FiniteFloat(*DEMO_FPS), default=30.0, show_default=True,
@@ -127,23 +151,34 @@ def run(session: str, frames: int | None, allow_remote: bool) -> None:
 @click.option("--record", type=NewFolder(), default=None, help="Record the take to this new folder.")
 @click.option("--record-frames", is_flag=True,
               help="With --record: also record the raw camera frames (replay them with replay://FOLDER).")
-def demo(frames, cameras, seed, fps, size, host, allow_remote, port, unpaced, no_servo, no_render, vmc, record,
-         record_frames) -> None:
-    """The whole pipeline on simulators: performer, 4-camera rig, servo bus, render client.
+@click.pass_context
+def demo(ctx, source, frames, cameras, seed, fps, size, host, allow_remote, port, unpaced, no_servo, no_render, vmc,
+         record, record_frames) -> None:
+    """The whole pipeline on simulators: performer, 4-camera rig (or an iPhone), servo bus, render client.
 
     Prints the URL of the render page; Ctrl-C (or --frames N) ends it with a summary.
     """
-    from livebridge.runtime.demo import build_demo
+    from livebridge.runtime.demo import build_demo, build_livelink_demo
     from livebridge.runtime.pipeline import run_until_stopped
 
     if record_frames and not record:
         raise click.BadParameter("needs --record FOLDER", param_hint="--record-frames")
+    if source == "livelinkface":
+        given = [name for name in RIG_ONLY
+                 if ctx.get_parameter_source(name) is not click.core.ParameterSource.DEFAULT]
+        if given:
+            raise click.BadParameter("an option of the simulated rig; the phone has no cameras",
+                                     param_hint=f"--{given[0].replace('_', '-')}")
     clash = None if no_render else render_bind_problem(host, port)
     if clash is not None:  # before the long set-up; the server's own bind still reports a port taken meanwhile
         raise click.BadParameter(clash[1], param_hint=f"--{clash[0]}")
-    parts = build_demo(cameras=cameras, seed=seed, fps=fps, size=size, realtime=not unpaced, servo=not no_servo,
-                       render=not no_render, host=host, port=port, vmc=vmc, record=record,
-                       record_frames=record_frames, log=_log)
+    if source == "livelinkface":
+        parts = build_livelink_demo(seed=seed, servo=not no_servo, render=not no_render, host=host, port=port,
+                                    vmc=vmc, log=_log)
+    else:
+        parts = build_demo(cameras=cameras, seed=seed, fps=fps, size=size, realtime=not unpaced,
+                           servo=not no_servo, render=not no_render, host=host, port=port, vmc=vmc, record=record,
+                           record_frames=record_frames, log=_log)
 
     def started(p):
         if p.render is not None:
@@ -151,8 +186,16 @@ def demo(frames, cameras, seed, fps, size, host, allow_remote, port, unpaced, no
         else:
             click.echo("livebridge demo running (Ctrl-C to stop)")
         _announce_outputs(p)
+        if parts.phone is not None:
+            click.echo(f"simulated iPhone: Live Link Face packets at {parts.phone.fps:g} Hz to "
+                       f"{p.front.receiver.url}")
+            parts.phone.start()
         sys.stdout.flush()
 
-    summary = run_until_stopped(parts.pipeline, frames, log=_log, on_start=started)
-    _print_summary(summary, parts.score)
+    try:
+        summary = run_until_stopped(parts.pipeline, frames, log=_log, on_start=started)
+    finally:
+        if parts.phone is not None:
+            parts.phone.stop()
+    _print_summary(summary, parts.score, parts.pipeline)
     _exit_on_camera_errors(summary)

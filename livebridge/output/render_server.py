@@ -25,7 +25,9 @@ Then per published frame (newest wins, see below), binary *frame*:
 (error_upper_mm, error_lower_mm, latency_ms)``, ``float32 contractions
 (M,)``, ``float32 markers (n_markers, 3)`` in the model frame (NaN: not
 seen), ``float32 servo_targets (n_servos,)`` normalised to [0, 1] between
-each servo's limits (NaN: unknown). And now and then a text JSON
+each servo's limits (NaN: unknown), ``float32 head (4, 4)`` row-major head
+model -> world pose (NaN: unknown; the page turns the face by its rotation
+and keeps it centred). And now and then a text JSON
 ``{"type": "status", ...}`` with the runtime's live status line.
 
 Only the page itself may connect (cross-site WebSocket hijacking, DNS
@@ -105,6 +107,8 @@ class RenderFrame:
         RMS marker error of the (upper, lower) face solve, mm.
     servo_targets : ndarray, shape (n_servos,), optional
         Servo targets normalised to [0, 1] between each servo's limits.
+    head_pose : ndarray, shape (4, 4), optional
+        Head model -> world, where the front measures the head (the phone's head rotation).
     """
 
     seq: int
@@ -113,6 +117,7 @@ class RenderFrame:
     markers: np.ndarray | None = None
     region_errors: tuple[float, float] = (float("nan"), float("nan"))
     servo_targets: np.ndarray | None = None
+    head_pose: np.ndarray | None = None
 
 
 def encode_mesh(basis: Basis) -> bytes:
@@ -139,10 +144,12 @@ def encode_frame(frame: RenderFrame, n_markers: int, n_servos: int, latency_ms: 
         np.asarray(frame.markers, dtype="<f4").reshape(n_markers, 3)
     servos = np.full(n_servos, np.nan, "<f4") if frame.servo_targets is None else \
         np.asarray(frame.servo_targets, dtype="<f4").reshape(n_servos)
+    head = np.full(16, np.nan, "<f4") if frame.head_pose is None else \
+        np.asarray(frame.head_pose, dtype="<f4").reshape(16)
     header = np.array([FRAME_KIND, frame.seq & 0xFFFFFFFF, len(contractions), n_markers, n_servos], dtype="<u4")
     floats = np.array([frame.region_errors[0], frame.region_errors[1], latency_ms], dtype="<f4")
     return b"".join((header.tobytes(), floats.tobytes(), contractions.tobytes(), markers.tobytes(),
-                     servos.tobytes()))
+                     servos.tobytes(), head.tobytes()))
 
 
 @dataclass(frozen=True, eq=False)
@@ -161,6 +168,8 @@ class FrameMessage:
     markers : ndarray, shape (n_markers, 3)
         NaN rows unseen.
     servo_targets : ndarray, shape (n_servos,)
+    head_pose : ndarray, shape (4, 4)
+        NaN: unknown.
     """
 
     seq: int
@@ -169,6 +178,7 @@ class FrameMessage:
     contractions: np.ndarray
     markers: np.ndarray
     servo_targets: np.ndarray
+    head_pose: np.ndarray
 
 
 def decode_frame(data: bytes) -> FrameMessage:
@@ -177,9 +187,10 @@ def decode_frame(data: bytes) -> FrameMessage:
     if kind != FRAME_KIND:
         raise ValueError(f"not a frame message (kind {kind})")
     floats = np.frombuffer(data, "<f4", offset=20)
+    end = 3 + m + 3 * n + s
     return FrameMessage(int(seq), (float(floats[0]), float(floats[1])), float(floats[2]), floats[3:3 + m].copy(),
-                        floats[3 + m:3 + m + 3 * n].reshape(n, 3).copy(),
-                        floats[3 + m + 3 * n:3 + m + 3 * n + s].copy())
+                        floats[3 + m:3 + m + 3 * n].reshape(n, 3).copy(), floats[3 + m + 3 * n:end].copy(),
+                        floats[end:end + 16].reshape(4, 4).copy())
 
 
 class _Client:

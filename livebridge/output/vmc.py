@@ -7,19 +7,13 @@ all. The messages are packed into OSC bundles that each fit one UDP
 datagram of at most ``max_datagram`` bytes (1472 by default, so the IP packet
 stays within a 1500-byte Ethernet MTU); ``Apply`` closes the last bundle.
 
-Muscles become blendshapes through a linear map: each muscle drives one or
-more blendshapes with weights, and a blendshape's value is the weighted sum,
-clipped to [0, 1]. The default map sends the 16 Choe-Ko muscles to Apple
-ARKit blendshape names (the names Perfect-Sync avatars and VSeeFace use);
-receivers differ in case, so the names can be written ``camel``
-(``browInnerUp``, ARKit's own spelling), ``pascal`` (``BrowInnerUp``),
-``lower`` (``browinnerup``) or ``snake`` (``brow_inner_up``).
+Muscles become blendshapes through the map every blendshape output shares
+(:class:`livebridge.output.blendshapes.BlendshapeMap`, also Live Link Face's).
 """
 
 from __future__ import annotations
 
 import ipaddress
-import re
 import socket
 import struct
 from collections.abc import Mapping, Sequence
@@ -27,108 +21,14 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from livebridge.errors import InputError
+from livebridge.output.blendshapes import BlendshapeMap
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 39539
 VAL_ADDRESS = "/VMC/Ext/Blend/Val"
 APPLY_ADDRESS = "/VMC/Ext/Blend/Apply"
 MAX_DATAGRAM = 1472  # 1500-byte MTU minus IPv4 and UDP headers
-CASES = ("camel", "pascal", "lower", "snake")
 _BUNDLE_HEADER = b"#bundle\x00" + struct.pack(">Q", 1)  # time tag 1 = "immediately"
-
-# Choe-Ko muscle -> ARKit blendshapes (from the ICT-FaceKit shapes the reference basis is built from).
-ARKIT_MAPPING: dict[str, dict[str, float]] = {
-    "frontalis_L": {"browInnerUp": 0.5, "browOuterUpLeft": 1.0},
-    "frontalis_R": {"browInnerUp": 0.5, "browOuterUpRight": 1.0},
-    "corrugator_L": {"browDownLeft": 1.0},
-    "corrugator_R": {"browDownRight": 1.0},
-    "orbicularis_oculi_L": {"eyeBlinkLeft": 1.0},
-    "orbicularis_oculi_R": {"eyeBlinkRight": 1.0},
-    "levator_labii_L": {"noseSneerLeft": 1.0},
-    "levator_labii_R": {"noseSneerRight": 1.0},
-    "zygomatic_major_L": {"mouthSmileLeft": 1.0},
-    "zygomatic_major_R": {"mouthSmileRight": 1.0},
-    "risorius_L": {"mouthStretchLeft": 1.0},
-    "risorius_R": {"mouthStretchRight": 1.0},
-    "depressor_anguli_oris": {"mouthFrownLeft": 1.0, "mouthFrownRight": 1.0},
-    "orbicularis_oris": {"mouthPucker": 1.0},
-    "lips_pressor": {"mouthPressLeft": 1.0, "mouthPressRight": 1.0},
-    "jaw": {"jawOpen": 1.0},
-}
-
-
-def convert_case(name: str, case: str) -> str:
-    """Spell a camelCase blendshape name in ``case`` (one of :data:`CASES`)."""
-    if case == "camel":
-        return name[:1].lower() + name[1:]
-    if case == "pascal":
-        return name[:1].upper() + name[1:]
-    if case == "lower":
-        return name.lower()
-    if case == "snake":
-        return re.sub(r"(?<=[a-z0-9])([A-Z])", r"_\1", name).lower()
-    raise InputError(f"case must be one of {CASES}, got {case!r}", field="case")
-
-
-class BlendshapeMap:
-    """Linear map from contractions to blendshape values.
-
-    Parameters
-    ----------
-    muscle_names : sequence of str, length n_muscles
-        The basis's muscles, in order.
-    mapping : mapping of str to mapping of str to float, optional
-        ``{muscle: {blendshape: weight}}``; default :data:`ARKIT_MAPPING`.
-        ``"identity"`` sends each muscle under its own name. Muscles the
-        mapping does not name drive nothing; a mapping entry for a muscle the
-        basis lacks is an error.
-    case : str
-        Spelling of the blendshape names, one of :data:`CASES`.
-
-    Attributes
-    ----------
-    names : tuple of str, length n_blendshapes
-    matrix : ndarray, shape (n_blendshapes, n_muscles)
-    """
-
-    def __init__(self, muscle_names: Sequence[str], mapping: Mapping | str | None = None, case: str = "camel"):
-        muscle_names = tuple(muscle_names)
-        if mapping is None:
-            mapping = ARKIT_MAPPING
-        if mapping == "identity":
-            mapping = {name: {name: 1.0} for name in muscle_names}
-            case_of = {name: name for name in muscle_names}
-        else:
-            case_of = None
-        if not isinstance(mapping, Mapping):
-            raise InputError("mapping must be a table of {muscle = {blendshape = weight}} or 'identity'",
-                             field="mapping")
-        columns: dict[str, dict[int, float]] = {}
-        for muscle, targets in mapping.items():
-            if muscle not in muscle_names:
-                if mapping is ARKIT_MAPPING:
-                    continue  # the default map covers the Choe-Ko muscles a basis may not have
-                raise InputError(f"unknown muscle {muscle!r}; the basis has {', '.join(muscle_names)}",
-                                 field=f"mapping.{muscle}")
-            if not isinstance(targets, Mapping):
-                raise InputError("expected a table {blendshape = weight}", field=f"mapping.{muscle}")
-            for shape, weight in targets.items():
-                if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not np.isfinite(weight):
-                    raise InputError(f"weight must be a finite number, got {weight!r}",
-                                     field=f"mapping.{muscle}.{shape}")
-                name = case_of[shape] if case_of else convert_case(shape, case)
-                columns.setdefault(name, {})[muscle_names.index(muscle)] = float(weight)
-        self.names = tuple(columns)
-        self.matrix = np.zeros((len(self.names), len(muscle_names)))
-        for row, weights in enumerate(columns.values()):
-            for column, weight in weights.items():
-                self.matrix[row, column] += weight
-
-    def __call__(self, contractions: np.ndarray) -> np.ndarray:
-        """Blendshape values in [0, 1], shape (n_blendshapes,), from contractions (n_muscles,); NaN -> 0."""
-        values = self.matrix @ np.nan_to_num(np.asarray(contractions, dtype=np.float64), nan=0.0)
-        return np.clip(values, 0.0, 1.0)
-
 
 def _message_prefix(name: str) -> bytes:
     """``/VMC/Ext/Blend/Val (name, 0.0)`` encoded by python-osc, minus its 4 float bytes."""

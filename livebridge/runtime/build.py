@@ -1,7 +1,7 @@
 """From a validated :class:`~livebridge.runtime.session.Session` to a ready (not started) pipeline.
 
 Everything that can fail on bad input is opened here, before any camera streams or servo moves:
-the basis, the marker set, the calibration, every camera URL, the servo rig (buses opened and
+the basis, the marker set, the calibration, every camera URL (or the phone's receiver), the servo rig (buses opened and
 servos checked), the render port, the VMC host and the take directory. A rig that could never solve
 (one camera, cameras at one place, too few markers, calibrated cameras left out) is refused here too
 (:mod:`livebridge.runtime.preflight`). On an error, whatever was already opened is closed again.
@@ -150,21 +150,23 @@ def _servo_rig(session: Session, muscle_names):
 def build_pipeline(session: Session, log=print, on_frame=None):
     """The pipeline a session describes, with every output opened (see the module docstring).
 
-    ``on_frame`` is called on the outputs thread with every solved frame (see
-    :class:`~livebridge.runtime.pipeline.Pipeline`).
+    The front follows the session's source: the marker front for cameras, :class:`~livebridge.arkit.front.
+    LiveLinkFront` for a phone (``[source] kind = "livelinkface"``, its receiver bound here). ``on_frame`` is
+    called on the outputs thread with every solved frame (see :class:`~livebridge.runtime.pipeline.Pipeline`).
     """
-    from livebridge.runtime.markers_front import MarkerFront
     from livebridge.runtime.pipeline import Pipeline
 
     basis, markers = load_face(session)
     check_markers(markers, basis, session)
-    log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
-    sources, cameras, realtime = open_session_cameras(session)
-    check_cameras(cameras, session)
-    fps = _fps(sources)
-    period = 1.0 / fps
+    cameras = None
+    if session.source.kind == "cameras":
+        log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
+        sources, cameras, realtime = open_session_cameras(session)
+        check_cameras(cameras, session)
+        fps = _fps(sources)
     opened = []
     try:
+        front = _livelink_front(session, basis, markers, opened, log) if cameras is None else None
         servo = None
         if session.servo_rig is not None:
             from livebridge.servo.output import ServoOutput
@@ -180,17 +182,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             render = RenderServer(display_face(session, basis), markers, session.render.host, session.render.port,
                                   servo_names=servo.servo_names if servo is not None else (),
                                   allowed_origins=session.render.allowed_origins)
-        outputs = []
-        if session.vmc.enabled:
-            from livebridge.output.vmc import VMCOutput
-
-            try:
-                vmc = VMCOutput(basis.names, session.vmc.host, session.vmc.port, session.vmc.mapping,
-                                session.vmc.case)
-            except InputError as error:
-                raise InputError(error.message, session.path, f"outputs.vmc.{error.field}") from None
-            opened.append(vmc.close)
-            outputs.append(vmc)
+        outputs = _outputs(session, basis, opened)
         recorder = None
         if session.recording.enabled:
             from livebridge.take.recorder import TakeRecorder
@@ -204,15 +196,81 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             sources = recorder.wrap_sources(sources)
             log(f"recording to {directory}" + (" (with raw frames)" if session.recording.raw_frames else ""))
         log("set-up: warming up the per-frame kernels (compiled on their first use)")
-        front = MarkerFront(sources, cameras, basis, markers, period, session.reconstruct, session.solver,
-                            sync_tolerance=session.sync_tolerance, realtime=realtime,
-                            labelling_timeout_s=session.labelling_timeout_s)
+        if front is None:
+            from livebridge.runtime.markers_front import MarkerFront
+
+            front = MarkerFront(sources, cameras, basis, markers, 1.0 / fps, session.reconstruct, session.solver,
+                                sync_tolerance=session.sync_tolerance, realtime=realtime,
+                                labelling_timeout_s=session.labelling_timeout_s)
         return Pipeline(front, servo=servo, render=render, outputs=outputs, recorder=recorder, log=log,
                         on_frame=on_frame, status_interval=session.status_interval)
     except BaseException:
         for close in reversed(opened):
             close()
         raise
+
+
+def _outputs(session: Session, basis, opened: list) -> list:
+    """The session's other outputs (VMC, Live Link Face), opened; each one's close is added to ``opened``."""
+    outputs = []
+    if session.vmc.enabled:
+        from livebridge.output.vmc import VMCOutput
+
+        try:
+            vmc = VMCOutput(basis.names, session.vmc.host, session.vmc.port, session.vmc.mapping, session.vmc.case)
+        except InputError as error:
+            raise InputError(error.message, session.path, f"outputs.vmc.{error.field}") from None
+        opened.append(vmc.close)
+        outputs.append(vmc)
+    options = session.livelink
+    if options.enabled:
+        from livebridge.output.livelink import LiveLinkOutput
+
+        try:  # the map is [outputs.vmc]'s: one muscle -> blendshape map, two transports
+            livelink = LiveLinkOutput(basis.names, options.host, options.port, options.subject, options.device_id,
+                                      session.vmc.mapping, options.fps)
+        except InputError as error:
+            field = "outputs.vmc.mapping" if error.field in (None, "mapping") else f"outputs.livelink.{error.field}"
+            raise InputError(error.message, session.path, field) from None
+        opened.append(livelink.close)
+        outputs.append(livelink)
+    return outputs
+
+
+def load_arkit_shapes_for(session: Session, basis):
+    """The session's ARKit shape set: its ``arkit_shapes`` file, else synthesised from the basis's muscles."""
+    from livebridge.arkit.shapes import arkit_shapes_from_muscles, load_arkit_shapes
+
+    path = session.source.arkit_shapes
+    if path is None:
+        return arkit_shapes_from_muscles(basis)
+    try:
+        return load_arkit_shapes(path, session.source.arkit_shapes_units)
+    except InputError as error:
+        inner = f"{error.field}: {error.message}" if error.field else error.message
+        raise InputError(f"{path}: {inner}", session.path, "source.arkit_shapes") from None
+
+
+def _livelink_front(session: Session, basis, markers, opened: list, log):
+    """The phone's front: the receiver bound now (a taken port fails here), the ARKit solver for the face."""
+    from livebridge.arkit.front import LiveLinkFront
+    from livebridge.arkit.receiver import LiveLinkReceiver
+    from livebridge.arkit.solve import ArkitSolver
+
+    try:
+        solver = ArkitSolver(basis, markers, load_arkit_shapes_for(session, basis), session.solver)
+    except InputError as error:
+        if error.path is not None:
+            raise
+        raise InputError(error.message, session.path, "source.arkit_shapes") from None
+    receiver = LiveLinkReceiver(session.source.url)
+    try:
+        receiver.open()
+    except InputError as error:
+        raise InputError(error.message, session.path, "source.url") from None
+    opened.append(receiver.stop)
+    log(f"set-up: listening for Live Link Face on {receiver.url}")
+    return LiveLinkFront(receiver, solver)
 
 
 def _fps(sources) -> float:

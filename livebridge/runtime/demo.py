@@ -7,6 +7,12 @@ face) is filmed by a simulated 4-camera rig (``sim://rig``); the frames go throu
 the real driver, to the render client, and optionally to VMC and a recording.
 :class:`~livebridge.simulators.score.GroundTruthScore` compares every solved frame with what the performer
 did.
+
+``livebridge demo --source livelinkface`` (:func:`build_livelink_demo`) replaces the rig with a simulated
+iPhone running Live Link Face (:class:`~livebridge.simulators.iphone.SimulatedIPhone`, on its own thread,
+real UDP packets over loopback at 60 Hz) heard by the session's ``[source] kind = "livelinkface"``
+receiver; :class:`~livebridge.simulators.score.ContractionScore` compares every solved frame with the
+contractions behind its packet.
 """
 
 from __future__ import annotations
@@ -15,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlencode
 
-from livebridge.runtime.session import RecordingOptions, RenderOptions, Session, VMCOptions
+from livebridge.runtime.session import RecordingOptions, RenderOptions, Session, SourceOptions, VMCOptions
 
 DEMO_SERVO_URL = "simdynamixel://?ids=1-16&model=XL330-M288&process=1"  # the bus in its own process, as hardware
 
@@ -27,11 +33,13 @@ def _lead_in(realtime: bool, lead_in_s: float | None) -> float:
 
 @dataclass
 class DemoParts:
-    """What :func:`build_demo` made: the pipeline, its session and the score of its solved frames."""
+    """What :func:`build_demo` made: the pipeline, its session and the score of its solved frames; ``phone``:
+    the simulated iPhone of :func:`build_livelink_demo` (start it once the pipeline runs, stop it after)."""
 
     pipeline: object
     score: object
     session: Session
+    phone: object = None
 
 
 def demo_session(cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 800), realtime: bool = True,
@@ -110,3 +118,43 @@ def build_demo(cameras: int = 4, seed: int = 1, fps: float = 60.0, size=(1280, 8
             on_frame(frame)
 
     return DemoParts(build_pipeline(session, log=log, on_frame=both), score, session)
+
+
+PHONE_NOISE = 0.02  # ARKit's frame-to-frame jitter on the weights, roughly (standard deviation)
+
+
+def build_livelink_demo(seed: int = 1, script: str = "mixed", noise: float = PHONE_NOISE, servo: bool = True,
+                        render: bool = True, host: str = "127.0.0.1", port: int = 8765,
+                        vmc: tuple[str, int] | None = None, log=print, on_frame=None) -> DemoParts:
+    """The Live Link Face demo (not started): a phone session on the built-in face, the receiver on a free
+    loopback port, and the simulated iPhone that will send to it (``parts.phone``, not yet sending).
+
+    Parameters
+    ----------
+    seed, script : the performer's (:class:`~livebridge.simulators.performer.ContractionScript`)
+    noise : float
+        Gaussian noise on the phone's weights (standard deviation).
+    servo, render, host, port, vmc, log, on_frame : as :func:`build_demo`'s
+    """
+    from livebridge.runtime.build import build_pipeline
+    from livebridge.servo.rig import demo_rig
+    from livebridge.simulators.iphone import SimulatedIPhone
+    from livebridge.simulators.score import ContractionScore
+
+    session = Session(None, (), basis="builtin", markers="builtin",
+                      servo_rig=demo_rig(DEMO_SERVO_URL) if servo else None,
+                      render=RenderOptions(render, host, port),
+                      vmc=VMCOptions(True, *vmc) if vmc is not None else VMCOptions(),
+                      source=SourceOptions("livelinkface", "livelinkface://127.0.0.1:0"))
+    score = None
+
+    def both(frame):
+        score(frame)
+        if on_frame is not None:
+            on_frame(frame)
+
+    pipeline = build_pipeline(session, log=log, on_frame=both)
+    receiver = pipeline.front.receiver
+    phone = SimulatedIPhone(pipeline.front.muscle_names, *receiver.bound, script=script, seed=seed, noise=noise)
+    score = ContractionScore(phone.truth)
+    return DemoParts(pipeline, score, session, phone)

@@ -430,7 +430,8 @@ class Pipeline:
                 from livebridge.output.render_server import RenderFrame
 
                 self.render.publish(RenderFrame(frame.seq, timing.complete, frame.contractions,
-                                                frame.positions_model, frame.region_errors, servo_targets))
+                                                frame.positions_model, frame.region_errors, servo_targets,
+                                                frame.head_pose))
                 if not self.realtime:  # one frame at a time, its render message included
                     self.render.wait_sent(frame.seq, timeout=0.05)
             for output in self.outputs:

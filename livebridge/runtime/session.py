@@ -1,11 +1,23 @@
 """The session file: everything one live run needs, in one TOML file, checked before anything starts.
 
-Example (every table but ``[cameras]`` is optional; paths are relative to the session file; top-level
-keys such as ``calibration`` must come before the first ``[table]``, or TOML puts them in that table)::
+Example (every table but ``[cameras]`` is optional, and a phone session has none; paths are relative to
+the session file; top-level keys such as ``calibration`` must come before the first ``[table]``, or TOML
+puts them in that table)::
 
     calibration = "calibration.toml"  # written by `livebridge calibrate` (save_calibration); sim:// rigs
                                       # film with these cameras; not needed by a sim rig of its own or by
                                       # replay:// of a recorded take (its calibration.toml is used)
+
+    [source]                      # optional; what the pipeline reads
+    kind = "cameras"              # default: the [cameras] below; or "livelinkface": an iPhone running Live
+                                  # Link Face (then no [cameras], calibration or [recording]), with:
+    # url = "livelinkface://127.0.0.1:11111"   # where to listen (this default); the network is heard only
+    #                             # on a named address: "livelinkface://0.0.0.0:11111"; "?device=ID" follows
+    #                             # one phone (default: the first heard)
+    # arkit_shapes = "face_region.npz"  # optional: ARKit-named shapes on the basis's mesh (.npz of names (n,)
+    #                             # and deltas (n, V, 3), ICT-FaceKit's layout; ARKit names or NAME_L/NAME_R);
+    #                             # default: synthesised from the basis's muscles
+    # arkit_shapes_units = "cm"   # of arkit_shapes: "mm", "cm" (ICT-FaceKit's face_region.npz), "m"
 
     [cameras]
     urls = ["v4l2:///dev/video0?fps=60", "v4l2:///dev/video2?fps=60"]
@@ -44,6 +56,15 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
     case = "camel"                # "pascal", "lower", "snake"
     mapping = { jaw = { jawOpen = 1.0 } }   # optional; default ARKit names
 
+    [outputs.livelink]            # Live Link Face packets to Unreal Engine
+    enabled = false
+    host = "127.0.0.1"
+    port = 11111
+    subject = "livebridge"        # the Live Link subject name
+    device_id = "..."             # default: a UUID stable on this machine
+    fps = 60                      # the frame rate of the packets' frame time
+    # the muscle -> blendshape map is [outputs.vmc]'s (one map, two transports)
+
     [recording]
     enabled = false
     directory = "takes"           # each run writes a new take directory inside
@@ -76,7 +97,23 @@ if TYPE_CHECKING:
 
 BUILTIN_NAMES = ("builtin",)
 LABELLING_TIMEOUT_S = 10.0  # default [runtime] labelling_timeout_s
-_TOP_KEYS = {"cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime"}
+_TOP_KEYS = {"source", "cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording",
+             "runtime"}
+
+
+SOURCE_KINDS = ("cameras", "livelinkface")
+
+
+@dataclass(frozen=True)
+class SourceOptions:
+    """``[source]``: ``kind`` "cameras" (the session's ``camera_urls``) or "livelinkface" (``url``, the receiver's
+    ``livelinkface://`` URL; ``arkit_shapes``, an ARKit shape set on the basis's mesh, None: synthesised from
+    the basis's muscles, in ``arkit_shapes_units``)."""
+
+    kind: str = "cameras"
+    url: str = "livelinkface://127.0.0.1:11111"
+    arkit_shapes: Path | None = None
+    arkit_shapes_units: str = "cm"
 
 
 @dataclass(frozen=True)
@@ -94,6 +131,16 @@ class VMCOptions:
     port: int = 39539
     case: str = "camel"
     mapping: Any = None  # None (ARKit), "identity", or {muscle: {blendshape: weight}}
+
+
+@dataclass(frozen=True)
+class LiveLinkOptions:
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = 11111
+    subject: str = "livebridge"
+    device_id: str | None = None  # None: stable per machine
+    fps: int = 60
 
 
 @dataclass(frozen=True)
@@ -129,6 +176,7 @@ class Session:
     path : Path or None
         The session file (None for a session built in code).
     camera_urls : tuple of str
+        Empty for a session whose source is not cameras.
     sync_tolerance : float
         Frame periods.
     basis : Path or str
@@ -144,7 +192,8 @@ class Session:
     servo_rig : Path or Rig or None
         A servo rig file (read with the face's muscle names when the pipeline is built), or a rig made in
         code (the demo's).
-    render, vmc, recording : option records
+    render, vmc, recording, livelink : option records
+    source : SourceOptions
     status_interval : float
     frames : int
         0: run until stopped.
@@ -170,11 +219,13 @@ class Session:
     render: RenderOptions = RenderOptions()
     vmc: VMCOptions = VMCOptions()
     recording: RecordingOptions = RecordingOptions()
+    livelink: LiveLinkOptions = LiveLinkOptions()
     status_interval: float = 1.0
     frames: int = 0
     labelling_timeout_s: float = LABELLING_TIMEOUT_S
     display: Path | None = None
     display_mode: str = "instead"
+    source: SourceOptions = SourceOptions()
 
 
 DISPLAY_MODES = ("instead", "beside")
@@ -260,14 +311,22 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     top = _Table(data, path, "")
     top.check_known(_TOP_KEYS)
 
-    cameras = top.table("cameras")
-    urls = cameras.get("urls", list, required=True)
-    if not urls or not all(isinstance(u, str) and "://" in u for u in urls):
-        raise InputError("a non-empty list of camera URLs (scheme://...)", path, "cameras.urls")
-    sync_tolerance = _positive(cameras.get("sync_tolerance", float, 0.5), path, "cameras.sync_tolerance")
-    if sync_tolerance > 0.5:
-        raise InputError("at most half a frame period", path, "cameras.sync_tolerance")
-    cameras.check_known()
+    source = _source(top.table("source"), path)
+    urls, sync_tolerance = [], 0.5
+    if source.kind == "cameras":
+        cameras = top.table("cameras")
+        urls = cameras.get("urls", list, required=True)
+        if not urls or not all(isinstance(u, str) and "://" in u for u in urls):
+            raise InputError("a non-empty list of camera URLs (scheme://...)", path, "cameras.urls")
+        sync_tolerance = _positive(cameras.get("sync_tolerance", float, 0.5), path, "cameras.sync_tolerance")
+        if sync_tolerance > 0.5:
+            raise InputError("at most half a frame period", path, "cameras.sync_tolerance")
+        cameras.check_known()
+    else:
+        for key in ("cameras", "calibration", "recording"):
+            if key in data:
+                raise InputError(f"a {source.kind} session has no {key} (the phone sends ARKit weights, "
+                                 "not images)", path, key)
 
     face = top.table("face")
     basis = face.path_value("basis", BUILTIN_NAMES, default="builtin")
@@ -286,7 +345,8 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     face.check_known()
 
     calibration = top.path_value("calibration")
-    if calibration is None and not all(u.startswith(("sim://", "replay://")) for u in urls):
+    if source.kind == "cameras" and calibration is None and not all(u.startswith(("sim://", "replay://"))
+                                                                    for u in urls):
         raise InputError("real cameras need a calibration file", path, "calibration")
 
     reconstruct_config = _reconstruct(top.table("reconstruct"), path)
@@ -297,7 +357,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     servo.check_known()
 
     outputs = top.table("outputs")
-    outputs.check_known({"render", "vmc"})
+    outputs.check_known({"render", "vmc", "livelink"})
     r = outputs.table("render")
     render = RenderOptions(r.get("enabled", bool, True), r.get("host", str, "127.0.0.1"),
                            _port(r.get("port", int, 8765), path, "outputs.render.port", any_free=True),
@@ -310,10 +370,12 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     vmc = VMCOptions(v.get("enabled", bool, False), v.get("host", str, "127.0.0.1"),
                      _port(v.get("port", int, 39539), path, "outputs.vmc.port"), v.get("case", str, "camel"), mapping)
     v.check_known()
-    from livebridge.output.vmc import CASES
+    from livebridge.output.blendshapes import CASES
 
     if vmc.case not in CASES:
         raise InputError(f"must be one of {CASES}, got {vmc.case!r}", path, "outputs.vmc.case")
+
+    livelink = _livelink(outputs.table("livelink"), path)
 
     rec = top.table("recording")
     recording = RecordingOptions(rec.get("enabled", bool, False),
@@ -336,8 +398,53 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     runtime.check_known()
 
     return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_config,
-                   solver_config, servo_rig, render, vmc, recording, status_interval, frames, labelling_timeout_s,
-                   display, display_mode)
+                   solver_config, servo_rig, render, vmc, recording, livelink=livelink,
+                   status_interval=status_interval, frames=frames, labelling_timeout_s=labelling_timeout_s,
+                   display=display, display_mode=display_mode, source=source)
+
+
+def _source(table: _Table, path: Path | None) -> SourceOptions:
+    """``[source]``: the kind, and for a phone its receiver URL (checked now) and ARKit shape set."""
+    from livebridge.arkit.receiver import parse_receiver_url
+    from livebridge.arkit.shapes import UNITS_TO_MM
+
+    kind = table.get("kind", str, "cameras")
+    if kind not in SOURCE_KINDS:
+        raise InputError(f"must be one of {', '.join(map(repr, SOURCE_KINDS))}, got {kind!r}", path, "source.kind")
+    if kind == "cameras":
+        table.check_known({"kind"})
+        return SourceOptions()
+    url = table.get("url", str, SourceOptions.url)
+    try:
+        parse_receiver_url(url)
+    except InputError as error:
+        inner = f"{error.field}: {error.message}" if error.field else error.message
+        raise InputError(f"{url}: {inner}", path, "source.url") from None
+    shapes = table.path_value("arkit_shapes")
+    if shapes is not None and shapes.suffix != ".npz":
+        raise InputError("an .npz of ARKit-named shapes (names, deltas)", path, "source.arkit_shapes")
+    units = table.get("arkit_shapes_units", str, "cm")
+    if units not in UNITS_TO_MM:
+        raise InputError(f"must be one of {', '.join(map(repr, UNITS_TO_MM))}, got {units!r}", path,
+                         "source.arkit_shapes_units")
+    table.check_known()
+    return SourceOptions(kind, url, shapes, units)
+
+
+def _livelink(table: _Table, path: Path | None) -> LiveLinkOptions:
+    """``[outputs.livelink]``: names of at most 256 bytes (what Unreal reads), a whole frame rate."""
+    options = LiveLinkOptions(table.get("enabled", bool, False), table.get("host", str, "127.0.0.1"),
+                              _port(table.get("port", int, 11111), path, "outputs.livelink.port"),
+                              table.get("subject", str, "livebridge"), table.get("device_id", str),
+                              table.get("fps", int, 60))
+    table.check_known()
+    for key in ("subject", "device_id"):
+        value = getattr(options, key)
+        if value is not None and not 1 <= len(value.encode("utf-8")) <= 256:
+            raise InputError("must be 1..256 bytes of text", path, f"outputs.livelink.{key}")
+    if not 1 <= options.fps <= 1000:
+        raise InputError(f"must be 1..1000 frames per second, got {options.fps}", path, "outputs.livelink.fps")
+    return options
 
 
 def _reconstruct(table: _Table, path: Path | None) -> ReconstructConfig:

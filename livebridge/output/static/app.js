@@ -10,7 +10,7 @@ const HISTORY = 180;
 
 const lb = {              // state, also read by the browser test
   connected: false, ready: false, framesReceived: 0, seq: -1, drawnSeq: -1,
-  init: null, contractions: null, markers: null, errors: [NaN, NaN], servos: null,
+  init: null, contractions: null, markers: null, errors: [NaN, NaN], servos: null, head: null,
   latencyMs: NaN, status: null, error: null,
 };
 window.livebridge = lb;
@@ -208,7 +208,7 @@ function draw() {
   const c = camera, cp = Math.cos(c.pitch);
   const eye = [c.center[0] + c.distance * cp * Math.sin(c.yaw), c.center[1] + c.distance * Math.sin(c.pitch),
     c.center[2] + c.distance * cp * Math.cos(c.yaw)];
-  const view = mat4.lookAt(eye, c.center, [0, 1, 0]);
+  const view = mat4.multiply(mat4.lookAt(eye, c.center, [0, 1, 0]), headRotation());
   const projection = mat4.perspective(0.6, w / h, c.distance * 0.05, c.distance * 4);
 
   gl.enable(gl.DEPTH_TEST);
@@ -249,6 +249,15 @@ function draw() {
     gl.drawArrays(gl.POINTS, 0, n);
     gl.disableVertexAttribArray(loc); gl.disableVertexAttribArray(cl);
   }
+}
+
+// The head pose's rotation (row-major 4x4 on the wire) as a column-major model matrix; its translation is left
+// out so the face stays where the camera looks. Identity while the pose is unknown (NaN).
+function headRotation() {
+  const h = lb.head, m = new Float32Array([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]);
+  if (!h || h.length < 16 || !h.every(Number.isFinite)) return m;
+  for (let r = 0; r < 3; r++) for (let c = 0; c < 3; c++) m[c * 4 + r] = h[r * 4 + c];
+  return m;
 }
 
 // ------------------------------------------------------------------ 2D panels
@@ -328,6 +337,7 @@ function onFrame(buffer) {
   lb.contractions = f.slice(3, 3 + M);
   lb.markers = f.slice(3 + M, 3 + M + 3 * n);
   lb.servos = f.slice(3 + M + 3 * n, 3 + M + 3 * n + S);
+  lb.head = f.slice(3 + M + 3 * n + S, 3 + M + 3 * n + S + 16);
   lb.seq = seq; lb.framesReceived++;
   history.x.push(lb.contractions); if (history.x.length > HISTORY) history.x.shift();
   history.errors.push(lb.errors); if (history.errors.length > HISTORY) history.errors.shift();
