@@ -81,7 +81,7 @@ def test_unknown_schemes_list_the_known_ones():
 
 
 def test_schemes_are_declared_by_their_owners():
-    assert set(camera_schemes()) == {"v4l2", "depthai", "replay", "sim"}
+    assert set(camera_schemes()) == {"v4l2", "depthai", "replay", "sim", "node"}
     buses = bus_schemes()
     assert set(buses) == {"dynamixel", "maestro", "ssc32", "simdynamixel", "simmaestro", "simssc32"}
     for scheme, (opener, facts) in buses.items():
