@@ -64,6 +64,7 @@ def open_client(scheduler: str | None = None, workers: int = 2, processes: bool 
 
     ``processes``: each worker in its own process (what a batch wants: takes run in parallel, each on one core);
     False: worker threads in this process (fast to start; takes then share this process's interpreter lock).
+    The scheduler listens on TCP either way, so other clients can reach it.
     """
     distributed = require_distributed()
     if scheduler is not None:
@@ -95,7 +96,7 @@ def _local_cluster(distributed, workers: int, processes: bool) -> Iterator:
     try:
         with dask.config.set(WORKER_ENVIRON):
             cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
-                                               host="127.0.0.1", scheduler_port=0,
+                                               protocol="tcp://", host="127.0.0.1", scheduler_port=0,
                                                dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False},
                                                silence_logs=SILENCE_LOGS)
         with cluster:
