@@ -25,11 +25,23 @@ PROGRESS_EVERY_S = 0.2
 CONNECT_TIMEOUT_S = 10.0
 SCHEMES = ("tcp", "tls")
 SILENCE_LOGS = logging.ERROR
-WORKER_ENVIRON = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
-"""Dask starts workers with glibc's ``MALLOC_TRIM_THRESHOLD_=65536`` (to hand freed memory back to the system);
-setting it also freezes glibc's mmap threshold at 128 kB, so every camera image (256 kB at 640x400) is a fresh
-``mmap`` whose pages fault in on first write: measured 1.6x the CPU time per take. Workers of our local
-cluster keep glibc's defaults (a take's memory is bounded: one frame set at a time)."""
+WORKER_CONFIG = {
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "200ms",
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+}
+"""Dask settings of our local cluster's workers, measured on this batch's work (``livebridge bench process``):
+
+- Dask starts workers with glibc's ``MALLOC_TRIM_THRESHOLD_=65536`` (to hand freed memory back to the system);
+  setting it also freezes glibc's mmap threshold at 128 kB, so every camera image (256 kB at 640x400) is a
+  fresh ``mmap`` whose pages fault in on first write: 1.6x the CPU time per take. Our workers keep glibc's
+  defaults (a take holds one frame set at a time).
+- The worker's statistical profiler (for the dashboard, which we do not serve) samples the task's stack every
+  10 ms under the interpreter lock, and the event loop's health tick (20 ms) and monitors (0.1 s, 0.5 s) wake
+  the worker: together 3-5% of a core idle and up to 1/3 more CPU per take; off, and ticking at 0.2-2 s.
+"""
 
 
 def require_distributed():
@@ -86,7 +98,7 @@ def open_client(scheduler: str | None = None, workers: int = 2, processes: bool 
 
 @contextmanager
 def _local_cluster(distributed, workers: int, processes: bool) -> Iterator:
-    """A :class:`distributed.LocalCluster` with :data:`WORKER_ENVIRON`; this process's environment as it was
+    """A :class:`distributed.LocalCluster` with :data:`WORKER_CONFIG`; this process's environment as it was
     after (a nanny sets its workers' variables in its own process before spawning them)."""
     import os
 
@@ -94,7 +106,7 @@ def _local_cluster(distributed, workers: int, processes: bool) -> Iterator:
 
     environ = dict(os.environ)
     try:
-        with dask.config.set(WORKER_ENVIRON):
+        with dask.config.set(WORKER_CONFIG):
             cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
                                                protocol="tcp://", host="127.0.0.1", scheduler_port=0,
                                                dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False},
