@@ -114,7 +114,8 @@ def _local_cluster(distributed, workers: int, processes: bool) -> Iterator:
         with cluster:
             yield cluster
     finally:
-        os.environ.clear()
+        for key in set(os.environ) - set(environ):
+            del os.environ[key]
         os.environ.update(environ)
 
 
