@@ -4,7 +4,9 @@ serial.
 Besides takes/s it reports what the figures depend on: the machine's load average before and after (other
 processes share the cores), the CPU seconds a take costs in this process and on the workers (a worker's
 includes its event loop: heartbeats, progress events), and the seconds to start each cluster and warm its
-workers (imports, compiled kernels and the face loaded once per worker; not in takes/s).
+workers (imports, compiled kernels and the face loaded once per worker; not in takes/s). ``cores_used_*`` (CPU
+seconds over wall seconds) says how much of the machine each run got: when 2 workers use no more cores than 1,
+the machine's other load, not the cluster, held them back.
 """
 
 from __future__ import annotations
@@ -119,5 +121,6 @@ def run(quick: bool, log) -> dict:
         **{f"cpu_s_per_take_{label}": round(value, 3) for label, value in cpu.items()},
         "speedup_2_vs_1_workers": round(rate["2_workers"] / rate["1_worker"], 3),
         "speedup_2_workers_vs_serial": round(rate["2_workers"] / rate["serial"], 3),
+        **{f"cores_used_{label}": round(cpu[label] * rate[label], 3) for label in rate},
         "identical_to_serial": bool(identical),
     }
