@@ -1,10 +1,14 @@
-"""livebridge process: recorded takes re-processed on a Dask LocalCluster (2 workers on 127.0.0.1) equal the
-serial run bit for bit; a damaged take is reported while the others finish."""
+"""livebridge process: recorded takes re-processed on a Dask LocalCluster (2 worker processes on 127.0.0.1) equal
+the serial run bit for bit and close without a worker killed; a damaged take is reported while the others finish
+(those on a cluster of worker threads: fast to start, the same scheduler, comms and failure handling)."""
 
 from __future__ import annotations
 
+import logging
+import os
 import shutil
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -27,31 +31,46 @@ def _quiet(_message):
 
 @pytest.fixture(scope="module")
 def takes(tmp_path_factory):
-    """Three short demo takes recorded with raw frames (3 simulated cameras, 320x200), and the built-in face
-    saved as files (workers load them in milliseconds; the built-in marker design takes seconds)."""
-    from livebridge.face.builtin import builtin_basis, builtin_markers
-    from livebridge.runtime.demo import build_demo
+    """Three short takes recorded by the live pipeline with raw frames (3 simulated cameras, 320x200) of the
+    built-in face wearing a marker set of its own (farthest-point sampled: the built-in layout's design takes
+    seconds), the face saved as files the takes are processed with."""
+    from livebridge.face.builtin import builtin_basis
+    from livebridge.runtime.build import build_pipeline
+    from livebridge.runtime.demo import demo_session
     from livebridge.runtime.pipeline import run_until_stopped
+    from livebridge.simulators.rig import generate_markers
 
     folder = tmp_path_factory.mktemp("takes")
-    builtin_basis().save(folder / "basis.npz")
-    builtin_markers().save(folder / "markers.toml")
+    face = {"basis": folder / "basis.npz", "markers": folder / "markers.toml"}
+    basis = builtin_basis()
+    basis.save(face["basis"])
+    generate_markers(basis, n_face=40, n_head=4).save(face["markers"])
     paths = []
     for k in range(3):
         take = folder / f"take{k}"
-        parts = build_demo(cameras=3, seed=k + 1, size=(320, 200), realtime=False, servo=False, render=False,
-                           record=take, record_frames=True, log=_quiet)
-        run_until_stopped(parts.pipeline, frames=12 + 4 * k, log=_quiet)
+        session = demo_session(cameras=3, seed=k + 1, size=(320, 200), realtime=False, servo=False, render=False,
+                               record=take, record_frames=True)
+        run_until_stopped(build_pipeline(replace(session, **face), log=_quiet), frames=10 + 3 * k, log=_quiet)
         paths.append(take)
     return folder, paths
 
 
 @pytest.fixture(scope="module")
 def client():
+    """A local cluster of 2 single-threaded worker threads (its scheduler on TCP, 127.0.0.1)."""
     from livebridge.batch.cluster import open_client
 
-    with open_client(workers=2) as client:
+    with open_client(workers=2, processes=False) as client:
         yield client
+
+
+class _Records(logging.Handler):
+    def __init__(self):
+        super().__init__(logging.DEBUG)
+        self.messages = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage())
 
 
 def _settings(folder, stage):
@@ -75,16 +94,31 @@ def test_reconstruct_replays_the_live_pipeline(takes, tmp_path):
         assert np.abs(live.contractions[in_live] - again.contractions[in_again]).max() < 1e-5  # CSV: 6 decimals
 
 
-def test_cluster_equals_serial_bit_for_bit(takes, client, tmp_path):
-    from livebridge.batch.cluster import run_on_cluster
+def test_worker_processes_equal_serial_bit_for_bit_and_close_cleanly(takes, tmp_path):
+    """Two worker processes give the serial bits, report progress to the last frame set, and exit when the
+    cluster closes (the nanny does not have to kill them)."""
+    from livebridge.batch.cluster import open_client, run_on_cluster
 
     folder, paths = takes
     serial, cluster = tmp_path / "serial", tmp_path / "cluster"
     serial.mkdir(), cluster.mkdir()
     settings = _settings(folder, "both")
     assert all(o.ok for o in run_serial(plan_jobs(paths, serial, settings)))
-    events, done = [], []
-    outcomes = run_on_cluster(client, plan_jobs(paths, cluster, settings), lambda *e: events.append(e), done.append)
+    events, done, nanny = [], [], logging.getLogger("distributed.nanny")
+    records, level = _Records(), nanny.level
+    nanny.addHandler(records)
+    try:
+        with open_client(workers=2) as client:
+            nanny.setLevel(logging.INFO)
+            pids = set(client.run(os.getpid).values())
+            outcomes = run_on_cluster(client, plan_jobs(paths, cluster, settings), lambda *e: events.append(e),
+                                      done.append)
+    finally:
+        nanny.removeHandler(records)
+        nanny.setLevel(level)
+    assert len(pids) == 2 and os.getpid() not in pids
+    assert not [m for m in records.messages if "killing" in m or "killed" in m], records.messages
+    assert sum("Nanny at" in m and "closed" in m for m in records.messages) == 2, records.messages
     assert [o.name for o in outcomes] == [p.name for p in paths] and all(o.ok for o in outcomes), outcomes
     assert sorted(o.name for o in done) == sorted(p.name for p in paths)
     names = [p.name for p in paths]
@@ -136,6 +170,7 @@ def test_cli_on_a_scheduler_reports_failures_and_keeps_results(takes, client, tm
     assert result.exit_code == 1, result.output
     assert "bad: FAILED" in result.output and "version" in result.output
     assert "processed 1 of 2 takes" in result.output
+    assert "2/2" in result.stderr and f"{paths[0].name}" in result.stderr  # the overall bar and the take's bar
     written = Take.load(out / f"{paths[0].name}.npz")
     again = CliRunner().invoke(main, args)  # results are never overwritten without --force
     assert again.exit_code == 1 and "already exists" in again.output and "--force" in again.output

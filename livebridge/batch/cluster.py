@@ -24,6 +24,24 @@ EXTRA = "cluster"
 PROGRESS_EVERY_S = 0.2
 CONNECT_TIMEOUT_S = 10.0
 SCHEMES = ("tcp", "tls")
+SILENCE_LOGS = logging.ERROR
+WORKER_CONFIG = {
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "200ms",
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+}
+"""Dask settings of our local cluster's workers, measured on this batch's work (``livebridge bench process``):
+
+- Dask starts workers with glibc's ``MALLOC_TRIM_THRESHOLD_=65536`` (to hand freed memory back to the system);
+  setting it also freezes glibc's mmap threshold at 128 kB, so every camera image (256 kB at 640x400) is a
+  fresh ``mmap`` whose pages fault in on first write: 1.6x the CPU time per take. Our workers keep glibc's
+  defaults (a take holds one frame set at a time).
+- The worker's statistical profiler (for the dashboard, which we do not serve) samples the task's stack every
+  10 ms under the interpreter lock, and the event loop's health tick (20 ms) and monitors (0.1 s, 0.5 s) wake
+  the worker: together 3-5% of a core idle and up to 1/3 more CPU per take; off, and ticking at 0.2-2 s.
+"""
 
 
 def require_distributed():
@@ -52,9 +70,14 @@ def check_scheduler_address(address: str) -> str:
 
 
 @contextmanager
-def open_client(scheduler: str | None = None, workers: int = 2) -> Iterator:
+def open_client(scheduler: str | None = None, workers: int = 2, processes: bool = True) -> Iterator:
     """A :class:`distributed.Client` of the scheduler at ``scheduler``, or of a new local cluster of ``workers``
-    single-threaded worker processes bound to 127.0.0.1 (closed on exit)."""
+    single-threaded workers bound to 127.0.0.1 (closed on exit, workers first).
+
+    ``processes``: each worker in its own process (what a batch wants: takes run in parallel, each on one core);
+    False: worker threads in this process (fast to start; takes then share this process's interpreter lock).
+    The scheduler listens on TCP either way, so other clients can reach it.
+    """
     distributed = require_distributed()
     if scheduler is not None:
         check_scheduler_address(scheduler)
@@ -67,11 +90,55 @@ def open_client(scheduler: str | None = None, workers: int = 2) -> Iterator:
         return
     if workers < 1:
         raise InputError(f"a local cluster needs at least 1 worker, got {workers}", field="--workers")
-    cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                       scheduler_port=0, dashboard_address="127.0.0.1:0",
-                                       scheduler_kwargs={"dashboard": False}, silence_logs=logging.ERROR)
-    with cluster, distributed.Client(cluster) as client:
+    with _local_cluster(distributed, workers, processes) as cluster, distributed.Client(cluster) as client:
+        if processes:
+            client.register_plugin(_freeze_on_close(distributed), name=FREEZE_PLUGIN)
         yield client
+
+
+@contextmanager
+def _local_cluster(distributed, workers: int, processes: bool) -> Iterator:
+    """A :class:`distributed.LocalCluster` with :data:`WORKER_CONFIG`; this process's environment as it was
+    after (a nanny sets its workers' variables in its own process before spawning them)."""
+    import os
+
+    import dask
+
+    environ = dict(os.environ)
+    try:
+        with dask.config.set(WORKER_CONFIG):
+            cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
+                                               protocol="tcp://", host="127.0.0.1", scheduler_port=0,
+                                               dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False},
+                                               silence_logs=SILENCE_LOGS)
+        with cluster:
+            yield cluster
+    finally:
+        for key in set(os.environ) - set(environ):
+            del os.environ[key]
+        os.environ.update(environ)
+
+
+FREEZE_PLUGIN = "livebridge-freeze-on-close"
+
+
+def _freeze_on_close(distributed):
+    """A worker plugin: on close, every object the worker holds is moved out of the cycle collector's reach
+    (:func:`gc.freeze`), so the worker process exits at once.
+
+    A worker that has processed a take holds the modules of OpenCV, numba, scipy and the face: the full
+    collection Python runs when its interpreter exits took over 4 s on a busy machine (py-spy: all of it in
+    ``gc_collect_main`` after the last Python frame), after which the nanny kills the worker (``Worker process
+    still alive after 4.0 seconds, killing``). The memory goes back to the system with the process either way.
+    """
+
+    class FreezeOnClose(distributed.WorkerPlugin):
+        def teardown(self, worker) -> None:
+            import gc
+
+            gc.freeze()
+
+    return FreezeOnClose()
 
 
 def _job_on_worker(job: TakeJob, topic: str) -> TakeOutcome:

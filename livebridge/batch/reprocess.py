@@ -60,9 +60,23 @@ class ProcessedTake:
         return len(self.t)
 
 
-@functools.lru_cache(maxsize=4)
 def load_face(basis_spec: str | Path, markers_spec: str | Path):
-    """The basis and marker set (cached: a worker loads them once for all its takes)."""
+    """The basis and marker set, loaded once per process for all the takes a worker runs while their files
+    stay as they are (a worker of a long-lived cluster sees a refined basis saved over the old one)."""
+    return _load_face(basis_spec, _stamp(basis_spec), markers_spec, _stamp(markers_spec))
+
+
+def _stamp(spec: str | Path) -> tuple[int, int] | None:
+    """A file's modification time and size (None: a shipped name, or no such file: loading says why)."""
+    try:
+        status = Path(spec).stat()
+    except OSError:
+        return None
+    return status.st_mtime_ns, status.st_size
+
+
+@functools.lru_cache(maxsize=4)
+def _load_face(basis_spec: str | Path, _basis_stamp, markers_spec: str | Path, _markers_stamp):
     from livebridge.face.basis import Basis
     from livebridge.face.shipped import load_marker_set
 

@@ -27,10 +27,13 @@ class _Bars:
         self._lock = threading.Lock()
         self.overall = tqdm(total=total, unit="take", desc="takes", position=0)
         self.takes: dict = {}
+        self.finished: set[str] = set()
         self.failed = 0
 
     def progress(self, name: str, done: int, total: int | None) -> None:
         with self._lock:
+            if name in self.finished:  # a worker's last report can arrive after its result
+                return
             bar = self.takes.get(name)
             if bar is None:
                 bar = self.takes[name] = self._tqdm(total=total, unit="frame set", desc=name, leave=False)
@@ -38,6 +41,7 @@ class _Bars:
 
     def done(self, outcome) -> None:
         with self._lock:
+            self.finished.add(outcome.name)
             bar = self.takes.pop(outcome.name, None)
             if bar is not None:
                 bar.close()
