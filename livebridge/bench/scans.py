@@ -1,5 +1,10 @@
 """Bases from scans: a neutral and 16 expression scans sampled from the ICT meshes as noisy point clouds, the
-basis built from them against the ICT elements (relative RMS per element), and the time it takes."""
+basis built from them against the ICT elements (relative RMS per element), and the time it takes.
+
+The simulated scanner records colour: a procedural skin (:mod:`livebridge.simulators.skin`) is painted on
+the NEUTRAL ICT face and carried by the mesh's own vertices into every expression, so skin that slides
+along the face takes its pores, freckles and brows with it, as real skin does. Each scan sees it through
+its own exposure and with colour noise."""
 
 from __future__ import annotations
 
@@ -13,6 +18,14 @@ SCAN_NOISE_MM = 0.2
 LANDMARK_NOISE_MM = 0.5
 HOLE_RADIUS_MM = 8.0
 HOLE_MUSCLE = "zygomatic_major_L"
+SKIN_TONE = np.array([0.93, 0.72, 0.60])
+"""RGB of the skin (times the procedural albedo)."""
+COLOUR_NOISE = 0.01
+"""Per-point colour noise (0-1 scale)."""
+EXPOSURE = 0.05
+"""Each scan's brightness is off by up to this fraction."""
+COLOUR_FOOTPRINT_MM = 1.0
+"""The scanner's colour camera sees the skin through pixels this wide (the skin's finest pores blur)."""
 ERROR_LIMIT = 0.10
 """The bar of issue 16: each element within 10% of its RMS displacement over the vertices it moves."""
 
@@ -27,20 +40,36 @@ class SyntheticScan:
     landmarks : dict of str to ndarray, shape (3,)
     face2scanner : ndarray, shape (4, 4)
         Where the head was: from the mesh's frame to the scanner's.
+    colours : ndarray, shape (n, 3), or None
+        RGB in [0, 1] per point (None: a scanner without colour).
     """
 
     points: np.ndarray
     landmarks: dict
     face2scanner: np.ndarray
+    colours: np.ndarray | None = None
+
+    def as_scan(self, colour: bool = True):
+        """The :class:`~livebridge.retarget.scan.Scan` a reader would give (without colour if not ``colour``)."""
+        from livebridge.retarget.scan import Scan
+
+        return Scan(self.points, np.zeros((0, 3)), self.colours if colour else None)
 
 
 def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noise: float,
-                 rng: np.random.Generator, hole: tuple[np.ndarray, float] | None = None) -> np.ndarray:
-    """Points (<= n_points, 3) a scanner looking along -z sees on a mesh, with Gaussian noise ``noise`` mm.
+                 rng: np.random.Generator, hole: tuple[np.ndarray, float] | None = None, skin=None,
+                 exposure: float = 1.0) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (<= n_points, 3) a scanner looking along -z sees on a mesh, with Gaussian noise ``noise`` mm,
+    and their colours (same length, 3) when ``skin`` (a :class:`~livebridge.simulators.skin.SkinTexture` of
+    the mesh's vertices) is given, else None.
 
     Area-weighted random barycentric points on the triangles facing +z; hidden ones (more than 1.5 mm behind
     the front-most surface within 0.5 mm in x-y) dropped; ``hole`` = (centre (3,), radius): no points there.
+    A point's colour is the skin at its place on the mesh (barycentric in the texels of its triangle's
+    vertices) times :data:`SKIN_TONE` and ``exposure``, plus :data:`COLOUR_NOISE`.
     """
+    from scipy.ndimage import map_coordinates
+
     from livebridge.face.meshio import triangle_normals
     from livebridge.retarget.grid import front_surface
 
@@ -54,10 +83,16 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
     bary = np.stack([1 - a - b, a, b], axis=1)
     points = np.einsum("nk,nkd->nd", bary, corners[chosen])
-    points = points[front_surface(points, 0.5, 1.5)]
+    keep = front_surface(points, 0.5, 1.5)
     if hole is not None:
-        points = points[np.linalg.norm(points - hole[0], axis=1) > hole[1]]
-    return points + rng.normal(0.0, noise, points.shape)
+        keep &= np.linalg.norm(points - hole[0], axis=1) > hole[1]
+    points = points[keep] + rng.normal(0.0, noise, (int(keep.sum()), 3))
+    if skin is None:
+        return points, None
+    texels = np.einsum("nk,nkd->nd", bary[keep], skin.vertex_texels[triangles[chosen[keep]]]).astype(np.float32)
+    albedo = map_coordinates(skin.albedo, [texels[:, 1], texels[:, 0]], order=1, mode="nearest")
+    colours = albedo[:, None] * SKIN_TONE * exposure + rng.normal(0.0, COLOUR_NOISE, (len(points), 3))
+    return points, np.clip(colours, 0.0, 1.0)
 
 
 def random_pose(rng: np.random.Generator, degrees: float = 10.0, shift_mm: float = 30.0) -> np.ndarray:
@@ -73,22 +108,33 @@ def random_pose(rng: np.random.Generator, degrees: float = 10.0, shift_mm: float
 
 def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = SCAN_POINTS,
                     noise: float = SCAN_NOISE_MM, landmark_noise: float = LANDMARK_NOISE_MM,
-                    hole_muscle: str | None = HOLE_MUSCLE) -> tuple[SyntheticScan, dict[str, SyntheticScan]]:
+                    hole_muscle: str | None = HOLE_MUSCLE, colour: bool = True,
+                    muscles=None) -> tuple[SyntheticScan, dict[str, SyntheticScan]]:
     """(neutral, {muscle: expression}) scans of ``basis`` (each element fully contracted), each with its own
-    random head pose, sampling and noise; landmarks from ``landmarks`` (a LandmarkSet on the basis) plus
-    Gaussian noise. The ``hole_muscle`` scan has a hole of :data:`HOLE_RADIUS_MM` on that side's cheek."""
+    random head pose, sampling, noise and exposure; landmarks from ``landmarks`` (a LandmarkSet on the basis)
+    plus Gaussian noise. The ``hole_muscle`` scan has a hole of :data:`HOLE_RADIUS_MM` on that side's cheek.
+    ``colour``: the scans carry the skin painted on the neutral face; ``muscles``: only these (default all)."""
     from livebridge.geometry.transforms import apply
+    from livebridge.simulators.skin import make_skin
+
+    skin = None
+    if colour:
+        skin = make_skin(basis.neutral, int(rng.integers(1 << 30)), landmarks.as_dict(basis.neutral, basis.triangles))
+        skin = skin.level(COLOUR_FOOTPRINT_MM)
 
     def one(shape, hole=None):
         pose = random_pose(rng)
-        points = scan_surface(shape, basis.triangles, n_points, noise, rng, hole)
+        exposure = 1.0 + rng.uniform(-EXPOSURE, EXPOSURE)
+        points, colours = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin, exposure)
         marks = landmarks.as_dict(shape, basis.triangles)
         marks = {name: apply(pose, p[None])[0] + rng.normal(0.0, landmark_noise, 3) for name, p in marks.items()}
-        return SyntheticScan(apply(pose, points), marks, pose)
+        return SyntheticScan(apply(pose, points), marks, pose, colours)
 
     neutral = one(basis.neutral)
     expressions = {}
     for muscle, element in zip(basis.muscles, basis.elements):
+        if muscles is not None and muscle.name not in muscles:
+            continue
         hole = None
         if muscle.name == hole_muscle:
             at = landmarks.as_dict(basis.neutral + element, basis.triangles)
