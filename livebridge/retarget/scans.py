@@ -16,7 +16,8 @@ That geometry fixes the motion normal to the skin; the motion ALONG the skin (mo
 it knows only at the landmarks. When the scans carry colour, the skin's pattern is tracked from the neutral
 to each expression (:mod:`~livebridge.retarget.skin_flow`, starting from the geometric warp) on a finer
 image of both scans, and each grid vertex moves to the expressive surface where its skin went; where the
-skin cannot be tracked (occluded, a hole, no pattern) the geometric warp stays.
+skin cannot be tracked (occluded, a hole, no pattern) the geometric warp stays. The skin that did not move
+then corrects the shape-only rigid registration (which can slide a fraction of a mm along the face).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from livebridge.retarget.grid import GAP_SPACINGS, GRID_SHAPE, FaceGrid, crop_sp
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points, place_at_points
 from livebridge.retarget.normalise import normalisation, register_rigid, transform_landmarks
 from livebridge.retarget.scan import Scan
-from livebridge.retarget.skin_flow import fine_axes, skin_motion
+from livebridge.retarget.skin_flow import fine_axes, skin_motion, still_skin_correction
 from livebridge.retarget.tps import Kernel, fit_tps
 
 CROP_FACTOR = 1.2
@@ -143,8 +144,10 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
     the geometric warp, refined by skin tracking when both scans have colour (and ``colour``)."""
     element = geometric_element(neutral, expression, stride, kernel, source)
     if colour and neutral.skin is not None and expression.skin is not None:
-        element, _ = skin_motion(neutral.skin, expression.skin, neutral.grid, neutral.skin_factor,
-                                 neutral.skin_margin, element)
+        element, trust = skin_motion(neutral.skin, expression.skin, neutral.grid, neutral.skin_factor,
+                                     neutral.skin_margin, element)
+        correction = still_skin_correction(neutral.vertices, element, trust)
+        element = apply(correction, neutral.vertices + element) - neutral.vertices
     return element
 
 

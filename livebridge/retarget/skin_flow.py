@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.ndimage import distance_transform_edt, map_coordinates
 from scipy.interpolate import RegularGridInterpolator
+from scipy.ndimage import distance_transform_edt, map_coordinates
 
 from livebridge.retarget.grid import FaceGrid
 
@@ -34,6 +34,10 @@ TRUSTED_RESIDUAL = 0.8
 this is trusted fully; the trust falls to zero at twice it."""
 SMOOTH_MM = 2.0
 """The skin motion is smoothed over this (Gaussian sigma) before it is sampled at the grid vertices."""
+PASSES = 2
+"""Flow passes, each starting from the last one's motion (the first from the geometric warp)."""
+STILL_FRACTION = 0.4
+"""The fraction of the face taken as not moved by an expression when the registration is corrected."""
 
 
 def fine_axes(x: np.ndarray, y: np.ndarray, spacing: float = FINE_MM) -> tuple[np.ndarray, np.ndarray, int]:
@@ -99,10 +103,12 @@ def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray) -> tu
     step = neutral.spacing
     source, source_valid = skin_image(neutral)
     target, _ = skin_image(expression)
-    guess_px = (guess / step).astype(np.float32)
-    warped = _remap(target, guess_px)
-    flow = _dis().calc(_to_u8(source), _to_u8(warped), None)  # source(p) ~ warped(p + flow)
-    total = flow + _remap(guess_px, flow)  # the guess where the flow lands
+    total = (guess / step).astype(np.float32)
+    source_u8 = _to_u8(source)
+    for _ in range(PASSES):
+        warped = _remap(target, total)
+        flow = _dis().calc(source_u8, _to_u8(warped), None)  # source(p) ~ warped(p + flow)
+        total = flow + _remap(total, flow)  # the previous motion where the flow lands
     matched = _remap(target, total)
     residual = np.where(source_valid, (source - matched) ** 2, 0.0)
     rms = np.sqrt(_masked_blur(residual, source_valid, CHECK_MM / step))
@@ -163,6 +169,35 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
     trust_out = np.where(np.isfinite(tracked).all(axis=1), trust_out, 0.0)
     motion = trust_out[:, None] * np.nan_to_num(tracked) + (1.0 - trust_out[:, None]) * first_guess
     return motion, trust_out
+
+
+def still_skin_correction(vertices: np.ndarray, motion: np.ndarray, trust: np.ndarray,
+                          keep: float = STILL_FRACTION, rounds: int = 8) -> np.ndarray:
+    """The rigid motion (4, 4) that brings the tracked skin where the face did not move back onto itself.
+
+    The expression scan was registered onto the neutral by its shape alone (point-to-plane ICP), which
+    leaves it free to slide a fraction of a millimetre along the face. The tracked skin pins that: each
+    round fits a rigid motion (Kabsch) to the ``keep`` fraction of trusted vertices whose skin moved least
+    once corrected, so the muscle's own motion is left out.
+
+    Parameters
+    ----------
+    vertices, motion : ndarray, shape (n, 3)
+        Grid vertices and where their skin went (the tracked motion).
+    trust : ndarray, shape (n,)
+    """
+    from livebridge.geometry.transforms import apply, umeyama
+
+    landed = vertices + motion
+    trusted = trust > 0.9
+    correction = np.eye(4)
+    if trusted.sum() < 100:
+        return correction
+    for _ in range(rounds):
+        residual = np.linalg.norm(apply(correction, landed[trusted]) - vertices[trusted], axis=1)
+        still = residual <= np.quantile(residual, keep)
+        correction = umeyama(landed[trusted][still], vertices[trusted][still], with_scale=False)
+    return correction
 
 
 def _fine_field(grid: FaceGrid, values: np.ndarray, fine: FaceGrid) -> np.ndarray:
