@@ -285,20 +285,27 @@ def test_retarget_scans_cli_writes_a_basis(tmp_path, ict):
                                            hole_muscle=None)
 
     def write(name, scan, encoding):
-        write_ply(tmp_path / f"{name}.ply", scan.points, None, encoding)
+        write_ply(tmp_path / f"{name}.ply", scan.points, None, encoding, scan.colours)
         rows = "".join(f"{k},{x:.4f},{y:.4f},{z:.4f}\n" for k, (x, y, z) in scan.landmarks.items())
         (tmp_path / f"{name}.landmarks.csv").write_text("name,x,y,z\n" + rows)
 
     write("neutral", neutral, "binary_little_endian")
-    write("jaw", expressions["jaw"], "ascii")
     write("smile", expressions["zygomatic_major_L"], "binary_big_endian")
+    jaw = expressions["jaw"]  # a scanner without colour: plain x y z
+    (tmp_path / "jaw.xyz").write_text("".join(f"{x:.5f} {y:.5f} {z:.5f}\n" for x, y, z in jaw.points))
+    (tmp_path / "jaw.landmarks.csv").write_text("name,x,y,z\n" + "".join(
+        f"{k},{x:.4f},{y:.4f},{z:.4f}\n" for k, (x, y, z) in jaw.landmarks.items()))
     result = CliRunner().invoke(main, [
         "retarget", "scans", "--neutral", str(tmp_path / "neutral.ply"), "--neutral-landmarks",
-        str(tmp_path / "neutral.landmarks.csv"), "--expression", f"jaw={tmp_path / 'jaw.ply'}",
+        str(tmp_path / "neutral.landmarks.csv"), "--expression", f"jaw={tmp_path / 'jaw.xyz'}",
         "--expression", f"zygomatic_major_L={tmp_path / 'smile.ply'}:{tmp_path / 'smile.landmarks.csv'}",
         "--grid", "80x90", "--out", str(tmp_path / "b.npz"), "--grid-obj", str(tmp_path / "grid.obj"),
         "--landmarks-out", str(tmp_path / "lm.toml")])
     assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert "shape only" in next(line for line in lines if line.strip().startswith("jaw"))
+    assert "skin tracked" in next(line for line in lines if line.strip().startswith("zygomatic_major_L"))
+    assert "note: no colour in jaw" in result.output
     basis = Basis.load(tmp_path / "b.npz")
     assert basis.names == ("jaw", "zygomatic_major_L")
     assert basis.muscles[1].side == "L" and basis.muscles[0].region == "lower"
