@@ -26,6 +26,8 @@ EXPOSURE = 0.05
 """Each scan's brightness is off by up to this fraction."""
 COLOUR_FOOTPRINT_MM = 1.0
 """The scanner's colour camera sees the skin through pixels this wide (the skin's finest pores blur)."""
+QUICK_MUSCLES = ("frontalis_L", "zygomatic_major_L", "jaw")
+"""``--quick``: these elements on a 100 x 100 grid."""
 ERROR_LIMIT = 0.10
 """The bar of issue 16: each element within 10% of its RMS displacement over the vertices it moves."""
 
@@ -242,7 +244,8 @@ def run(quick: bool, log) -> dict:
     if basis is None:
         log("scans: the ICT reference data (../shared/data) is not here; nothing to measure")
         return {"skipped": "no ICT reference data"}
-    figures = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7))
+    options = {"grid": (100, 100), "muscles": QUICK_MUSCLES} if quick else {}
+    figures = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), **options)
     log(f"scans: {figures.n_vertices} grid vertices, {len(figures.names)} elements; built in "
         f"{figures.build_s:.1f} s with skin tracking, {figures.build_without_colour_s:.1f} s from shape alone")
     log(f"  {'element':24s} {'RMS mm':>7s} {'error':>7s} {'no colour':>9s} {'surface':>8s} {'no colour':>9s}")
