@@ -235,25 +235,27 @@ def test_scan_basis_moves_the_face_where_the_ict_elements_do(ict_scan_figures):
 
 
 def test_skin_tracking_measures_the_motion_along_the_skin(ict_scan_figures):
-    """With colour, the brow's, the smile's, the lip corner's and the eyelid's errors are at most 0.6 of what
-    shape alone gives (the shape-only method knows the sliding of the skin at the landmarks only). Measured here
-    0.18, 0.25, 0.30, 0.47; over all 16 elements in `livebridge bench scans` 0.15-0.39, jaw 0.56, eyelids 0.59
-    and 0.75."""
+    """With colour, the brow's, the smile's and the lip corner's errors are at most half of what shape alone
+    gives (which knows the sliding of the skin at the landmarks only), the eyelid's lower too. Measured here
+    0.18, 0.21, 0.29 and the eyelid 0.58; over all 16 elements in `livebridge bench scans` 0.15-0.39, jaw 0.56,
+    eyelids 0.59 and 0.75."""
     figures = ict_scan_figures
-    ratio = figures.errors / figures.errors_without_colour
-    assert (ratio < 0.6).all(), dict(zip(figures.names, np.round(ratio, 3)))
+    ratio = dict(zip(figures.names, figures.errors / figures.errors_without_colour))
+    for name, value in ratio.items():
+        assert value < (0.9 if name in EYELIDS else 0.5), (name, round(float(value), 3))
 
 
 def test_scan_basis_surface_away_from_the_lips_and_eyelids(ict_scan_figures):
     """The expression the built basis gives lies on the true expressive surface within 10% of the element's
-    RMS motion (measured 0.05-0.08) for the brow and the smile."""
+    RMS motion for the brow and the smile (measured 0.079 and 0.052 here)."""
     figures = ict_scan_figures
     for name in ("frontalis_L", "zygomatic_major_L"):
         assert figures.surface[figures.names.index(name)] <= ERROR_LIMIT, name
 
 
-@pytest.mark.xfail(strict=True, reason="open: surface error 0.12-0.14 of the element's RMS at the lip corners "
-                   "(depressor_anguli_oris) and the eyelids, 0.05-0.08 elsewhere (`livebridge bench scans`: max 0.17)")
+@pytest.mark.xfail(strict=True, reason="open: surface error 0.14 of the element's RMS at the lip corner "
+                   "(depressor_anguli_oris), 0.11 at the eyelid here; in `livebridge bench scans` 12 of 16 elements "
+                   "within 0.10, worst 0.17 (depressor_anguli_oris)")
 def test_scan_basis_surface_within_10_percent(ict_scan_figures):
     figures = ict_scan_figures
     assert np.nanmax(figures.surface) <= ERROR_LIMIT, dict(zip(figures.names, np.round(figures.surface, 3)))
