@@ -541,6 +541,9 @@ PLY_CASES = _common_cases() + (
                                                  _FACE_HEADER), ("face", "vertex 7", "does not exist")),
     Case("binary face truncated", _ply_binary(3, 3, b"\x03\x00\x00", _FACE_HEADER), ("face 0 of 1", "ends")),
     Case("no vertices", _text(_PLY.format("ascii", 0, "")), ("no points",)),
+    Case("float colour above 1", _text(_PLY.format("ascii", 2, "property float red\nproperty float green\n"
+                                                   "property float blue\n") + "0 0 0 0.5 0.5 0.5\n1 1 1 0.5 2 0\n"),
+         ("point 1", "colour", "0-1")),
 )
 XYZ_CASES = _common_cases() + (
     Case("empty file", _text(""), ("empty file",)),
@@ -551,6 +554,8 @@ XYZ_CASES = _common_cases() + (
     Case("text", _text("1 2 3\n4 five 6\n"), ("line 2", "numbers")),
     Case("NaN", _text("1 2 3\n4 5 nan\n"), ("line 2", "finite")),
     Case("header with numbers after", _text("label 2 3\n"), ("line 1", "numbers")),
+    Case("colour not a number", _text("x y z r g b\n1 2 3 0.5 0.5 0.5\n4 5 6 red 0 0\n"), ("line 3", "r, g, b")),
+    Case("negative colour", _text("x y z r g b\n1 2 3 0.5 -0.5 0.5\n"), ("point 0", "colour")),
 )
 _SCANS = ("retarget", "scans", "--neutral-landmarks", "{dir}/lm.csv", "--expression", "jaw={dir}/jaw.ply")
 

@@ -55,6 +55,49 @@ def test_obj_and_text_point_lists(tmp_path):
     np.testing.assert_array_equal(read_scan(tmp_path / "s.xyz").points, [[1, 2, 3], [4, 5, 6]])
 
 
+@pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian", "binary_big_endian"])
+def test_ply_colours_round_trip(tmp_path, rng, encoding):
+    points, colours = rng.normal(0, 50, (100, 3)), rng.random((100, 3))
+    write_ply(tmp_path / "c.ply", points, None, encoding, colours)
+    scan = read_scan(tmp_path / "c.ply")
+    assert scan.has_colour
+    np.testing.assert_allclose(scan.colours, colours, atol=0.5 / 255 + 1e-9)  # stored as uchar
+
+
+@pytest.mark.parametrize("names,dtype,scale", [(("red", "green", "blue"), "<f4", 1.0),
+                                               (("diffuse_red", "diffuse_green", "diffuse_blue"), "<u2", 65535.0)])
+def test_ply_float_and_diffuse_colours(tmp_path, rng, names, dtype, scale):
+    kind = "float" if dtype == "<f4" else "ushort"
+    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 20\nproperty float x\nproperty float y\n"
+              "property float z\n" + "".join(f"property {kind} {n}\n" for n in names) + "end_header\n")
+    table = np.zeros(20, np.dtype([("p", "<f4", 3), ("c", dtype, 3)]))
+    colours = rng.random((20, 3))
+    table["p"], table["c"] = rng.normal(size=(20, 3)), colours * scale
+    (tmp_path / "f.ply").write_bytes(header.encode() + table.tobytes())
+    np.testing.assert_allclose(read_scan(tmp_path / "f.ply").colours, table["c"] / scale, rtol=1e-6)
+
+
+def test_obj_and_text_colours(tmp_path):
+    (tmp_path / "c.obj").write_text("v 0 0 0 1 0 0.5\nv 1 0 0 0 1 0\nv 0 1 0 0 0 1\nf 1 2 3\n")
+    np.testing.assert_allclose(read_scan(tmp_path / "c.obj").colours, [[1, 0, 0.5], [0, 1, 0], [0, 0, 1]])
+    (tmp_path / "plain.obj").write_text("v 0 0 0\nv 1 0 0 0 1 0\nv 0 1 0\n")  # not every vertex: no colour
+    assert not read_scan(tmp_path / "plain.obj").has_colour
+    (tmp_path / "c.xyz").write_text("1 2 3 255 0 51\n4 5 6 0 255 0\n")  # no header: whole numbers 0-255
+    np.testing.assert_allclose(read_scan(tmp_path / "c.xyz").colours, [[1, 0, 0.2], [0, 1, 0]])
+    (tmp_path / "c.csv").write_text("X,Y,Z,Red,Green,Blue,intensity\n1,2,3,0.5,0.25,1,9\n")
+    np.testing.assert_allclose(read_scan(tmp_path / "c.csv").colours, [[0.5, 0.25, 1]])
+    (tmp_path / "n.xyz").write_text("1 2 3 0 0 1\n4 5 6 0.6 0 0.8\n")  # normals, not colour
+    assert not read_scan(tmp_path / "n.xyz").has_colour
+
+
+def test_colour_out_of_range_is_refused(tmp_path):
+    from livebridge.errors import InputError
+
+    (tmp_path / "bad.csv").write_text("x,y,z,r,g,b\n1,2,3,0.5,-0.2,1\n")
+    with pytest.raises(InputError, match="colour"):
+        read_scan(tmp_path / "bad.csv")
+
+
 # ------------------------------------------------------------------------------------------------ resampling
 def _dome(rng, n=20_000, radius=60.0, hole=None):
     """Points of the cap z = sqrt(R^2 - x^2 - y^2) - R over |(x, y)| < radius (R = 100), optional hole."""
@@ -161,12 +204,62 @@ def test_crop_sphere(rng):
     np.testing.assert_array_equal(kept, np.linalg.norm(points - [10, 0, 0], axis=1) <= 40)
 
 
+# ------------------------------------------------------------------------------------------------ skin tracking
+def test_skin_tracking_recovers_a_known_slide_of_the_skin(rng):
+    """A textured, gently curved surface whose skin slides by a known smooth field ``d`` (3 mm peak) in an
+    expression scan with other sampling and noise: the tracked motion matches ``d`` from a zero first guess
+    (measured 0.071 of its RMS)."""
+    import cv2
+    from scipy.interpolate import RegularGridInterpolator
+
+    from livebridge.retarget.skin_flow import fine_axes, skin_motion
+
+    texel = 0.25
+    axis = np.arange(-42, 42 + texel, texel)
+    noise = cv2.GaussianBlur(rng.normal(size=(len(axis), len(axis))).astype(np.float32), (0, 0), 0.8 / texel)
+    texture = RegularGridInterpolator((axis, axis), 0.5 + noise / (4 * noise.std()))
+
+    def surface(xy):
+        return np.column_stack([xy, 20 * np.exp(-(xy ** 2).sum(axis=1) / 40.0 ** 2)])
+
+    def slide(xy):
+        return 3.0 * np.exp(-((xy - [5.0, -5.0]) ** 2).sum(axis=1) / 12.0 ** 2)[:, None] * np.array([[0.8, 0.6]])
+
+    def scan(moved: bool):
+        skin = rng.uniform(-38, 38, (30_000, 2))  # where each point's skin is on the neutral
+        at = skin + slide(skin) if moved else skin
+        grey = texture(skin[:, ::-1]) + rng.normal(0, 0.01, len(skin))
+        return surface(at) + rng.normal(0, 0.1, (len(skin), 3)), np.repeat(grey[:, None], 3, axis=1)
+
+    x, y = square_axes(30.0, (41, 41))
+    margin = 4
+    step = x[1] - x[0]
+    wide = np.linspace(-30 - margin * step, 30 + margin * step, 41 + 2 * margin)
+    fine_x, fine_y, factor = fine_axes(wide, wide)
+    (neutral_points, neutral_colours), (points, colours) = scan(False), scan(True)
+    neutral = resample(neutral_points, x, y)
+    motion, trust = skin_motion(resample(neutral_points, fine_x, fine_y, colours=neutral_colours),
+                                resample(points, fine_x, fine_y, colours=colours), neutral, factor, margin,
+                                np.zeros((len(neutral.vertices), 3)))
+    truth = slide(neutral.vertices[:, :2])  # the neutral skin at each vertex moves by d
+    error = np.linalg.norm(motion[:, :2] - truth, axis=1)
+    assert trust.mean() > 0.9
+    relative = np.sqrt(np.mean(error ** 2) / np.mean((truth ** 2).sum(axis=1)))
+    assert relative < 0.1
+
+
 # ------------------------------------------------------------------------------------------------ bases from scans
+SCAN_MUSCLES = ("frontalis_L", "zygomatic_major_L", "depressor_anguli_oris", "orbicularis_oculi_L")
+"""A brow, a smile, a lip corner, an eyelid (the full 16 are in `livebridge bench scans`)."""
+EYELIDS = ("orbicularis_oculi_L", "orbicularis_oculi_R")
+
+
 @pytest.fixture(scope="module")
-def ict_scan_basis(ict):
+def ict_scan_figures(ict):
     from livebridge.retarget.landmarks import load_landmark_set
 
-    return build_and_measure(ict, load_landmark_set("ict-22"), np.random.default_rng(7))
+    return build_and_measure(ict, load_landmark_set("ict-22"), np.random.default_rng(7), grid=(100, 100),
+                             muscles=SCAN_MUSCLES)
 
 
 def _share_where_ict_moves(element, true) -> float:
@@ -176,33 +269,57 @@ def _share_where_ict_moves(element, true) -> float:
     return float(np.sum(size[moved] ** 2) / np.sum(size ** 2))
 
 
-EYELIDS = ("orbicularis_oculi_L", "orbicularis_oculi_R")
-
-
-def test_scan_basis_moves_the_face_where_the_ict_elements_do(ict, ict_scan_basis):
-    built, truth, _, _ = ict_scan_basis
-    assert built.names == ict.names
-    assert np.isfinite(built.elements).all()
-    for name, element, true in zip(built.names, built.elements, truth):
+def test_scan_basis_moves_the_face_where_the_ict_elements_do(ict_scan_figures):
+    figures = ict_scan_figures
+    assert set(figures.names) == set(SCAN_MUSCLES)
+    assert np.isfinite(figures.with_colour).all() and np.isfinite(figures.without_colour).all()
+    for name, element, true in zip(figures.names, figures.with_colour, figures.truth):
         if name not in EYELIDS:
-            assert _share_where_ict_moves(element, true) > 0.75, name  # measured 0.78-0.96
+            assert _share_where_ict_moves(element, true) > 0.75, name
+
+
+def test_skin_tracking_measures_the_motion_along_the_skin(ict_scan_figures):
+    """With colour, the brow's, the smile's and the lip corner's errors are at most half of what shape alone
+    gives (which knows the sliding of the skin at the landmarks only), the eyelid's lower too. Measured here
+    0.18, 0.21, 0.29 and the eyelid 0.58; over all 16 elements in `livebridge bench scans` 0.15-0.39, jaw 0.56,
+    eyelids 0.59 and 0.75."""
+    figures = ict_scan_figures
+    ratio = dict(zip(figures.names, figures.errors / figures.errors_without_colour))
+    for name, value in ratio.items():
+        assert value < (0.9 if name in EYELIDS else 0.5), (name, round(float(value), 3))
+
+
+def test_scan_basis_surface_away_from_the_lips_and_eyelids(ict_scan_figures):
+    """The expression the built basis gives lies on the true expressive surface within 10% of the element's
+    RMS motion for the brow and the smile (measured 0.079 and 0.052 here)."""
+    figures = ict_scan_figures
+    for name in ("frontalis_L", "zygomatic_major_L"):
+        assert figures.surface[figures.names.index(name)] <= ERROR_LIMIT, name
+
+
+@pytest.mark.xfail(strict=True, reason="open: surface error 0.14 of the element's RMS at the lip corner "
+                   "(depressor_anguli_oris), 0.11 at the eyelid here; in `livebridge bench scans` 12 of 16 elements "
+                   "within 0.10, worst 0.17 (depressor_anguli_oris)")
+def test_scan_basis_surface_within_10_percent(ict_scan_figures):
+    figures = ict_scan_figures
+    assert np.nanmax(figures.surface) <= ERROR_LIMIT, dict(zip(figures.names, np.round(figures.surface, 3)))
 
 
 @pytest.mark.xfail(strict=True, reason="open: the eyelids close over the eye openings, which are holes in the "
-                   "neutral grid (no vertices there): 3-4% of the built motion is where the ICT eyelids move")
-def test_scan_basis_eyelids(ict_scan_basis):
-    built, truth, _, _ = ict_scan_basis
-    for name in EYELIDS:
-        k = built.index(name)
-        assert _share_where_ict_moves(built.elements[k], truth[k]) > 0.75, name
+                   "neutral grid (no vertices there)")
+def test_scan_basis_eyelids(ict_scan_figures):
+    figures = ict_scan_figures
+    for name in set(EYELIDS) & set(figures.names):
+        k = figures.names.index(name)
+        assert _share_where_ict_moves(figures.with_colour[k], figures.truth[k]) > 0.75, name
 
 
-@pytest.mark.xfail(strict=True, reason="open: measured 0.30-1.47 relative RMS per element (jaw 0.30, risorius_L 1.47; "
-                   "`livebridge bench scans`): the scans fix the motion normal to the surface to ~0.4 mm, the motion "
-                   "along it only at the 22 landmarks")
-def test_scan_basis_reproduces_the_ict_elements_within_10_percent(ict_scan_basis):
-    built, _, errors, _ = ict_scan_basis
-    assert np.nanmax(errors) <= ERROR_LIMIT, dict(zip(built.names, np.round(errors, 3)))
+@pytest.mark.xfail(strict=True, reason="open: with colour 0.12-0.28 relative RMS per element, the eyelids 0.63-0.75 "
+                   "(without colour 0.36-1.31; `livebridge bench scans`): the flow's noise (~0.3 mm at 60k points a "
+                   "scan), the lips' and eyelids' occlusions, steep skin beside the nose")
+def test_scan_basis_reproduces_the_ict_elements_within_10_percent(ict_scan_figures):
+    figures = ict_scan_figures
+    assert np.nanmax(figures.errors) <= ERROR_LIMIT, dict(zip(figures.names, np.round(figures.errors, 3)))
 
 
 def test_retarget_scans_cli_writes_a_basis(tmp_path, ict):
@@ -215,20 +332,27 @@ def test_retarget_scans_cli_writes_a_basis(tmp_path, ict):
                                            hole_muscle=None)
 
     def write(name, scan, encoding):
-        write_ply(tmp_path / f"{name}.ply", scan.points, None, encoding)
+        write_ply(tmp_path / f"{name}.ply", scan.points, None, encoding, scan.colours)
         rows = "".join(f"{k},{x:.4f},{y:.4f},{z:.4f}\n" for k, (x, y, z) in scan.landmarks.items())
         (tmp_path / f"{name}.landmarks.csv").write_text("name,x,y,z\n" + rows)
 
     write("neutral", neutral, "binary_little_endian")
-    write("jaw", expressions["jaw"], "ascii")
     write("smile", expressions["zygomatic_major_L"], "binary_big_endian")
+    jaw = expressions["jaw"]  # a scanner without colour: plain x y z
+    (tmp_path / "jaw.xyz").write_text("".join(f"{x:.5f} {y:.5f} {z:.5f}\n" for x, y, z in jaw.points))
+    (tmp_path / "jaw.landmarks.csv").write_text("name,x,y,z\n" + "".join(
+        f"{k},{x:.4f},{y:.4f},{z:.4f}\n" for k, (x, y, z) in jaw.landmarks.items()))
     result = CliRunner().invoke(main, [
         "retarget", "scans", "--neutral", str(tmp_path / "neutral.ply"), "--neutral-landmarks",
-        str(tmp_path / "neutral.landmarks.csv"), "--expression", f"jaw={tmp_path / 'jaw.ply'}",
+        str(tmp_path / "neutral.landmarks.csv"), "--expression", f"jaw={tmp_path / 'jaw.xyz'}",
         "--expression", f"zygomatic_major_L={tmp_path / 'smile.ply'}:{tmp_path / 'smile.landmarks.csv'}",
         "--grid", "80x90", "--out", str(tmp_path / "b.npz"), "--grid-obj", str(tmp_path / "grid.obj"),
         "--landmarks-out", str(tmp_path / "lm.toml")])
     assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert "shape only" in next(line for line in lines if line.strip().startswith("jaw"))
+    assert "skin tracked" in next(line for line in lines if line.strip().startswith("zygomatic_major_L"))
+    assert "note: no colour in jaw" in result.output
     basis = Basis.load(tmp_path / "b.npz")
     assert basis.names == ("jaw", "zygomatic_major_L")
     assert basis.muscles[1].side == "L" and basis.muscles[0].region == "lower"

@@ -1,5 +1,10 @@
 """Bases from scans: a neutral and 16 expression scans sampled from the ICT meshes as noisy point clouds, the
-basis built from them against the ICT elements (relative RMS per element), and the time it takes."""
+basis built from them against the ICT elements (relative RMS per element), and the time it takes.
+
+The simulated scanner records colour: a procedural skin (:mod:`livebridge.simulators.skin`) is painted on
+the NEUTRAL ICT face and carried by the mesh's own vertices into every expression, so skin that slides
+along the face takes its pores, freckles and brows with it, as real skin does. Each scan sees it through
+its own exposure and with colour noise."""
 
 from __future__ import annotations
 
@@ -13,6 +18,16 @@ SCAN_NOISE_MM = 0.2
 LANDMARK_NOISE_MM = 0.5
 HOLE_RADIUS_MM = 8.0
 HOLE_MUSCLE = "zygomatic_major_L"
+SKIN_TONE = np.array([0.93, 0.72, 0.60])
+"""RGB of the skin (times the procedural albedo)."""
+COLOUR_NOISE = 0.01
+"""Per-point colour noise (0-1 scale)."""
+EXPOSURE = 0.05
+"""Each scan's brightness is off by up to this fraction."""
+COLOUR_FOOTPRINT_MM = 1.0
+"""The scanner's colour camera sees the skin through pixels this wide (the skin's finest pores blur)."""
+QUICK_MUSCLES = ("frontalis_L", "zygomatic_major_L", "jaw")
+"""``--quick``: these elements on a 100 x 100 grid."""
 ERROR_LIMIT = 0.10
 """The bar of issue 16: each element within 10% of its RMS displacement over the vertices it moves."""
 
@@ -27,20 +42,36 @@ class SyntheticScan:
     landmarks : dict of str to ndarray, shape (3,)
     face2scanner : ndarray, shape (4, 4)
         Where the head was: from the mesh's frame to the scanner's.
+    colours : ndarray, shape (n, 3), or None
+        RGB in [0, 1] per point (None: a scanner without colour).
     """
 
     points: np.ndarray
     landmarks: dict
     face2scanner: np.ndarray
+    colours: np.ndarray | None = None
+
+    def as_scan(self, colour: bool = True):
+        """The :class:`~livebridge.retarget.scan.Scan` a reader would give (without colour if not ``colour``)."""
+        from livebridge.retarget.scan import Scan
+
+        return Scan(self.points, np.zeros((0, 3)), self.colours if colour else None)
 
 
 def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noise: float,
-                 rng: np.random.Generator, hole: tuple[np.ndarray, float] | None = None) -> np.ndarray:
-    """Points (<= n_points, 3) a scanner looking along -z sees on a mesh, with Gaussian noise ``noise`` mm.
+                 rng: np.random.Generator, hole: tuple[np.ndarray, float] | None = None, skin=None,
+                 exposure: float = 1.0) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (<= n_points, 3) a scanner looking along -z sees on a mesh, with Gaussian noise ``noise`` mm,
+    and their colours (same length, 3) when ``skin`` (a :class:`~livebridge.simulators.skin.SkinTexture` of
+    the mesh's vertices) is given, else None.
 
     Area-weighted random barycentric points on the triangles facing +z; hidden ones (more than 1.5 mm behind
     the front-most surface within 0.5 mm in x-y) dropped; ``hole`` = (centre (3,), radius): no points there.
+    A point's colour is the skin at its place on the mesh (barycentric in the texels of its triangle's
+    vertices) times :data:`SKIN_TONE` and ``exposure``, plus :data:`COLOUR_NOISE`.
     """
+    from scipy.ndimage import map_coordinates
+
     from livebridge.face.meshio import triangle_normals
     from livebridge.retarget.grid import front_surface
 
@@ -54,10 +85,16 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
     bary = np.stack([1 - a - b, a, b], axis=1)
     points = np.einsum("nk,nkd->nd", bary, corners[chosen])
-    points = points[front_surface(points, 0.5, 1.5)]
+    keep = front_surface(points, 0.5, 1.5)
     if hole is not None:
-        points = points[np.linalg.norm(points - hole[0], axis=1) > hole[1]]
-    return points + rng.normal(0.0, noise, points.shape)
+        keep &= np.linalg.norm(points - hole[0], axis=1) > hole[1]
+    points = points[keep] + rng.normal(0.0, noise, (int(keep.sum()), 3))
+    if skin is None:
+        return points, None
+    texels = np.einsum("nk,nkd->nd", bary[keep], skin.vertex_texels[triangles[chosen[keep]]]).astype(np.float32)
+    albedo = map_coordinates(skin.albedo, [texels[:, 1], texels[:, 0]], order=1, mode="nearest")
+    colours = albedo[:, None] * SKIN_TONE * exposure + rng.normal(0.0, COLOUR_NOISE, (len(points), 3))
+    return points, np.clip(colours, 0.0, 1.0)
 
 
 def random_pose(rng: np.random.Generator, degrees: float = 10.0, shift_mm: float = 30.0) -> np.ndarray:
@@ -73,22 +110,33 @@ def random_pose(rng: np.random.Generator, degrees: float = 10.0, shift_mm: float
 
 def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = SCAN_POINTS,
                     noise: float = SCAN_NOISE_MM, landmark_noise: float = LANDMARK_NOISE_MM,
-                    hole_muscle: str | None = HOLE_MUSCLE) -> tuple[SyntheticScan, dict[str, SyntheticScan]]:
+                    hole_muscle: str | None = HOLE_MUSCLE, colour: bool = True,
+                    muscles=None) -> tuple[SyntheticScan, dict[str, SyntheticScan]]:
     """(neutral, {muscle: expression}) scans of ``basis`` (each element fully contracted), each with its own
-    random head pose, sampling and noise; landmarks from ``landmarks`` (a LandmarkSet on the basis) plus
-    Gaussian noise. The ``hole_muscle`` scan has a hole of :data:`HOLE_RADIUS_MM` on that side's cheek."""
+    random head pose, sampling, noise and exposure; landmarks from ``landmarks`` (a LandmarkSet on the basis)
+    plus Gaussian noise. The ``hole_muscle`` scan has a hole of :data:`HOLE_RADIUS_MM` on that side's cheek.
+    ``colour``: the scans carry the skin painted on the neutral face; ``muscles``: only these (default all)."""
     from livebridge.geometry.transforms import apply
+    from livebridge.simulators.skin import make_skin
+
+    skin = None
+    if colour:
+        skin = make_skin(basis.neutral, int(rng.integers(1 << 30)), landmarks.as_dict(basis.neutral, basis.triangles))
+        skin = skin.level(COLOUR_FOOTPRINT_MM)
 
     def one(shape, hole=None):
         pose = random_pose(rng)
-        points = scan_surface(shape, basis.triangles, n_points, noise, rng, hole)
+        exposure = 1.0 + rng.uniform(-EXPOSURE, EXPOSURE)
+        points, colours = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin, exposure)
         marks = landmarks.as_dict(shape, basis.triangles)
         marks = {name: apply(pose, p[None])[0] + rng.normal(0.0, landmark_noise, 3) for name, p in marks.items()}
-        return SyntheticScan(apply(pose, points), marks, pose)
+        return SyntheticScan(apply(pose, points), marks, pose, colours)
 
     neutral = one(basis.neutral)
     expressions = {}
     for muscle, element in zip(basis.muscles, basis.elements):
+        if muscles is not None and muscle.name not in muscles:
+            continue
         hole = None
         if muscle.name == hole_muscle:
             at = landmarks.as_dict(basis.neutral + element, basis.triangles)
@@ -114,25 +162,78 @@ def truth_on_grid(basis, neutral_scan: SyntheticScan, face, names) -> np.ndarray
     return np.einsum("nk,enkd->end", bary, corners) @ mesh2face[:3, :3].T
 
 
-def build_and_measure(basis, landmarks, rng: np.random.Generator, **scan_options):
-    """Scans of ``basis``, the basis built from them, and per element (name, relative RMS error, surface error).
+def surface_errors(built: np.ndarray, vertices: np.ndarray, basis, neutral_scan: SyntheticScan, face,
+                   names, truth: np.ndarray) -> np.ndarray:
+    """Per element, how far the expression the built basis gives (``vertices + built``) is from the true
+    expressive surface: the RMS distance to the ICT expression mesh (in the face frame) over the vertices the
+    element moves, over the element's RMS displacement there (as in ``relative_errors``); shape (k,).
 
-    Returns (built Basis, truth (k, n, 3), errors (k,), seconds to build).
+    ``built``, ``truth``: (k, n_vertices, 3); ``face``: the prepared neutral.
     """
+    from livebridge.geometry.transforms import apply
+    from livebridge.retarget.basis import MOVED_FRACTION
+    from livebridge.retarget.landmarks import closest_surface_points
+
+    mesh2face = face.scan2face @ neutral_scan.face2scanner
+    out = np.full(len(names), np.nan)
+    for k, name in enumerate(names):
+        expressive = apply(mesh2face, basis.neutral + basis.elements[basis.index(name)])
+        points = vertices + built[k]
+        triangle, bary, _ = closest_surface_points(points, expressive, basis.triangles)
+        closest = np.einsum("nk,nkd->nd", bary, expressive[basis.triangles[triangle]])
+        distance = np.linalg.norm(points - closest, axis=1)
+        size = np.linalg.norm(truth[k], axis=1)
+        moved = size > MOVED_FRACTION * size.max()
+        out[k] = np.sqrt(np.mean(distance[moved] ** 2) / np.mean(size[moved] ** 2))
+    return out
+
+
+@dataclass(frozen=True)
+class ScanFigures:
+    """What :func:`build_and_measure` measured; error arrays have one value per element (``names``)."""
+
+    names: tuple
+    n_vertices: int
+    truth: np.ndarray
+    with_colour: np.ndarray
+    without_colour: np.ndarray
+    errors: np.ndarray
+    errors_without_colour: np.ndarray
+    surface: np.ndarray
+    surface_without_colour: np.ndarray
+    build_s: float
+    build_without_colour_s: float
+
+
+def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[int, int] | None = None,
+                      **scan_options) -> ScanFigures:
+    """Coloured scans of ``basis``; the basis built from them with skin tracking and from shape alone (the
+    same prepared scans, colour ignored); each against the ICT elements and the true expressive surfaces."""
     from livebridge.retarget.basis import relative_errors
-    from livebridge.retarget.scan import Scan
+    from livebridge.retarget.grid import GRID_SHAPE
     from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
 
     neutral_scan, expression_scans = synthetic_scans(basis, landmarks, rng, **scan_options)
     reference = landmarks.as_dict(basis.neutral, basis.triangles)
     start = time.perf_counter()
-    neutral = prepare_neutral(Scan(neutral_scan.points, np.zeros((0, 3))), neutral_scan.landmarks, reference)
-    faces = {name: prepare_expression(Scan(s.points, np.zeros((0, 3))), s.landmarks, neutral, name)
-             for name, s in expression_scans.items()}
-    built = basis_from_scans(neutral, faces)
-    seconds = time.perf_counter() - start
-    truth = truth_on_grid(basis, neutral_scan, neutral, built.names)
-    return built, truth, relative_errors(built.elements, truth), seconds
+    neutral = prepare_neutral(neutral_scan.as_scan(), neutral_scan.landmarks, reference, shape=grid or GRID_SHAPE)
+    faces = {name: prepare_expression(s.as_scan(), s.landmarks, neutral, name) for name, s in expression_scans.items()}
+    prepared = time.perf_counter() - start
+    start = time.perf_counter()
+    coloured = basis_from_scans(neutral, faces)
+    colour_s = time.perf_counter() - start
+    start = time.perf_counter()
+    shape_only = basis_from_scans(neutral, faces, colour=False)
+    shape_s = time.perf_counter() - start
+    names = coloured.names
+    truth = truth_on_grid(basis, neutral_scan, neutral, names)
+
+    def surface(built):
+        return surface_errors(built.elements, neutral.vertices, basis, neutral_scan, neutral, names, truth)
+
+    return ScanFigures(names, coloured.n_vertices, truth, coloured.elements, shape_only.elements,
+                       relative_errors(coloured.elements, truth), relative_errors(shape_only.elements, truth),
+                       surface(coloured), surface(shape_only), prepared + colour_s, prepared + shape_s)
 
 
 def run(quick: bool, log) -> dict:
@@ -143,12 +244,28 @@ def run(quick: bool, log) -> dict:
     if basis is None:
         log("scans: the ICT reference data (../shared/data) is not here; nothing to measure")
         return {"skipped": "no ICT reference data"}
-    built, truth, errors, seconds = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7))
-    log(f"scans: {built.n_vertices} grid vertices, {built.n_muscles} elements, built in {seconds:.1f} s")
-    log(f"  {'element':24s} {'rel. RMS':>9s} {'RMS mm':>7s}")
-    for name, error, element in zip(built.names, errors, truth):
-        size = np.linalg.norm(element, axis=1)
+    options = {"grid": (100, 100), "muscles": QUICK_MUSCLES} if quick else {}
+    figures = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), **options)
+    log(f"scans: {figures.n_vertices} grid vertices, {len(figures.names)} elements; built in "
+        f"{figures.build_s:.1f} s with skin tracking, {figures.build_without_colour_s:.1f} s from shape alone")
+    log(f"  {'element':24s} {'RMS mm':>7s} {'error':>7s} {'no colour':>9s} {'surface':>8s} {'no colour':>9s}")
+    for k, name in enumerate(figures.names):
+        size = np.linalg.norm(figures.truth[k], axis=1)
         rms = float(np.sqrt(np.mean(size[size > 0.01 * size.max()] ** 2)))
-        log(f"  {name:24s} {error:9.3f} {rms:7.2f}{'' if error <= ERROR_LIMIT else '  > ' + str(ERROR_LIMIT)}")
-    return {"build_s": seconds, "n_vertices": built.n_vertices, "max_relative_error": float(np.nanmax(errors)),
-            "relative_errors": dict(zip(built.names, map(float, errors))), "limit": ERROR_LIMIT}
+        flag = "" if figures.errors[k] <= ERROR_LIMIT else f"  > {ERROR_LIMIT}"
+        log(f"  {name:24s} {rms:7.2f} {figures.errors[k]:7.3f} {figures.errors_without_colour[k]:9.3f} "
+            f"{figures.surface[k]:8.3f} {figures.surface_without_colour[k]:9.3f}{flag}")
+
+    def per_element(values):
+        return dict(zip(figures.names, (round(float(v), 4) for v in values)))
+
+    return {"n_vertices": figures.n_vertices, "limit": ERROR_LIMIT,
+            "build_s": figures.build_s, "build_without_colour_s": figures.build_without_colour_s,
+            "max_relative_error": float(np.nanmax(figures.errors)),
+            "max_relative_error_without_colour": float(np.nanmax(figures.errors_without_colour)),
+            "max_surface_error": float(np.nanmax(figures.surface)),
+            "max_surface_error_without_colour": float(np.nanmax(figures.surface_without_colour)),
+            "relative_errors": per_element(figures.errors),
+            "relative_errors_without_colour": per_element(figures.errors_without_colour),
+            "surface_errors": per_element(figures.surface),
+            "surface_errors_without_colour": per_element(figures.surface_without_colour)}

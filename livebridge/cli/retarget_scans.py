@@ -10,7 +10,9 @@ from livebridge.cli._options import FiniteFloat, InputPath, Named, OutputFile, S
 from livebridge.cli.landmarks import UNITS_TO_MM
 
 LANDMARK_SUFFIXES = (".csv", ".toml")
-SCAN_HELP = ("Scans: PLY (ascii or binary, point cloud or mesh), OBJ, or XYZ/CSV text (x y z per line). Landmarks: "
+SCAN_HELP = ("Scans: PLY (ascii or binary, point cloud or mesh), OBJ, or XYZ/CSV text (x y z per line), with "
+             "per-point colour when the scanner recorded it (PLY red/green/blue, OBJ v x y z r g b, XYZ r g b "
+             "columns). Landmarks: "
              "a CSV of name,x,y,z rows or a TOML of name = [x, y, z] lines, in the scan's coordinates and units; "
              "an expression's landmark file defaults to SCAN with the suffix .landmarks.csv.")
 
@@ -87,7 +89,9 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
 
     Each scan is normalised (nose tip at the origin, facing +z), cropped to the face and resampled on a
     regular grid; each expression's displacement of the neutral grid comes from a landmark TPS, control
-    points snapped to the expressive surface and a TPS warp (Erdoğdu §5.4-5.5).
+    points snapped to the expressive surface and a TPS warp (Erdoğdu §5.4-5.5). When the neutral and an
+    expression scan both carry colour, the skin's pattern is tracked between them, so the motion along the
+    skin is measured everywhere; without colour it is known only at the landmarks.
     """
     import numpy as np
 
@@ -100,11 +104,13 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     neutral = prepare_neutral(read_scan(neutral_scan, scale), read_landmark_points(neutral_landmarks, scale),
                               reference_landmarks(reference, 1.0), method, (rows, columns), crop_radius,
                               neutral_landmarks)
-    faces = {}
+    faces, uncoloured = {}, []
     for name, spec in named.items():
         scan_path, landmark_path = split_scan_spec(spec)
         faces[name] = prepare_expression(read_scan(scan_path, scale), read_landmark_points(landmark_path, scale),
                                          neutral, scan_path)
+        if neutral.skin is None or faces[name].skin is None:
+            uncoloured.append(name)
     basis = basis_from_scans(neutral, faces, kernel)
     basis.save(out)
     if grid_obj is not None:
@@ -115,4 +121,9 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     click.echo(f"wrote {out}: {basis.n_muscles} elements on {basis.n_vertices} grid vertices "
                f"({columns}x{rows}, normalise {method}, kernel {kernel})")
     for muscle, size in zip(basis.muscles, largest):
-        click.echo(f"  {muscle.name:24s} {muscle.region:5s} largest motion {size:6.2f} mm")
+        how = "shape only" if muscle.name in uncoloured else "skin tracked"
+        click.echo(f"  {muscle.name:24s} {muscle.region:5s} largest motion {size:6.2f} mm  ({how})")
+    if uncoloured:
+        which = "the neutral scan" if neutral.skin is None else ", ".join(uncoloured)
+        click.echo(f"note: no colour in {which}: the motion along the skin (most of a brow raise or a smile) is "
+                   "then known only at the landmarks; scans with per-point colour let it be tracked everywhere")

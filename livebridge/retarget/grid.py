@@ -5,7 +5,8 @@ a sphere around the nose tip, only the surface a frontal scanner sees is kept (p
 surface at the same x, y: the inside of a nostril or a mouth, the back of a head), and ``z`` is interpolated
 linearly over the x-y Delaunay triangulation of the rest (``scipy.interpolate.griddata``) at ``150 x 150``
 grid points. Grid points with no scan point within ``max_gap`` (holes, the eyes' openings, beyond the edge)
-are masked, never invented: they are no vertex of the mesh.
+are masked, never invented: they are no vertex of the mesh. A coloured scan's colours are interpolated the
+same way (the grid is then also an image of the skin).
 """
 
 from __future__ import annotations
@@ -37,11 +38,14 @@ class FaceGrid:
         Row coordinates, mm, increasing.
     heights : ndarray, shape (n_rows, n_cols)
         ``z`` at each grid point, NaN where masked.
+    colours : ndarray, shape (n_rows, n_cols, 3), or None
+        RGB in [0, 1] at each grid point (NaN where masked), None for a scan without colour.
     """
 
     x: np.ndarray
     y: np.ndarray
     heights: np.ndarray
+    colours: np.ndarray | None = None
 
     def __post_init__(self):
         heights = np.array(self.heights, dtype=np.float64)
@@ -57,6 +61,16 @@ class FaceGrid:
         heights.setflags(write=False)
         object.__setattr__(self, "heights", heights)
         object.__setattr__(self, "_quads", quads)
+        if self.colours is not None:
+            colours = np.array(self.colours, dtype=np.float64).reshape(heights.shape + (3,))
+            colours[~used] = np.nan
+            colours.setflags(write=False)
+            object.__setattr__(self, "colours", colours)
+
+    @property
+    def spacing(self) -> float:
+        """The larger grid step of x and y, mm."""
+        return float(max(np.diff(self.x).max(), np.diff(self.y).max()))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -142,7 +156,7 @@ def point_spacing(points_xy: np.ndarray) -> float:
 
 
 def resample(points: np.ndarray, x: np.ndarray, y: np.ndarray, max_gap: float | None = None,
-             source=None) -> FaceGrid:
+             source=None, colours: np.ndarray | None = None) -> FaceGrid:
     """The surface of ``points`` (n, 3), facing +z, as heights on the grid ``x`` (n_cols,) by ``y`` (n_rows,).
 
     Parameters
@@ -156,10 +170,13 @@ def resample(points: np.ndarray, x: np.ndarray, y: np.ndarray, max_gap: float | 
         :data:`GAP_SPACINGS` median point spacings and one grid cell.
     source : str or Path, optional
         Named in errors.
+    colours : ndarray, shape (n, 3), optional
+        The points' RGB: interpolated like ``z`` into :attr:`FaceGrid.colours`.
     """
     points = np.asarray(points, dtype=np.float64)
     cell = float(max(np.diff(x).max(), np.diff(y).max()))
-    points = points[front_surface(points, cell)]
+    front = front_surface(points, cell)
+    points = points[front]
     if len(points) < 3 or np.linalg.matrix_rank(points[:, :2] - points[0, :2]) < 2:
         raise InputError(f"{len(points)} points in the face crop, not enough for a surface (is the nose tip "
                          "landmark on the scan, and the crop radius right?)", source, "points")
@@ -169,14 +186,16 @@ def resample(points: np.ndarray, x: np.ndarray, y: np.ndarray, max_gap: float | 
     grid_xy = np.stack([xx.ravel(), yy.ravel()], axis=1)
     gap, _ = cKDTree(points[:, :2]).query(grid_xy, distance_upper_bound=max_gap)
     near = np.isfinite(gap)
-    heights = np.full(len(grid_xy), np.nan)
-    heights[near] = _linear(points, grid_xy[near])
-    return FaceGrid(x, y, heights.reshape(len(y), len(x)))
+    values = points[:, 2:] if colours is None else np.hstack([points[:, 2:], np.asarray(colours)[front]])
+    interpolated = np.full((len(grid_xy), values.shape[1]), np.nan)
+    interpolated[near] = _linear(points[:, :2], values, grid_xy[near])
+    rgb = None if colours is None else interpolated[:, 1:].reshape(len(y), len(x), 3)
+    return FaceGrid(x, y, interpolated[:, 0].reshape(len(y), len(x)), rgb)
 
 
-def _linear(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
-    """``z`` of points (n, 3) interpolated linearly at queries (m, 2) over the x-y Delaunay triangulation
-    (what ``griddata(method="linear")`` computes), NaN outside the hull.
+def _linear(points_xy: np.ndarray, values: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """``values`` (n, k) of points (n, 2) interpolated linearly at queries (m, 2) over the Delaunay
+    triangulation (what ``griddata(method="linear")`` computes), NaN outside the hull; shape (m, k).
 
     One BLAS thread: scipy inverts each triangle's 2 x 2 barycentric matrix with its own LAPACK call, and
     threaded OpenBLAS made that 10-20 s instead of 0.2 s for a 30k-point face on a busy 2-core machine (so
@@ -185,13 +204,13 @@ def _linear(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
     from scipy.spatial import Delaunay
     from threadpoolctl import threadpool_limits
 
-    triangulation = Delaunay(points[:, :2])
+    triangulation = Delaunay(points_xy)
     with threadpool_limits(limits=1, user_api="blas"):
         simplex = triangulation.find_simplex(queries)
     inside = simplex >= 0
     transform = triangulation.transform[simplex[inside]]  # (k, 3, 2): inverse affine and offset
     partial = np.einsum("kij,kj->ki", transform[:, :2], queries[inside] - transform[:, 2])
     barycentric = np.hstack([partial, 1 - partial.sum(axis=1, keepdims=True)])
-    out = np.full(len(queries), np.nan)
-    out[inside] = np.einsum("ki,ki->k", barycentric, points[triangulation.simplices[simplex[inside]], 2])
+    out = np.full((len(queries), values.shape[1]), np.nan)
+    out[inside] = np.einsum("ki,kij->kj", barycentric, values[triangulation.simplices[simplex[inside]]])
     return out

@@ -1,7 +1,11 @@
 """Reading 3D scans: point clouds and meshes from PLY (ASCII, binary little/big endian), OBJ and XYZ/CSV.
 
-A scan is what a scanner wrote: points, and triangles when the scanner meshed them (faces with more than
-three corners become triangle fans). Every reader checks what it reads and names the file and the line
+A scan is what a scanner wrote: points, their colours when the scanner recorded them (structured light,
+photogrammetry and depth cameras with a colour camera do), and triangles when the scanner meshed them (faces
+with more than three corners become triangle fans). Colour is read from PLY ``red green blue`` (or
+``diffuse_red ..``; integers scaled by their type's maximum, floats taken as 0-1), OBJ ``v x y z r g b`` and
+XYZ/CSV columns named ``r g b`` / ``red green blue`` (or, without a header, three whole numbers 0-255 after
+x y z on every line). Every reader checks what it reads and names the file and the line
 (text) or the element (binary) of the first bad value: a truncated file, a wrong count, NaN or infinity, a
 face that points at a vertex that does not exist.
 """
@@ -31,20 +35,31 @@ class Scan:
         Finite, in the file's units times the reader's ``scale``.
     triangles : ndarray of int, shape (n_triangles, 3)
         Empty (0, 3) for a point cloud.
+    colours : ndarray, shape (n_points, 3), or None
+        RGB in [0, 1] per point, None when the scan has no colour.
     """
 
     points: np.ndarray
     triangles: np.ndarray
+    colours: np.ndarray | None = None
 
     def __post_init__(self):
-        for name, dtype in (("points", np.float64), ("triangles", np.int64)):
+        for name, dtype in (("points", np.float64), ("triangles", np.int64), ("colours", np.float64)):
+            if getattr(self, name) is None:
+                continue
             array = np.array(getattr(self, name), dtype=dtype).reshape(-1, 3)
             array.setflags(write=False)
             object.__setattr__(self, name, array)
+        if self.colours is not None and len(self.colours) != len(self.points):
+            raise InputError(f"{len(self.colours)} colours for {len(self.points)} points", field="colours")
 
     @property
     def is_mesh(self) -> bool:
         return len(self.triangles) > 0
+
+    @property
+    def has_colour(self) -> bool:
+        return self.colours is not None
 
 
 def read_scan(path: str | Path, scale: float = 1.0) -> Scan:
@@ -61,11 +76,17 @@ def read_scan(path: str | Path, scale: float = 1.0) -> Scan:
     if not data.strip():
         raise InputError("empty file: no points", path)
     reader = {".ply": _read_ply, ".obj": _read_obj}.get(suffix, _read_xyz)
-    points, triangles = reader(data, path)
+    points, triangles, colours = reader(data, path)
     if not len(points):
         raise InputError("no points", path)
     _check_faces(triangles, len(points), path)
-    return Scan(points * scale, triangles)
+    if colours is not None:
+        bad = np.flatnonzero(~(np.isfinite(colours).all(axis=1) & (colours >= 0).all(axis=1)
+                               & (colours <= 1).all(axis=1)))
+        if len(bad):
+            raise InputError(f"point {bad[0]}: colour {colours[bad[0]].tolist()} is not in 0-1 ({len(bad)} such)",
+                             path, "colour")
+    return Scan(points * scale, triangles, colours)
 
 
 # ------------------------------------------------------------------------------------------------ XYZ / CSV
@@ -75,11 +96,12 @@ _SEPARATORS = re.compile(r"[,;\s]+")
 def _read_xyz(data: bytes, path: Path):
     """``x y z [more columns]`` per line, separated by spaces, tabs, commas or semicolons.
 
-    A first line that is not numbers is a header (when it names x, y and z, those columns are read); lines
-    starting with ``#`` or ``//`` are comments.
+    A first line that is not numbers is a header (when it names x, y and z, those columns are read, and
+    r g b / red green blue when it names them); lines starting with ``#`` or ``//`` are comments. Without a
+    header, columns 4-6 are colour when they are whole numbers 0-255 on every line (else normals or other).
     """
-    columns = (0, 1, 2)
-    rows, first = [], True
+    columns, colour_columns, guess = (0, 1, 2), None, True
+    rows, extra, first = [], [], True
     for number, line in enumerate(_text(data, path).splitlines(), 1):
         text = line.strip()
         if not text or text.startswith(("#", "//")):
@@ -87,6 +109,7 @@ def _read_xyz(data: bytes, path: Path):
         cells = [cell for cell in _SEPARATORS.split(text) if cell]
         if first and not _is_number(cells[0]):
             columns, first = _header_columns(cells, columns, path, number), False
+            colour_columns, guess = _colour_columns(cells), False
             continue
         first = False
         if len(cells) <= max(columns):
@@ -100,7 +123,43 @@ def _read_xyz(data: bytes, path: Path):
         if not all(map(math.isfinite, xyz)):
             raise InputError(f"line {number}: x, y, z must be finite, got {[cells[k] for k in columns]}", path)
         rows.append(xyz)
-    return np.array(rows, dtype=np.float64).reshape(-1, 3), np.zeros((0, 3), np.int64)
+        if colour_columns is not None or guess:
+            extra.append(_row_colour(cells, colour_columns, number, path))
+    points = np.array(rows, dtype=np.float64).reshape(-1, 3)
+    colours = _text_colours(extra, colour_columns is not None) if extra else None
+    return points, np.zeros((0, 3), np.int64), colours
+
+
+_COLOUR_NAMES = (("r", "g", "b"), ("red", "green", "blue"))
+
+
+def _colour_columns(cells) -> tuple[int, int, int] | None:
+    names = [cell.strip().strip('"').lower() for cell in cells]
+    for triple in _COLOUR_NAMES:
+        if all(name in names for name in triple):
+            return tuple(names.index(name) for name in triple)
+    return None
+
+
+def _row_colour(cells, colour_columns, number, path):
+    """The row's named colour cells as floats (header), or its cells 4-6 (no header; None when absent)."""
+    if colour_columns is None:
+        return cells[3:6] if len(cells) >= 6 else None
+    try:
+        return [float(cells[k]) for k in colour_columns]
+    except (ValueError, IndexError):
+        raise InputError(f"line {number}: r, g, b must be numbers", path) from None
+
+
+def _text_colours(extra, named: bool) -> np.ndarray | None:
+    """Colours in 0-1 from text rows: named columns (0-255 when any exceeds 1), or headerless integer triples."""
+    if named:
+        colours = np.array(extra, dtype=np.float64).reshape(-1, 3)
+        return colours / 255.0 if colours.size and colours.max() > 1 else colours
+    if not extra or any(cells is None or not all(cell.isdigit() for cell in cells) for cells in extra):
+        return None
+    colours = np.array(extra, dtype=np.float64)
+    return colours / 255.0 if colours.max() <= 255 else None
 
 
 def _header_columns(cells, default, path, number):
@@ -131,7 +190,7 @@ def _text(data: bytes, path: Path) -> str:
 # ------------------------------------------------------------------------------------------------ OBJ
 def _read_obj(data: bytes, path: Path):
     """``v x y z [r g b]`` and ``f a b c ...`` lines (``a/t/n`` corners, negative = relative); the rest ignored."""
-    vertices, triangles = [], []
+    vertices, triangles, colours = [], [], []
     for number, line in enumerate(data.decode("utf-8", errors="replace").splitlines(), 1):
         parts = line.split()
         if not parts:
@@ -147,6 +206,7 @@ def _read_obj(data: bytes, path: Path):
             if not all(map(math.isfinite, xyz)):
                 raise InputError(f"line {number}: vertex {len(vertices) + 1} is not finite: {parts[1:4]}", path)
             vertices.append(xyz)
+            colours.append(_obj_colour(parts[4:7], number, path))
         elif parts[0] == "f":
             try:
                 corners = [int(token.split("/")[0]) for token in parts[1:]]
@@ -161,7 +221,21 @@ def _read_obj(data: bytes, path: Path):
                 raise InputError(f"line {number}: face refers to vertex {bad[0] + 1}, only {len(vertices)} "
                                  "defined so far", path)
             triangles.extend((corners[0], corners[k], corners[k + 1]) for k in range(1, len(corners) - 1))
-    return np.array(vertices, dtype=np.float64).reshape(-1, 3), np.array(triangles, dtype=np.int64).reshape(-1, 3)
+    points = np.array(vertices, dtype=np.float64).reshape(-1, 3)
+    rgb = None
+    if colours and all(c is not None for c in colours):  # colour only when every vertex has one
+        rgb = np.array(colours, dtype=np.float64)
+        rgb = rgb / 255.0 if rgb.max() > 1 else rgb  # 0-1 by the convention; some writers put 0-255
+    return points, np.array(triangles, dtype=np.int64).reshape(-1, 3), rgb
+
+
+def _obj_colour(cells, number, path):
+    if len(cells) < 3:
+        return None
+    try:
+        return [float(value) for value in cells]
+    except ValueError:
+        raise InputError(f"line {number}: vertex colour must be numbers, got {cells}", path) from None
 
 
 # ------------------------------------------------------------------------------------------------ PLY
@@ -217,7 +291,25 @@ def _read_ply(data: bytes, path: Path):
     triangles = np.zeros((0, 3), np.int64)
     if lists:
         triangles = _fan(lists[0], path)
-    return points, triangles
+    return points, triangles, _ply_colours(vertex, table)
+
+
+_PLY_COLOURS = (("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue"), ("r", "g", "b"))
+
+
+def _ply_colours(vertex: _Element, table: dict) -> np.ndarray | None:
+    """RGB in 0-1 from the vertex colour properties: integers over their type's maximum, floats as they are."""
+    types = {p.name: p.dtype for p in vertex.properties}
+    for names in _PLY_COLOURS:
+        if all(name in types for name in names):
+            channels = []
+            for name in names:
+                values = np.asarray(table[name], dtype=np.float64)
+                if types[name][0] == "u":
+                    values = values / float(np.iinfo(np.dtype(types[name])).max)
+                channels.append(values)
+            return np.stack(channels, axis=1)
+    return None
 
 
 def _ply_header(data: bytes, path: Path):
@@ -399,24 +491,37 @@ def _check_faces(triangles: np.ndarray, n_points: int, path: Path) -> None:
 
 # ------------------------------------------------------------------------------------------------ writing
 def write_ply(path: str | Path, points: np.ndarray, triangles: np.ndarray | None = None,
-              encoding: str = "binary_little_endian") -> None:
-    """Write points (n, 3) and optional triangles (m, 3) as PLY (``ascii``, ``binary_little_endian`` or
-    ``binary_big_endian``): float32 x y z, faces as ``uchar``-counted ``int`` lists."""
+              encoding: str = "binary_little_endian", colours: np.ndarray | None = None) -> None:
+    """Write points (n, 3), optional triangles (m, 3) and colours (n, 3) in 0-1 as PLY (``ascii``,
+    ``binary_little_endian`` or ``binary_big_endian``): float32 x y z, uchar red green blue, faces as
+    ``uchar``-counted ``int`` lists."""
     points = np.asarray(points, dtype=np.float64)
     triangles = np.zeros((0, 3), np.int64) if triangles is None else np.asarray(triangles, dtype=np.int64)
     header = [f"ply\nformat {encoding} 1.0\nelement vertex {len(points)}\nproperty float x\nproperty float y\n"
               "property float z\n"]
+    rgb = None
+    if colours is not None:
+        rgb = np.round(np.clip(np.asarray(colours, dtype=np.float64), 0, 1) * 255).astype(np.uint8)
+        header.append("property uchar red\nproperty uchar green\nproperty uchar blue\n")
     if len(triangles):
         header.append(f"element face {len(triangles)}\nproperty list uchar int vertex_indices\n")
     header.append("end_header\n")
     with open(path, "wb") as stream:
         stream.write("".join(header).encode("ascii"))
         if encoding == "ascii":
-            stream.write("".join(f"{x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in points).encode("ascii"))
+            rows = [f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in points]
+            if rgb is not None:
+                rows = [f"{row} {r} {g} {b}" for row, (r, g, b) in zip(rows, rgb)]
+            stream.write("".join(row + "\n" for row in rows).encode("ascii"))
             stream.write("".join(f"3 {a} {b} {c}\n" for a, b, c in triangles).encode("ascii"))
             return
         order = _PLY_FORMATS[encoding]
-        stream.write(points.astype(order + "f4").tobytes())
+        if rgb is None:
+            stream.write(points.astype(order + "f4").tobytes())
+        else:
+            table = np.zeros(len(points), np.dtype([("p", order + "f4", (3,)), ("c", "u1", (3,))]))
+            table["p"], table["c"] = points, rgb
+            stream.write(table.tobytes())
         faces = np.zeros(len(triangles), np.dtype([("n", "u1"), ("i", order + "i4", (3,))]))
         faces["n"], faces["i"] = 3, triangles
         stream.write(faces.tobytes())

@@ -11,6 +11,13 @@ Modeling (§5.5): a landmark TPS ``f`` carries the neutral face towards the expr
 surface (dropped where that point is on the edge of the scan or of a hole: the surface is not known there),
 and a TPS through the control points' moves warps the whole neutral grid. The warp minus the neutral grid
 is the muscle's element.
+
+That geometry fixes the motion normal to the skin; the motion ALONG the skin (most of a brow raise, a smile)
+it knows only at the landmarks. When the scans carry colour, the skin's pattern is tracked from the neutral
+to each expression (:mod:`~livebridge.retarget.skin_flow`, starting from the geometric warp) on a finer
+image of both scans, and each grid vertex moves to the expressive surface where its skin went; where the
+skin cannot be tracked (occluded, a hole, no pattern) the geometric warp stays. The skin that did not move
+then corrects the shape-only rigid registration (which can slide a fraction of a mm along the face).
 """
 
 from __future__ import annotations
@@ -23,10 +30,11 @@ from livebridge.errors import InputError
 from livebridge.face.basis import CHOE_KO_BY_NAME, Basis, Muscle
 from livebridge.face.meshio import vertex_normals
 from livebridge.geometry.transforms import apply
-from livebridge.retarget.grid import GRID_SHAPE, FaceGrid, crop_sphere, resample, square_axes
+from livebridge.retarget.grid import GAP_SPACINGS, GRID_SHAPE, FaceGrid, crop_sphere, resample, square_axes
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points, place_at_points
 from livebridge.retarget.normalise import normalisation, register_rigid, transform_landmarks
 from livebridge.retarget.scan import Scan
+from livebridge.retarget.skin_flow import fine_axes, skin_motion, still_skin_correction
 from livebridge.retarget.tps import Kernel, fit_tps
 
 CROP_FACTOR = 1.2
@@ -37,6 +45,8 @@ LANDMARK_SMOOTHING = 1.0
 """TPS smoothing of the landmark spline (landmarks are placed by hand or detected: never exact)."""
 CONTROL_SMOOTHING = 0.1
 """TPS smoothing of the control-point warp (the snapped points carry the scanner's noise)."""
+SKIN_MARGIN_MM = 10.0
+"""The skin images of coloured scans reach this far beyond the grid (tracking is poor at an image's edge)."""
 LANDMARK_MAX_DISTANCE_MM = 5.0
 """A landmark farther than this from the resampled surface is an error (off the face, or in a hole)."""
 
@@ -52,11 +62,18 @@ class FaceScan:
         The scan's landmarks in the face frame (where the landmark file puts them, carried by ``scan2face``).
     scan2face : ndarray, shape (4, 4)
         From the scan's coordinates to the face frame (nose tip of the neutral at the origin, facing +z).
+    skin : FaceGrid or None
+        A coloured scan resampled on grid lines ``skin_factor`` times finer than ``grid``'s, reaching
+        ``skin_margin`` grid cells beyond it on every side (an image of the skin), None without colour.
+    skin_factor, skin_margin : int
     """
 
     grid: FaceGrid
     landmarks: dict
     scan2face: np.ndarray
+    skin: FaceGrid | None = None
+    skin_factor: int = 1
+    skin_margin: int = 0
 
     @property
     def vertices(self) -> np.ndarray:
@@ -89,10 +106,25 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     moved = transform_landmarks(scan2face, landmarks)
     radius = crop_radius(moved) if radius is None else float(radius)
     x, y = square_axes(radius, shape)
-    grid = resample(points[crop_sphere(points, np.zeros(3), radius)], x, y, source=source)
-    face = FaceScan(grid, moved, scan2face)
+    face = _resampled(scan, points, x, y, radius, moved, scan2face, source)
     face.landmark_set(source)  # every landmark on the resampled face, or a clear error
     return face
+
+
+def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float, landmarks: dict,
+               scan2face: np.ndarray, source) -> FaceScan:
+    """Points in the face frame cropped and resampled on ``x``, ``y``, and, with colour, on the skin grid too."""
+    inside = crop_sphere(points, np.zeros(3), radius)
+    grid = resample(points[inside], x, y, source=source)
+    if not scan.has_colour:
+        return FaceScan(grid, landmarks, scan2face)
+    step = float(max(np.diff(x).max(), np.diff(y).max()))
+    margin = int(np.ceil(SKIN_MARGIN_MM / step))  # the crop's edge is no skin edge: keep it off the grid
+    fine_x, fine_y, factor = fine_axes(np.linspace(x[0] - margin * step, x[-1] + margin * step, len(x) + 2 * margin),
+                                       np.linspace(y[0] - margin * step, y[-1] + margin * step, len(y) + 2 * margin))
+    wider = crop_sphere(points, np.zeros(3), radius + SKIN_MARGIN_MM)
+    skin = resample(points[wider], fine_x, fine_y, step * GAP_SPACINGS / 2, source, scan.colours[wider])
+    return FaceScan(grid, landmarks, scan2face, skin, factor, margin)
 
 
 def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: FaceScan, source=None) -> FaceScan:
@@ -102,13 +134,27 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     scan2face = register_rigid(scan.points, landmarks, neutral.vertices, normals, neutral.landmarks, radius,
                                source=source)
     points = apply(scan2face, scan.points)
-    grid = resample(points[crop_sphere(points, np.zeros(3), radius)], neutral.grid.x, neutral.grid.y, source=source)
-    return FaceScan(grid, transform_landmarks(scan2face, landmarks), scan2face)
+    return _resampled(scan, points, neutral.grid.x, neutral.grid.y, radius, transform_landmarks(scan2face, landmarks),
+                      scan2face, source)
 
 
 def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,
-                       kernel: Kernel | str = Kernel.BIHARMONIC, source=None) -> np.ndarray:
-    """The displacement (n_vertices, 3) of every neutral grid vertex into the expressive surface (§5.5)."""
+                       kernel: Kernel | str = Kernel.BIHARMONIC, source=None, colour: bool = True) -> np.ndarray:
+    """The displacement (n_vertices, 3) of every neutral grid vertex into the expressive surface (§5.5):
+    the geometric warp, refined by skin tracking when both scans have colour (and ``colour``)."""
+    element = geometric_element(neutral, expression, stride, kernel, source)
+    if colour and neutral.skin is not None and expression.skin is not None:
+        element, trust = skin_motion(neutral.skin, expression.skin, neutral.grid, neutral.skin_factor,
+                                     neutral.skin_margin, element)
+        correction = still_skin_correction(neutral.vertices, element, trust)
+        element = apply(correction, neutral.vertices + element) - neutral.vertices
+    return element
+
+
+def geometric_element(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,
+                      kernel: Kernel | str = Kernel.BIHARMONIC, source=None) -> np.ndarray:
+    """The displacement (n_vertices, 3) from the landmark TPS, control points snapped to the expressive
+    surface and the TPS warp through them (§5.5): the motion along the skin is known at the landmarks only."""
     names = [name for name in neutral.landmarks if name in expression.landmarks]
     if len(names) < 4:
         raise InputError(f"the expression scan shares {len(names)} landmarks with the neutral (at least 4)",
@@ -128,9 +174,10 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
 
 
 def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
-                     kernel: Kernel | str = Kernel.BIHARMONIC) -> Basis:
-    """One element per expression scan (by muscle name) on the neutral's grid mesh."""
-    elements = np.stack([expression_element(neutral, face, kernel=kernel, source=name)
+                     kernel: Kernel | str = Kernel.BIHARMONIC, colour: bool = True) -> Basis:
+    """One element per expression scan (by muscle name) on the neutral's grid mesh (skin tracked where the
+    scans have colour, unless not ``colour``)."""
+    elements = np.stack([expression_element(neutral, face, kernel=kernel, source=name, colour=colour)
                          for name, face in expressions.items()])
     muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks)
                     for name, element in zip(expressions, elements))

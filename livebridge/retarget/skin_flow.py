@@ -1,0 +1,213 @@
+"""Skin motion along the face from the scans' colour: dense optical flow between two skin images.
+
+Geometry tells how far a face moved along its normal; how far the skin slid ALONG the surface it cannot
+see (a raised brow slides the forehead's skin up a surface of almost the same shape). The skin's own
+pattern (pores, freckles, brows, lips) moves with it, so a coloured scanner sees that motion: resampled on
+a fine regular x-y grid (:mod:`~livebridge.retarget.grid`), a face scan is an image of its skin, and where
+a neutral skin point went in an expression is where its pattern went between the two images.
+
+Both images are contrast-normalised (the local mean subtracted and divided by the local spread, over
+:data:`CONTRAST_MM`), so a scan's exposure and slow shading do not count as motion. OpenCV's DIS optical
+flow then finds the residual motion after a first guess (the landmark and geometry warp), and a
+photometric check (how well the neutral skin matches the expressive skin where the flow puts it) says
+where the flow is trusted: occluded skin (lips rolled in, the inside of an opened mouth), holes and
+featureless skin fall back to the first guess.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.interpolate import RegularGridInterpolator
+from scipy.ndimage import distance_transform_edt, map_coordinates
+
+from livebridge.retarget.grid import FaceGrid
+
+FINE_MM = 0.5
+"""Spacing of the skin images (a structured-light face scan has a point every ~0.5-1 mm)."""
+CONTRAST_MM = 3.0
+"""Width of the local contrast normalisation (removes exposure and slow shading, keeps pores and freckles)."""
+CHECK_MM = 1.5
+"""Width of the window over which the photometric check averages."""
+TRUSTED_RESIDUAL = 0.8
+"""A match with a local RMS residual (contrast-normalised units; unrelated skin gives about 1.4) of at most
+this is trusted fully; the trust falls to zero at twice it."""
+SMOOTH_MM = 2.0
+"""The skin motion is smoothed over this (Gaussian sigma) before it is sampled at the grid vertices."""
+PASSES = 2
+"""Flow passes, each starting from the last one's motion (the first from the geometric warp)."""
+STILL_FRACTION = 0.4
+"""The fraction of the face taken as not moved by an expression when the registration is corrected."""
+
+
+def fine_axes(x: np.ndarray, y: np.ndarray, spacing: float = FINE_MM) -> tuple[np.ndarray, np.ndarray, int]:
+    """Grid lines ``factor`` times finer than ``x`` (n_cols,), ``y`` (n_rows,) so that every coarse grid
+    point is a fine one, with steps of at most about ``spacing`` mm: (fine x, fine y, factor)."""
+    step = float(max(np.diff(x).max(), np.diff(y).max()))
+    factor = max(1, int(np.ceil(step / spacing - 1e-9)))
+    return (np.linspace(x[0], x[-1], (len(x) - 1) * factor + 1), np.linspace(y[0], y[-1], (len(y) - 1) * factor + 1),
+            factor)
+
+
+def skin_image(grid: FaceGrid) -> tuple[np.ndarray, np.ndarray]:
+    """The contrast-normalised luminance of a coloured grid (n_rows, n_cols) float32 (0 where masked), and
+    its valid mask."""
+    valid = np.isfinite(grid.heights) & np.isfinite(grid.colours).all(axis=2)
+    luminance = np.where(valid, np.nan_to_num(grid.colours) @ np.array([0.299, 0.587, 0.114]), 0.0)
+    sigma = CONTRAST_MM / grid.spacing
+    mean = _masked_blur(luminance, valid, sigma)
+    detail = np.where(valid, luminance - mean, 0.0)
+    spread = np.sqrt(_masked_blur(detail ** 2, valid, sigma))
+    scale = max(float(np.median(spread[valid])) * 0.1, 1e-6) if valid.any() else 1.0
+    return np.where(valid, detail / np.maximum(spread, scale), 0.0).astype(np.float32), valid
+
+
+def _masked_blur(image: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur of ``image`` over its ``valid`` pixels only (normalised convolution)."""
+    weight = cv2.GaussianBlur(valid.astype(np.float32), (0, 0), sigma)
+    total = cv2.GaussianBlur(np.where(valid, image, 0.0).astype(np.float32), (0, 0), sigma)
+    return total / np.maximum(weight, 1e-6)
+
+
+def _to_u8(image: np.ndarray) -> np.ndarray:
+    return np.clip(128.0 + 40.0 * image, 0, 255).astype(np.uint8)
+
+
+def _remap(image: np.ndarray, flow_px: np.ndarray, border: float = 0.0) -> np.ndarray:
+    """``image`` (rows, cols[, c]) sampled at each pixel plus ``flow_px`` (rows, cols, 2) (x, y), bilinear."""
+    rows, cols = flow_px.shape[:2]
+    map_x = (np.arange(cols, dtype=np.float32)[None, :] + flow_px[..., 0]).astype(np.float32)
+    map_y = (np.arange(rows, dtype=np.float32)[:, None] + flow_px[..., 1]).astype(np.float32)
+    return cv2.remap(image.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=border)
+
+
+def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each neutral skin point is in the expression, in x-y, and how much that is trusted.
+
+    Parameters
+    ----------
+    neutral, expression : FaceGrid
+        Coloured grids on the same grid lines (the face frame).
+    guess : ndarray, shape (n_rows, n_cols, 2)
+        First guess of the x-y motion (mm) of every grid point (finite everywhere).
+
+    Returns
+    -------
+    motion : ndarray, shape (n_rows, n_cols, 2)
+        x-y motion, mm.
+    trust : ndarray, shape (n_rows, n_cols)
+        In [0, 1]; 0 where the neutral has no surface, the motion leaves the expression's surface, or the
+        skin there does not match.
+    """
+    step = neutral.spacing
+    source, source_valid = skin_image(neutral)
+    target, _ = skin_image(expression)
+    total = (guess / step).astype(np.float32)
+    source_u8 = _to_u8(source)
+    for _ in range(PASSES):
+        warped = _remap(target, total)
+        flow = _dis().calc(source_u8, _to_u8(warped), None)  # source(p) ~ warped(p + flow)
+        total = flow + _remap(total, flow)  # the previous motion where the flow lands
+    matched = _remap(target, total)
+    residual = np.where(source_valid, (source - matched) ** 2, 0.0)
+    rms = np.sqrt(_masked_blur(residual, source_valid, CHECK_MM / step))
+    trust = np.clip(2.0 - rms / TRUSTED_RESIDUAL, 0.0, 1.0)
+    landed = _remap(np.isfinite(expression.heights).astype(np.float32), total) > 0.999
+    trust = np.where(source_valid & landed, trust, 0.0)
+    return total * step, trust
+
+
+def _dis():
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    dis.setFinestScale(0)
+    return dis
+
+
+def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: FaceGrid, factor: int, margin: int,
+                first_guess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The 3D motion of the ``neutral`` grid's vertices from skin tracking, and its trust.
+
+    Parameters
+    ----------
+    neutral_fine, expression_fine : FaceGrid
+        Coloured grids ``factor`` times finer than ``neutral`` (see :func:`fine_axes`), reaching ``margin``
+        cells of ``neutral`` beyond it on every side.
+    neutral : FaceGrid
+        The output grid.
+    first_guess : ndarray, shape (n_vertices, 3)
+        The geometric estimate of the motion of ``neutral``'s vertices.
+
+    Returns
+    -------
+    motion : ndarray, shape (n_vertices, 3)
+        To the expressive surface at the tracked skin point; the first guess where not trusted.
+    trust : ndarray, shape (n_vertices,)
+        In [0, 1]; the motion is ``trust * tracked + (1 - trust) * first_guess``.
+    """
+    guess = _fine_field(neutral, first_guess[:, :2], neutral_fine)
+    xy, trust = track_skin(neutral_fine, expression_fine, guess)
+    step = neutral_fine.spacing
+    rows, cols = np.indices(neutral_fine.shape)
+    landed_z = map_coordinates(expression_fine.heights, [rows + xy[..., 1] / step, cols + xy[..., 0] / step],
+                               order=1, cval=np.nan)
+    dz = landed_z - neutral_fine.heights
+    good = (trust > 0) & np.isfinite(dz)
+    weight = np.where(good, trust, 0.0)
+    sigma = SMOOTH_MM / step
+    smooth = [_masked_blur(np.where(good, channel, 0.0), weight > 0, sigma) for channel in
+              (xy[..., 0] * weight, xy[..., 1] * weight, np.nan_to_num(dz) * weight)]
+    density = _masked_blur(weight, weight > 0, sigma)
+    density_all = cv2.GaussianBlur(weight.astype(np.float32), (0, 0), sigma)
+    start = margin * factor
+    coarse = (slice(start, start + (neutral.shape[0] - 1) * factor + 1, factor),
+              slice(start, start + (neutral.shape[1] - 1) * factor + 1, factor))
+    valid = neutral.valid
+    tracked = np.stack([channel[coarse][valid] for channel in smooth], axis=1) / np.maximum(
+        density[coarse][valid], 1e-6)[:, None]
+    trust_out = np.clip(density_all[coarse][valid], 0.0, 1.0)
+    trust_out = np.where(np.isfinite(tracked).all(axis=1), trust_out, 0.0)
+    motion = trust_out[:, None] * np.nan_to_num(tracked) + (1.0 - trust_out[:, None]) * first_guess
+    return motion, trust_out
+
+
+def still_skin_correction(vertices: np.ndarray, motion: np.ndarray, trust: np.ndarray,
+                          keep: float = STILL_FRACTION, rounds: int = 8) -> np.ndarray:
+    """The rigid motion (4, 4) that brings the tracked skin where the face did not move back onto itself.
+
+    The expression scan was registered onto the neutral by its shape alone (point-to-plane ICP), which
+    leaves it free to slide a fraction of a millimetre along the face. The tracked skin pins that: each
+    round fits a rigid motion (Kabsch) to the ``keep`` fraction of trusted vertices whose skin moved least
+    once corrected, so the muscle's own motion is left out.
+
+    Parameters
+    ----------
+    vertices, motion : ndarray, shape (n, 3)
+        Grid vertices and where their skin went (the tracked motion).
+    trust : ndarray, shape (n,)
+    """
+    from livebridge.geometry.transforms import apply, umeyama
+
+    landed = vertices + motion
+    trusted = trust > 0.9
+    correction = np.eye(4)
+    if trusted.sum() < 100:
+        return correction
+    for _ in range(rounds):
+        residual = np.linalg.norm(apply(correction, landed[trusted]) - vertices[trusted], axis=1)
+        still = residual <= np.quantile(residual, keep)
+        correction = umeyama(landed[trusted][still], vertices[trusted][still], with_scale=False)
+    return correction
+
+
+def _fine_field(grid: FaceGrid, values: np.ndarray, fine: FaceGrid) -> np.ndarray:
+    """Per-vertex ``values`` (n_vertices, k) of ``grid`` as a field on ``fine``'s grid lines (n_rows, n_cols, k):
+    masked grid points take their nearest vertex's value, then linear interpolation."""
+    field = np.zeros(grid.shape + (values.shape[1],))
+    field[grid.valid] = values
+    _, (near_r, near_c) = distance_transform_edt(~grid.valid, return_indices=True)
+    field = field[near_r, near_c]
+    interpolate = RegularGridInterpolator((grid.y, grid.x), field)
+    yy, xx = np.meshgrid(np.clip(fine.y, grid.y[0], grid.y[-1]), np.clip(fine.x, grid.x[0], grid.x[-1]),
+                         indexing="ij")
+    return interpolate(np.stack([yy, xx], axis=-1))
