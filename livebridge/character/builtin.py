@@ -50,7 +50,7 @@ BUILTIN_LAYOUT = (
     RegionShape("mouth_corner_L", ("zygomatic_major_L", "risorius_L"), (395, 335), (50, 48)),
     RegionShape("mouth_corner_R", ("zygomatic_major_R", "risorius_R"), (245, 335), (50, 48)),
     RegionShape("lips", ("orbicularis_oris", "lips_pressor", "depressor_anguli_oris"), (320, 350), (62, 42)),
-    RegionShape("jaw", ("jaw",), (320, 410), (120, 72)),
+    RegionShape("jaw", ("jaw",), (320, 405), (185, 95)),
 )
 """The nine regions of the built-in character, in compositing order (x grows to the viewer's right: the
 performer's left side is drawn on the right, as in a mirror-free view of a face)."""
