@@ -6,7 +6,7 @@ the real driver, so it has that driver's facts.
 """
 
 CAMERA_SCHEMES = {
-    "sim": "livebridge.simulators.rig:open_url",
+    "sim": "livebridge.simulators.sim_url:open_url",
 }
 
 # scheme -> (opener, the facts of the real driver that drives the simulated bus)

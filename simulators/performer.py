@@ -228,6 +228,101 @@ class ContractionScript:
         return np.clip(x, 0.0, 1.0)
 
 
+# Combined gestures a markerless training take adds after the isolated ones (CoArt trains them as
+# pseudo-muscles of their co-articulation region): muscle -> level at the gesture's peak. The paper names
+# the centre frontalis with the corrugator (a sad brow); the others are the combinations the everyday
+# expressions make within one region.
+COMBINED_GESTURES = {
+    "frontalis+corrugator": {"frontalis_L": 1.0, "frontalis_R": 1.0, "corrugator_L": 1.0, "corrugator_R": 1.0},
+    "corrugator+orbicularis_oculi": {"corrugator_L": 1.0, "corrugator_R": 1.0, "orbicularis_oculi_L": 0.7,
+                                     "orbicularis_oculi_R": 0.7},
+    "levator_labii+corrugator": {"levator_labii_L": 1.0, "levator_labii_R": 1.0, "corrugator_L": 0.5,
+                                 "corrugator_R": 0.5},
+    "zygomatic+orbicularis_oculi": {"zygomatic_major_L": 1.0, "zygomatic_major_R": 1.0,
+                                    "orbicularis_oculi_L": 0.3, "orbicularis_oculi_R": 0.3},
+    "zygomatic+risorius": {"zygomatic_major_L": 1.0, "zygomatic_major_R": 1.0, "risorius_L": 0.5,
+                           "risorius_R": 0.5},
+    "depressor+lips_pressor": {"depressor_anguli_oris": 1.0, "lips_pressor": 0.5},
+    "orbicularis_oris+lips_pressor": {"orbicularis_oris": 1.0, "lips_pressor": 0.4},
+    "frontalis+jaw": {"frontalis_L": 1.0, "frontalis_R": 1.0, "jaw": 0.6},
+}
+GESTURE_SCRIPTS = ("gestures",)
+FACE_SCRIPTS = SCRIPTS + GESTURE_SCRIPTS
+"""Scripts the face-video simulator plays: the marker rig's and ``"gestures"`` (:class:`GestureScript`)."""
+
+
+class GestureScript:
+    """A markerless training take: every muscle's isolated gesture in turn, then the combined gestures.
+
+    Each gesture is one block of :data:`TRAINING_BLOCK_S` seconds: neutral for :data:`TRAINING_REST_S`, a
+    smooth neutral -> full -> neutral sweep (raised cosine), neutral again; combined gestures sweep their
+    muscles together in the proportions of :data:`COMBINED_GESTURES` (those whose muscles the basis lacks
+    are left out). After the last gesture the take starts over. Same interface as
+    :class:`ContractionScript` (``muscle_names``, ``n_muscles``, ``__call__(t)``), plus the gesture labels.
+
+    Parameters
+    ----------
+    muscle_names : sequence of str, length n_muscles
+    seed : int
+        Unused (the take is the same for every seed); kept for the common signature.
+    """
+
+    def __init__(self, muscle_names, seed: int = 0):
+        self.muscle_names = tuple(muscle_names)
+        self.script = "gestures"
+        self.seed = int(seed)
+        index = {name: i for i, name in enumerate(self.muscle_names)}
+        names, levels = [], []
+        for i, name in enumerate(self.muscle_names):
+            names.append(name)
+            levels.append(np.eye(len(self.muscle_names))[i])
+        for name, combination in COMBINED_GESTURES.items():
+            if all(m in index for m in combination):
+                level = np.zeros(len(self.muscle_names))
+                for muscle, value in combination.items():
+                    level[index[muscle]] = value
+                names.append(name)
+                levels.append(level)
+        self.gesture_names = tuple(names)
+        self.gesture_levels = np.array(levels).reshape(len(names), len(self.muscle_names))
+
+    @property
+    def n_muscles(self) -> int:
+        return len(self.muscle_names)
+
+    @property
+    def duration(self) -> float:
+        """Seconds of one pass through all gestures."""
+        return TRAINING_BLOCK_S * len(self.gesture_names)
+
+    def gesture_at(self, t: np.ndarray) -> np.ndarray:
+        """Index into ``gesture_names`` of the gesture whose block holds each time ``t (n_times,)``; -1 in the
+        neutral rests between sweeps. Shape (n_times,)."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        block = np.floor(t / TRAINING_BLOCK_S).astype(np.int64)
+        local = t - block * TRAINING_BLOCK_S
+        sweeping = (local > TRAINING_REST_S) & (local < TRAINING_BLOCK_S - TRAINING_REST_S)
+        return np.where(sweeping, block % len(self.gesture_names), -1)
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        """Contractions at times ``t (n_times,)``, shape (n_times, n_muscles), values in [0, 1]."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        block = np.floor(t / TRAINING_BLOCK_S).astype(np.int64) % len(self.gesture_names)
+        local = t - np.floor(t / TRAINING_BLOCK_S) * TRAINING_BLOCK_S
+        sweep = TRAINING_BLOCK_S - 2 * TRAINING_REST_S
+        u = np.clip((local - TRAINING_REST_S) / sweep, 0.0, 1.0)
+        envelope = 0.5 - 0.5 * np.cos(2 * np.pi * u)
+        return np.clip(envelope[:, None] * self.gesture_levels[block], 0.0, 1.0)
+
+
+def contraction_script(muscle_names, script: str = "mixed", seed: int = 0):
+    """The script ``script`` (one of :data:`FACE_SCRIPTS`) for a basis's muscles: a :class:`GestureScript`
+    for ``"gestures"``, else a :class:`ContractionScript`."""
+    if script in GESTURE_SCRIPTS:
+        return GestureScript(muscle_names, seed)
+    return ContractionScript(muscle_names, script, seed)
+
+
 def head_pivot(basis: Basis) -> np.ndarray:
     """A pivot near the neck for head rotation, shape (3,): below and behind the face's centre."""
     low, high = basis.neutral.min(axis=0), basis.neutral.max(axis=0)

@@ -1046,7 +1046,7 @@ def _rig_options(url: DeviceURL) -> tuple[RigConfig, dict]:
     from livebridge.simulators.performer import SCRIPTS
 
     if url.netloc != "rig":
-        raise InputError(f"unknown simulator {url.netloc!r}; known: rig", url.url)
+        raise InputError(f"unknown simulator {url.netloc!r}; known: rig, face", url.url)
     url.check_known(_URL_KEYS)
     changes = {}
     for key, name, kind in (("fps", "fps", float), ("noise", "noise_sigma", float), ("drop", "drop_rate", float),
