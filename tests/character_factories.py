@@ -91,3 +91,59 @@ def reference_blend(character: Character, states: CRStates) -> np.ndarray:
             mixed_colour += weight * alpha[..., None] * colour
         out = out * (1.0 - fade * mixed_alpha)[..., None] + fade[..., None] * mixed_colour
     return out
+
+
+# ------------------------------------------------------------------------------------------------ a tiny model
+TOY_SIZE = (96, 72)
+TOY_REGIONS = (("upper", ("a",), (5,), (slice(4, 30), slice(8, 88))),
+               ("lower", ("b", "c"), (4, 3), (slice(34, 68), slice(20, 76))))
+"""(name, muscles, n_states per muscle (state 0 neutral), the region's rows and columns)."""
+
+
+def toy_neutral() -> np.ndarray:
+    """A textured canonical face, grey levels 0..255, shape (72, 96) float32."""
+    yy, xx = np.mgrid[:TOY_SIZE[1], :TOY_SIZE[0]]
+    return (120 + 40 * np.sin(xx / 5.0) * np.cos(yy / 7.0)).astype(np.float32)
+
+
+def toy_appearance(levels: dict[str, float]) -> np.ndarray:
+    """The toy face with muscles at ``levels`` (name -> [0, 1]), grey levels, shape (72, 96) float32.
+
+    ``a`` lowers a dark bar through the upper region, ``b`` widens a bright band in the lower region, ``c``
+    darkens the lower region's right half: each region's look is a smooth function of its muscles' levels.
+    """
+    image = toy_neutral()
+    yy, xx = np.mgrid[:TOY_SIZE[1], :TOY_SIZE[0]]
+    a, b, c = (levels.get(m, 0.0) for m in "abc")
+    if a:
+        bar = np.exp(-np.square((yy - (8 + 18 * a)) / 2.5)) * (xx > 12) * (xx < 84)
+        image -= 70 * a * bar
+    if b:
+        band = np.abs(yy - 50) < 1 + 12 * b
+        image[band & (xx > 24) & (xx < 72)] += 60 * b
+    if c:
+        image[(yy > 36) & (yy < 66) & (xx > 48) & (xx < 74)] -= 60 * c
+    return np.clip(image, 0, 255).astype(np.float32)
+
+
+def toy_model():
+    """A MarkerlessModel of the toy face: its regions, masks, and each state's canonical frame."""
+    from livebridge.markerless.model import MarkerlessModel, RegionModel
+    from livebridge.markerless.normalise import Normalisation
+
+    regions, gestures = [], {}
+    for name, muscles, n_states, window in TOY_REGIONS:
+        mask = np.zeros((TOY_SIZE[1], TOY_SIZE[0]), bool)
+        mask[window] = True
+        n_pixels = int(mask.sum())
+        back = np.zeros((2, n_pixels), np.float32)
+        signatures = tuple(np.tile(np.float32([1.0, 0.0]), (n, 1)) for n in n_states)
+        regions.append(RegionModel(name, mask, muscles, n_states, back, signatures, np.zeros((len(muscles), 3)),
+                                   np.ones(3, bool), 1.0))
+        rows, cols = window
+        box = (cols.start, rows.start, cols.stop - cols.start, rows.stop - rows.start)
+        for muscle, n in zip(muscles, n_states):
+            crops = np.stack([toy_appearance({muscle: k / (n - 1)})[window] for k in range(1, n)])
+            gestures[muscle] = (np.clip(np.rint(crops), 0, 255).astype(np.uint8), box)
+    neutral = np.clip(np.rint(toy_neutral()), 0, 255).astype(np.float32)
+    return MarkerlessModel(("a", "b", "c"), tuple(regions), Normalisation(TOY_SIZE), neutral, gestures)

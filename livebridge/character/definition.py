@@ -208,8 +208,9 @@ def warp_to_character(mask: np.ndarray, face_points: np.ndarray, character_point
     to_face = RBFInterpolator(np.asarray(character_points, float), np.asarray(face_points, float),
                               kernel=kernel, degree=1)
     coarse = to_face(grid).reshape(gy.shape + (2,)).astype(np.float32)
-    full = cv2.resize(coarse, (gx.shape[1] * step, gy.shape[0] * step), interpolation=cv2.INTER_LINEAR)
-    full = full[:height, :width]
+    # sample the coarse map at pixel / step (grid point k sits at pixel k * step)
+    px, py = np.meshgrid(np.arange(width, dtype=np.float32) / step, np.arange(height, dtype=np.float32) / step)
+    full = cv2.remap(coarse, px, py, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     warped = cv2.remap(mask.astype(np.float32), np.ascontiguousarray(full[..., 0]),
                        np.ascontiguousarray(full[..., 1]), cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     return warped >= 0.5

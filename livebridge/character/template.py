@@ -33,18 +33,19 @@ def _file_name(name: str) -> str:
 def _guide(frame: np.ndarray, masks: list[np.ndarray], box: tuple[int, int, int, int] | None,
            label: str) -> np.ndarray:
     """A grey frame in colour with ``masks`` outlined, ``box`` drawn and ``label`` written, (H, W, 3) float."""
-    grey = np.clip(frame, 0.0, 1.0).astype(np.float32)
-    image = np.repeat(grey[..., None], 3, axis=2).copy()
+    grey = np.clip(np.rint(np.asarray(frame, np.float32) * 255), 0, 255).astype(np.uint8)
+    image = np.repeat(grey[..., None], 3, axis=2)
+    outline, box_colour = (tuple(int(255 * v) for v in colour) for colour in (OUTLINE, BOX))
+    if box is not None:  # under the outline, which it touches
+        x, y, w, h = box
+        cv2.rectangle(image, (x, y), (x + w - 1, y + h - 1), box_colour, 1)
     for mask in masks:
         contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        cv2.drawContours(image, contours, -1, OUTLINE, 1, cv2.LINE_AA)
-    if box is not None:
-        x, y, w, h = box
-        cv2.rectangle(image, (x, y), (x + w - 1, y + h - 1), BOX, 1)
+        cv2.drawContours(image, contours, -1, outline, 1)
     scale = max(0.3, image.shape[1] / 900)
-    cv2.putText(image, label, (4, int(16 * scale / 0.4)), cv2.FONT_HERSHEY_SIMPLEX, scale, (1.0, 1.0, 0.2), 1,
+    cv2.putText(image, label, (4, int(16 * scale / 0.4)), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 50), 1,
                 cv2.LINE_AA)
-    return image
+    return image.astype(np.float32) / 255.0
 
 
 def write_template(model, out: Path) -> tuple[Path, int]:
