@@ -110,10 +110,15 @@ def render(take: Path, character_spec, out: Path, force: bool, basis_spec, fps: 
     from livebridge.character.composite import Compositor
     from livebridge.character.render import video_encoder_problem, write_video
     from livebridge.character.states import ContractionStates
+    from livebridge.errors import InputError
 
     t, contractions, muscle_names = read_contraction_take(take, basis_spec)
     chosen = load_character_spec(character_spec)
-    mapper = ContractionStates(chosen.region_muscles, muscle_names)
+    try:
+        mapper = ContractionStates(chosen.region_muscles, muscle_names)
+    except InputError as error:  # the character names a muscle the take does not have
+        where = character_spec if character_spec == "builtin" else Path(character_spec) / "character.toml"
+        raise InputError(f"{error.message} (the take's muscles)", where, "regions") from None
     compositor = Compositor(chosen)
     if fps is None:
         steps = np.diff(t)

@@ -127,8 +127,10 @@ def run(session: str, frames: int | None, allow_remote: bool) -> None:
 @click.option("--record", type=NewFolder(), default=None, help="Record the take to this new folder.")
 @click.option("--record-frames", is_flag=True,
               help="With --record: also record the raw camera frames (replay them with replay://FOLDER).")
+@click.option("--character", "character_spec", type=InputPath(kind="folder", builtins=("builtin",)), default=None,
+              help="Also drive a 2D character in the render page: a character folder or 'builtin'.")
 def demo(frames, cameras, seed, fps, size, host, allow_remote, port, unpaced, no_servo, no_render, vmc, record,
-         record_frames) -> None:
+         record_frames, character_spec) -> None:
     """The whole pipeline on simulators: performer, 4-camera rig, servo bus, render client.
 
     Prints the URL of the render page; Ctrl-C (or --frames N) ends it with a summary.
@@ -141,9 +143,13 @@ def demo(frames, cameras, seed, fps, size, host, allow_remote, port, unpaced, no
     clash = None if no_render else render_bind_problem(host, port)
     if clash is not None:  # before the long set-up; the server's own bind still reports a port taken meanwhile
         raise click.BadParameter(clash[1], param_hint=f"--{clash[0]}")
+    outputs = []  # filled once the pipeline (and its render server) exists
     parts = build_demo(cameras=cameras, seed=seed, fps=fps, size=size, realtime=not unpaced, servo=not no_servo,
                        render=not no_render, host=host, port=port, vmc=vmc, record=record,
-                       record_frames=record_frames, log=_log)
+                       record_frames=record_frames, log=_log,
+                       on_frame=lambda frame: [output.send(frame) for output in outputs])
+    if character_spec is not None:
+        outputs.append(_character_output(character_spec, parts.pipeline))
 
     def started(p):
         if p.render is not None:
@@ -155,4 +161,16 @@ def demo(frames, cameras, seed, fps, size, host, allow_remote, port, unpaced, no
 
     summary = run_until_stopped(parts.pipeline, frames, log=_log, on_start=started)
     _print_summary(summary, parts.score)
+    for output in outputs:
+        click.echo(f"2D character {output.character.name!r}: {output.frames} frames of region states "
+                   f"({'shown in the render page' if output.server is not None else 'no render page'})")
+        output.close()
     _exit_on_camera_errors(summary)
+
+
+def _character_output(spec, pipeline):
+    """A :class:`~livebridge.character.live.CharacterOutput` for the pipeline's muscles, shown in its render page."""
+    from livebridge.character.live import CharacterOutput
+    from livebridge.cli.character import load_character_spec
+
+    return CharacterOutput(load_character_spec(spec), pipeline.basis.names, pipeline.render)
