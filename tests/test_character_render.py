@@ -85,3 +85,14 @@ def test_render_refuses_an_existing_output_without_force(tmp_path, small_charact
                                        str(small_character), "--out", str(tmp_path / "take.mp4")])
     assert result.exit_code != 0 and "--force" in result.output
     assert (tmp_path / "take.mp4").read_bytes() == b"keep"
+
+
+def test_without_an_encoder_a_video_becomes_png_frames(tmp_path, monkeypatch):
+    from livebridge.character import render
+
+    monkeypatch.setattr(render, "video_encoder_problem", lambda: "PyAV is not installed")
+    frames = [np.full((6, 8, 1), k / 4, np.float32) for k in range(5)]
+    written, count = render.write_video(iter(frames), tmp_path / "take.mp4", 25.0, progress=False)
+    assert written == tmp_path / "take" and count == 5 and not (tmp_path / "take.mp4").exists()
+    for k, frame in enumerate(frames):
+        np.testing.assert_allclose(read_image(written / f"frame_{k:06d}.png")[..., None], frame, atol=0.5 / 255)
