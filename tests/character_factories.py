@@ -84,7 +84,7 @@ def reference_blend(character: Character, states: CRStates) -> np.ndarray:
             sample = region.samples[m][k - 1]
             x, y, w, h = sample.rect
             alpha = np.zeros((height, width))
-            alpha[y:y + h, x:x + w] = sample_alpha(region, m, k, character.feather_px)
+            alpha[y:y + h, x:x + w] = sample_alpha(region, m, k, character.feather_px, character.size)
             colour = np.zeros_like(out)
             colour[y:y + h, x:x + w] = sample.image
             mixed_alpha += weight * alpha

@@ -50,7 +50,7 @@ def test_the_page_draws_the_character_and_follows_the_states(browser):  # noqa: 
                             ("zygomatic_major_L", 0.6)):
             x[basis.names.index(name)] = value
         output.send(_Frame(2, x))
-        assert (output.states.muscle != NEUTRAL).sum() == 4
+        assert (output.states.muscle != NEUTRAL).sum() >= 4
         page.wait_for_function("window.livebridgeCharacter.drawnSeq >= 2", timeout=10_000)
         moved = _canvas_pixels(page)
         changed = np.abs(moved - neutral).sum(axis=-1) > 30

@@ -16,15 +16,19 @@ FEATHER_PX = 10.0
 """The paper's gradient width, pixels."""
 
 
-def feathered_alpha(shape: np.ndarray, feather_px: float = FEATHER_PX) -> np.ndarray:
+def feathered_alpha(shape: np.ndarray, feather_px: float = FEATHER_PX,
+                    open_edges: tuple[bool, bool, bool, bool] = (False, False, False, False)) -> np.ndarray:
     """Alpha of a shape with a linear ramp of ``feather_px`` pixels inside its boundary.
 
     Parameters
     ----------
     shape : ndarray of bool, shape (h, w)
-        The pixels the element covers; everything beyond the array's edge counts as outside.
+        The pixels the element covers; beyond the array's edge counts as outside, except past an open edge.
     feather_px : float
         Width of the ramp, pixels; 0 gives a hard edge (the shape itself).
+    open_edges : (bool, bool, bool, bool)
+        Top, bottom, left, right: the shape goes on past that edge of the array (a sample that reaches the
+        canvas's edge is not faded there; the picture ends, the element does not).
 
     Returns
     -------
@@ -35,8 +39,16 @@ def feathered_alpha(shape: np.ndarray, feather_px: float = FEATHER_PX) -> np.nda
     shape = np.asarray(shape, dtype=bool)
     if feather_px <= 0:
         return shape.astype(np.float32)
-    padded = np.pad(shape, 1).astype(np.uint8)  # the array's edge is a boundary too
-    distance = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+    margin = int(np.ceil(feather_px)) + 1
+    top, bottom, left, right = (margin if is_open else 1 for is_open in open_edges)
+    padded = np.pad(shape, ((top, bottom), (left, right)), mode="edge")  # an open edge continues the shape
+    closed = [(slice(0, top), slice(None)), (slice(padded.shape[0] - bottom, None), slice(None)),
+              (slice(None), slice(0, left)), (slice(None), slice(padded.shape[1] - right, None))]
+    for window, is_open in zip(closed, open_edges):
+        if not is_open:
+            padded[window] = False
+    distance = cv2.distanceTransform(padded.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    distance = distance[top:top + shape.shape[0], left:left + shape.shape[1]]
     return np.minimum(distance / np.float32(feather_px), 1.0).astype(np.float32)
 
 

@@ -38,6 +38,7 @@ class RegionShape:
     muscles: tuple[str, ...]
     centre: tuple[float, float]
     axes: tuple[float, float]
+    exclude: tuple[tuple[float, float], tuple[float, float]] | None = None  # (centre, axes) of a hole
 
 
 BUILTIN_LAYOUT = (
@@ -45,15 +46,18 @@ BUILTIN_LAYOUT = (
     RegionShape("brow_R", ("frontalis_R", "corrugator_R", "frontalis_R+corrugator_R"), (245, 120), (115, 70)),
     RegionShape("eye_L", ("orbicularis_oculi_L",), (395, 205), (62, 45)),
     RegionShape("eye_R", ("orbicularis_oculi_R",), (245, 205), (62, 45)),
-    RegionShape("nose", ("levator_labii_L", "levator_labii_R", "levator_labii_L+levator_labii_R"), (320, 280),
-                (58, 48)),
-    RegionShape("mouth_corner_L", ("zygomatic_major_L", "risorius_L"), (395, 335), (50, 48)),
-    RegionShape("mouth_corner_R", ("zygomatic_major_R", "risorius_R"), (245, 335), (50, 48)),
-    RegionShape("lips", ("orbicularis_oris", "lips_pressor", "depressor_anguli_oris"), (320, 350), (62, 42)),
-    RegionShape("jaw", ("jaw",), (320, 405), (185, 95)),
+    RegionShape("nose", ("levator_labii_L", "levator_labii_R", "levator_labii_L+levator_labii_R"), (320, 275),
+                (60, 48)),
+    RegionShape("cheek_L", ("zygomatic_major_L", "risorius_L"), (425, 318), (42, 46)),
+    RegionShape("cheek_R", ("zygomatic_major_R", "risorius_R"), (215, 318), (42, 46)),
+    RegionShape("mouth", ("jaw", "zygomatic_major_L+zygomatic_major_R", "jaw+zygomatic_major_L+zygomatic_major_R",
+                          "zygomatic_major_L", "zygomatic_major_R", "risorius_L+risorius_R", "orbicularis_oris",
+                          "lips_pressor", "depressor_anguli_oris"), (320, 355), (112, 52)),
+    RegionShape("chin", ("jaw",), (320, 420), (200, 95), exclude=((320, 352), (100, 40))),
 )
-"""The nine regions of the built-in character, in compositing order (x grows to the viewer's right: the
-performer's left side is drawn on the right, as in a mirror-free view of a face)."""
+"""The nine regions of the built-in character, in compositing order (the performer's left is drawn on the
+viewer's right). The mouth is one region whose candidates include the combinations the face makes (a smile,
+an open smile), so its one active state per frame is a whole mouth shape."""
 
 
 def _transform(size: tuple[int, int]) -> tuple[float, float, float]:
@@ -203,17 +207,18 @@ def _draw_mouth(pen: _Pen, x: dict[str, float], jaw: float) -> None:
     opening = 44 * jaw + 12 * pucker * (1 - press)
     upper_thick = (9 + 6 * pucker) * (1 - 0.75 * press)
     lower_thick = (11 + 6 * pucker) * (1 - 0.75 * press)
-    curvature = 4 - 10 * min(x.get("zygomatic_major_L", 0.0) + x.get("zygomatic_major_R", 0.0), 1.5) \
-        + 8 * depressor
-    inner_top = _curve(right, left, curvature * 0.3 - 0.35 * opening, power=0.7)
-    inner_bottom = _curve(right, left, curvature * 0.3 + 0.65 * opening, power=0.7)
-    outer_top = _curve(right, left, curvature * 0.3 - 0.35 * opening - upper_thick, power=0.5)
-    outer_bottom = _curve(right, left, curvature * 0.3 + 0.65 * opening + lower_thick, power=0.5)
+    # how far the middle of the mouth sags below the line between its corners: a smile, or a frown (< 0)
+    curvature = 2 + 14 * min(x.get("zygomatic_major_L", 0.0) + x.get("zygomatic_major_R", 0.0), 1.5) \
+        - 12 * depressor
+    inner_top = _curve(right, left, curvature - 0.35 * opening, power=0.7)
+    inner_bottom = _curve(right, left, curvature + 0.65 * opening, power=0.7)
+    outer_top = _curve(right, left, curvature - 0.35 * opening - upper_thick, power=0.5)
+    outer_bottom = _curve(right, left, curvature + 0.65 * opening + lower_thick, power=0.5)
     pen.polygon(np.vstack([outer_top, inner_top[::-1]]), LIP)
     pen.polygon(np.vstack([inner_bottom, outer_bottom[::-1]]), _mix(LIP, (255, 255, 255), 0.1))
     if opening > 0.5:
         pen.polygon(np.vstack([inner_top, inner_bottom[::-1]]), MOUTH_INSIDE)
-        teeth = _curve(right + [6, 0], left + [-6, 0], curvature * 0.3 - 0.35 * opening + 3, power=0.7)
+        teeth = _curve(right + [6, 0], left + [-6, 0], curvature - 0.35 * opening + 3, power=0.7)
         pen.line(teeth, (240, 240, 235), max(1.0, min(6.0, 0.25 * opening)))
     pen.line(inner_top, LINE, 2)
     pen.line(inner_bottom, LINE, 2 if opening > 0.5 else 1)
@@ -225,7 +230,10 @@ def _draw_mouth(pen: _Pen, x: dict[str, float], jaw: float) -> None:
 def region_mask(shape: RegionShape, size: tuple[int, int]) -> np.ndarray:
     """The region's mask on a canvas of ``size``, shape (height, width) bool."""
     mask = np.zeros((size[1], size[0]), np.uint8)
-    _Pen(mask, size).ellipse(shape.centre, shape.axes, 255)
+    pen = _Pen(mask, size)
+    pen.ellipse(shape.centre, shape.axes, 255)
+    if shape.exclude is not None:
+        pen.ellipse(*shape.exclude, 0)
     return mask >= 128
 
 
@@ -243,18 +251,23 @@ def builtin_character(size: tuple[int, int] = DESIGN_SIZE, n_states: int = 3,
     feather_px : float
     """
     neutral = draw_cartoon({}, size)
+    grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(feather_px) + 5, 2 * int(feather_px) + 5))
     regions = []
     for shape in BUILTIN_LAYOUT:
-        mask = region_mask(shape, size)
+        drawn = {(muscle, k): draw_cartoon({part: k / n_states for part in components(muscle)}, size)
+                 for muscle in shape.muscles for k in range(1, n_states + 1)}
+        # like an artist, draw only what changes: the region's pixels that some state changes, grown so the
+        # alpha ramp lies on unchanged skin (and the compositor touches no pixel it need not)
+        changed = np.zeros(neutral.shape[:2], np.uint8)
+        for image in drawn.values():
+            changed |= (np.abs(image - neutral).max(axis=2) > 1.0 / 255).astype(np.uint8)
+        mask = region_mask(shape, size) & (cv2.dilate(changed, grow) > 0)
         ys, xs = np.nonzero(mask)
         x0, y0, x1, y1 = xs.min(), ys.min(), xs.max() + 1, ys.max() + 1
-        per_muscle = []
-        for muscle in shape.muscles:
-            samples = []
-            for k in range(1, n_states + 1):
-                drawn = draw_cartoon({part: k / n_states for part in components(muscle)}, size)
-                samples.append(Sample(drawn[y0:y1, x0:x1].copy(), np.ones((y1 - y0, x1 - x0), np.float32),
-                                      (int(x0), int(y0)), f"builtin {shape.name} {muscle} {k}/{n_states}"))
-            per_muscle.append(tuple(samples))
-        regions.append(CharacterRegion(shape.name, shape.muscles, tuple(per_muscle), mask))
+        per_muscle = tuple(
+            tuple(Sample(drawn[(muscle, k)][y0:y1, x0:x1].copy(), np.ones((y1 - y0, x1 - x0), np.float32),
+                         (int(x0), int(y0)), f"builtin {shape.name} {muscle} {k}/{n_states}")
+                  for k in range(1, n_states + 1))
+            for muscle in shape.muscles)
+        regions.append(CharacterRegion(shape.name, shape.muscles, per_muscle, mask))
     return Character("builtin", neutral, tuple(regions), feather_px)

@@ -25,15 +25,18 @@ from livebridge.character.definition import Character, CharacterRegion
 from livebridge.character.states import CRStates
 
 
-def sample_alpha(region: CharacterRegion, muscle: int, state: int, feather_px: float) -> np.ndarray:
+def sample_alpha(region: CharacterRegion, muscle: int, state: int, feather_px: float,
+                 canvas_size: tuple[int, int]) -> np.ndarray:
     """A sample's own alpha (before cross-fading), shape (h, w) of the sample: its drawn opacity inside the
-    region's mask, feathered at the boundary. ``state`` counts from 1."""
+    region's mask, feathered at the boundary (not at the edge of the ``(width, height)`` canvas). ``state``
+    counts from 1."""
     sample = region.samples[muscle][state - 1]
     x, y, w, h = sample.rect
     shape = sample.opacity > 0
     if region.mask is not None:
         shape &= region.mask[y:y + h, x:x + w]
-    return feathered_alpha(shape, feather_px) * sample.opacity
+    open_edges = (y == 0, y + h == canvas_size[1], x == 0, x + w == canvas_size[0])
+    return feathered_alpha(shape, feather_px, open_edges) * sample.opacity
 
 
 def region_footprint(region: CharacterRegion, size: tuple[int, int]) -> np.ndarray:
@@ -76,7 +79,7 @@ class _RegionTables:
         for m, samples in enumerate(region.samples):
             for k, sample in enumerate(samples, start=1):
                 x, y, w, h = sample.rect
-                alpha = sample_alpha(region, m, k, character.feather_px)
+                alpha = sample_alpha(region, m, k, character.feather_px, character.size)
                 window = (slice(y - self.y, y - self.y + h), slice(x - self.x, x - self.x + w))
                 self.layers[i][window + (slice(0, c),)] = sample.image * alpha[..., None]
                 self.layers[i][window + (c,)] = alpha
