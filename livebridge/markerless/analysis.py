@@ -14,8 +14,9 @@ Beyond the paper:
 - a region whose confidence falls below ``min_confidence``, or every region when the head rig's LEDs are
   lost, holds its last state (flagged ``held``);
 - contractions come from the regions: a (pseudo-)muscle active at level ``l`` gives ``l`` times its
-  actuation vector to the basis muscles the region governs; a muscle governed by several regions takes the
-  largest; the result is finite and in [0, 1] whatever the input.
+  actuation vector to the basis muscles the region reports; a muscle reported by several regions takes their
+  mean weighted by the share of its region of influence in each (a region that sees little of a muscle
+  says little about it); the result is finite and in [0, 1] whatever the input.
 """
 
 from __future__ import annotations
@@ -105,7 +106,8 @@ class _RegionTables:
             self.pad[i, :len(signature)] = 0.0
         self.n_states = np.array(region.n_states)
         self.actuations = np.asarray(region.actuations, dtype=np.float64)
-        self.governs = np.asarray(region.governs, dtype=bool)
+        self.weights = np.asarray(region.weights, dtype=np.float64)
+        self.reports = self.weights > 0
         self.sample_norm = float(region.sample_norm)
 
 
@@ -204,15 +206,16 @@ class Analyser:
     def contractions(self, states: tuple[RegionState, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Basis contractions (n_muscles,) in [0, 1] and held flags (n_muscles,) from region states."""
         n = self.model.n_muscles
-        values = np.zeros(n)
+        total = np.zeros(n)
+        weight = np.zeros(n)
         held = np.zeros(n, dtype=bool)
         for tables, region_state in zip(self.tables, states):
+            weight += tables.weights
             if region_state.held:
-                held |= tables.governs
-            if region_state.muscle < 0:
-                continue
-            level = min(max(region_state.level, 0.0), 1.0)
-            contribution = np.where(tables.governs, level * tables.actuations[region_state.muscle], 0.0)
-            np.maximum(values, contribution, out=values)
+                held |= tables.reports
+            if region_state.muscle >= 0:
+                level = min(max(region_state.level, 0.0), 1.0)
+                total += tables.weights * (level * tables.actuations[region_state.muscle])
+        values = np.divide(total, weight, out=np.zeros(n), where=weight > 0)
         np.clip(np.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0, out=values)
         return values, held

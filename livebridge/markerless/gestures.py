@@ -45,9 +45,9 @@ class GestureConfig:
 
     Attributes
     ----------
-    detect : float
-        A run counts as a gesture where its activity exceeds the floor by this fraction of the take's
-        95th-percentile rise over the floor (fraction of a strong gesture).
+    detect_k : float
+        A run counts as a gesture where its activity exceeds the neutral floor by this many noise deviations
+        (weak muscles change little of the image: the noise, not the strongest gesture, sets the bar).
     noise_k : float
         A frame is non-neutral once its activity exceeds the floor by this many noise deviations.
     peak_tolerance : float
@@ -58,8 +58,8 @@ class GestureConfig:
         Median-filter width applied to the activity (frames, odd).
     """
 
-    detect: float = 0.15
-    noise_k: float = 4.0
+    detect_k: float = 6.0
+    noise_k: float = 3.0
     peak_tolerance: float = 0.03
     min_frames: int = 4
     smooth: int = 3
@@ -99,10 +99,7 @@ def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig())
     if config.smooth > 1:
         filled = median_filter(filled, size=config.smooth, mode="nearest")
     floor, _ = neutral_floor(filled[seen])
-    rise = np.percentile(filled[seen], 95) - floor
-    if rise <= config.noise_k * spread:
-        return []
-    active = (filled > floor + config.detect * rise) & seen
+    active = (filled > floor + config.detect_k * spread) & seen
     moving = (filled > floor + config.noise_k * spread) & seen
     gestures = []
     for first, last in _runs(active):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -41,8 +41,9 @@ class RegionModel:
         ``Phi_i``: unit signatures of muscle i's states, neutral to full.
     actuations : ndarray, shape (n_region_muscles, n_basis_muscles)
         What full actuation of each (pseudo-)muscle means in basis contractions.
-    governs : ndarray, shape (n_basis_muscles,), bool
-        Basis muscles whose region of influence this CR is part of (the ones it reports).
+    weights : ndarray, shape (n_basis_muscles,)
+        For each basis muscle this CR reports, the share of the muscle's region of influence inside the CR
+        (0: not reported); a muscle's contraction is the weighted mean of its CRs' values.
     sample_norm : float
         Median norm of the training samples (a sample far from it is not a trained face).
     """
@@ -54,7 +55,7 @@ class RegionModel:
     back: np.ndarray
     signatures: tuple[np.ndarray, ...]
     actuations: np.ndarray
-    governs: np.ndarray
+    weights: np.ndarray
     sample_norm: float
 
     @cached_property
@@ -140,6 +141,8 @@ def _to_arrays(model: MarkerlessModel) -> tuple[dict[str, np.ndarray], dict]:
               "distortions": norm.distortions}
     if norm.canonical_head2cam is not None:
         arrays["canonical_head2cam"] = norm.canonical_head2cam
+    if norm.surface is not None:
+        arrays["surface"] = norm.surface
     if norm.head_rig is not None:
         arrays["rig_leds"] = norm.head_rig.leds
         arrays["rig_face_point"] = norm.head_rig.face_point
@@ -149,7 +152,7 @@ def _to_arrays(model: MarkerlessModel) -> tuple[dict[str, np.ndarray], dict]:
         arrays[f"region{j}_mask"] = region.mask
         arrays[f"region{j}_back"] = region.back
         arrays[f"region{j}_actuations"] = region.actuations
-        arrays[f"region{j}_governs"] = region.governs
+        arrays[f"region{j}_weights"] = region.weights
         for i, signature in enumerate(region.signatures):
             arrays[f"region{j}_phi{i}"] = signature
         regions.append({"name": region.name, "muscles": list(region.muscles), "n_states": list(region.n_states),
@@ -191,8 +194,11 @@ def _from_arrays(path: str | Path) -> MarkerlessModel:
         norm = Normalisation(tuple(settings["input_size"]), rig, reader.array("camera_matrix", (3, 3)),
                              reader.array("distortions", None),
                              reader.array("canonical_head2cam", (4, 4)) if "canonical_head2cam" in arrays else None,
-                             tuple(settings["crop"]), bool(settings["pose_warp"]), bool(settings["laplacian"]),
+                             tuple(settings["crop"]), None, bool(settings["pose_warp"]), bool(settings["laplacian"]),
                              bool(settings["log"]), float(settings["blur_sigma"]))
+        if "surface" in arrays:
+            width, height = norm.input_size
+            norm = replace(norm, surface=reader.array("surface", (height, width, 3)).astype(np.float32))
     except (KeyError, TypeError, ValueError) as error:
         raise InputError(f"bad normalisation settings ({error})", path, "manifest.normalisation") from None
     width, height = norm.image_size
@@ -265,5 +271,7 @@ class _Reader:
         signatures = tuple(self.array(f"region{j}_phi{i}", (n, k)).astype(np.float32)
                            for i, n in enumerate(n_states))
         actuations = self.array(f"region{j}_actuations", (len(muscles), n_basis))
-        governs = self.array(f"region{j}_governs", (n_basis,)).astype(bool)
-        return RegionModel(name, mask, muscles, n_states, back, signatures, actuations, governs, sample_norm)
+        weights = self.array(f"region{j}_weights", (n_basis,))
+        if (weights < 0).any():
+            raise InputError("weights must not be negative", self.path, f"region{j}_weights")
+        return RegionModel(name, mask, muscles, n_states, back, signatures, actuations, weights, sample_norm)

@@ -5,10 +5,12 @@ Head pose
     (:func:`livebridge.reconstruct.detect.detect_blobs`, as for markers). They are matched to the rig's LEDs
     by their projection at the previous pose (Hungarian assignment), or, with no previous pose, by trying
     every assignment and keeping the one that reprojects best with the face towards the camera; the pose
-    is ``cv2.solvePnP`` (SQPnP) on the rig geometry.
+    is ``cv2.solvePnP`` on the rig geometry (refined from the previous pose; IPPE or SQPnP without one).
 Warp
-    The face is approximated by a plane of the head frame (through the rig, facing the camera); the image
-    is warped by the homography that this plane induces between the current and the canonical pose.
+    Each pixel of the canonical image shows a point of the head frame (:func:`canonical_surface`): on the
+    face mesh when the model was trained with one (the basis's neutral face, in the rig's frame), else on a
+    plane through the rig facing the camera (then the warp is that plane's homography). Per frame every
+    canonical pixel samples the camera image where its point projects at the current pose.
 Lighting
     The Laplacian of the (slightly blurred) logarithm of the image: the log turns the illumination factor
     into an additive term, which is smooth over skin and removed by the Laplacian, so neither exposure
@@ -30,7 +32,6 @@ from scipy.optimize import linear_sum_assignment
 from livebridge.errors import InputError
 
 N_LEDS = 4
-FACE_PLANE_HALF_MM = 40.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,20 +64,24 @@ class HeadRig:
 
 
 def load_head_rig(path: str | Path) -> HeadRig:
-    """Read a head-rig TOML: ``leds = [[x, y, z], ...]`` (4 rows, mm, head frame); optional ``face_normal``
-    (3 numbers, default ``[0, 0, 1]``) and ``face_offset_mm`` (default 0)."""
-    from livebridge.tomlio import load_toml
+    """Read a head-rig TOML: a ``[leds]`` table of four named LED positions ``name = [x, y, z]`` (mm, head
+    frame: the face model's, +z out of the face); optional top-level ``face_normal`` (3 numbers, default
+    ``[0, 0, 1]``) and ``face_offset_mm`` (default 0) place the face plane the warp falls back to."""
+    from livebridge.tomlio import load_toml, require
 
     table = load_toml(path)
-    leds = _numbers(table.get("leds"), (N_LEDS, 3), path, "leds")
+    leds_table = require(table, "leds", dict, path)
+    if len(leds_table) != N_LEDS:
+        raise InputError(f"a head rig has exactly {N_LEDS} LEDs, got {len(leds_table)}", path, "leds")
+    leds = np.array([_numbers(value, (3,), path, f"leds.{name}") for name, value in leds_table.items()])
     normal = _numbers(table.get("face_normal", [0.0, 0.0, 1.0]), (3,), path, "face_normal")
     if np.linalg.norm(normal) == 0:
         raise InputError("must not be zero", path, "face_normal")
     offset = table.get("face_offset_mm", 0.0)
     if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not np.isfinite(offset):
         raise InputError(f"expected a number, got {offset!r}", path, "face_offset_mm")
-    if np.linalg.matrix_rank(leds - leds.mean(axis=0), tol=1e-6) < 2:
-        raise InputError("the four LEDs must not lie on one line", path, "leds")
+    if np.linalg.svd(leds - leds.mean(axis=0), compute_uv=False)[1] < 1.0:
+        raise InputError("the four LEDs lie on one line: a pose needs them spread over a plane", path, "leds")
     return HeadRig.from_leds(leds, normal, float(offset))
 
 
@@ -107,6 +112,9 @@ class Normalisation:
     crop : tuple of int
         ``(x, y, width, height)`` of the canonical image in the camera image (whole image by default);
         with a head rig, applied after the warp.
+    surface : ndarray, shape (H, W, 3), float32, or None
+        Per pixel of the (uncropped) canonical image, the head-frame point it shows: the face mesh where one
+        was given at training, the face plane elsewhere (set with the canonical pose).
     pose_warp : bool
         False (ablation): the pose is measured but the image is not warped.
     laplacian : bool
@@ -123,6 +131,7 @@ class Normalisation:
     distortions: np.ndarray = field(default_factory=lambda: np.zeros(5))
     canonical_head2cam: np.ndarray | None = None
     crop: tuple[int, int, int, int] | None = None
+    surface: np.ndarray | None = None
     pose_warp: bool = True
     laplacian: bool = True
     log: bool = True
@@ -142,8 +151,14 @@ class Normalisation:
         """Canonical image ``(width, height)``."""
         return self.crop[2], self.crop[3]
 
-    def with_canonical(self, head2cam: np.ndarray) -> Normalisation:
-        return replace(self, canonical_head2cam=np.asarray(head2cam, dtype=np.float64))
+    def with_canonical(self, head2cam: np.ndarray, vertices: np.ndarray | None = None,
+                       triangles: np.ndarray | None = None) -> Normalisation:
+        """This normalisation with its canonical pose ``head2cam (4, 4)`` and the surface the warp follows:
+        the face mesh (``vertices (n, 3)`` mm in the head frame, ``triangles (m, 3)``) where given, else the
+        face plane of the rig."""
+        head2cam = np.asarray(head2cam, dtype=np.float64)
+        norm = replace(self, canonical_head2cam=head2cam)
+        return replace(norm, surface=canonical_surface(norm, head2cam, vertices, triangles))
 
 
 def default_camera_matrix(size: tuple[int, int]) -> np.ndarray:
@@ -170,26 +185,52 @@ def detect_leds(image: np.ndarray) -> np.ndarray:
     from livebridge.reconstruct.detect import DetectConfig, detect_blobs
 
     gray = _gray(image)
-    points = detect_blobs(gray, DetectConfig(contrast=0.6, min_area=2, max_area=400))
+    points = detect_blobs(gray, DetectConfig(contrast=0.9, min_area=2, max_area=400))
     if len(points) > 1:
         x = np.clip(np.rint(points).astype(int), 0, [gray.shape[1] - 1, gray.shape[0] - 1])
         points = points[np.argsort(-gray[x[:, 1], x[:, 0]].astype(np.float64), kind="stable")]
     return points
 
 
-def _pnp(leds: np.ndarray, points: np.ndarray, norm: Normalisation) -> tuple[np.ndarray | None, float]:
-    """(head2cam, RMS reprojection error in px) of one LED assignment, or (None, inf)."""
-    ok, rvec, tvec = cv2.solvePnP(leds, points.astype(np.float64), norm.camera_matrix, norm.distortions,
-                                  flags=cv2.SOLVEPNP_SQPNP)
-    if not ok:
-        return None, np.inf
-    head2cam = np.eye(4)
-    head2cam[:3, :3] = cv2.Rodrigues(rvec)[0]
-    head2cam[:3, 3] = tvec.ravel()
-    if head2cam[2, 3] <= 0 or (head2cam[:3, :3] @ norm.head_rig.face_normal)[2] >= 0:
-        return None, np.inf  # behind the camera, or the face turned away from it
-    projected = cv2.projectPoints(leds, rvec, tvec, norm.camera_matrix, norm.distortions)[0].reshape(-1, 2)
-    return head2cam, float(np.sqrt(np.mean(np.sum((projected - points) ** 2, axis=1))))
+def _pnp(leds: np.ndarray, points: np.ndarray, norm: Normalisation,
+         guess: np.ndarray | None = None) -> tuple[np.ndarray | None, float]:
+    """(head2cam, RMS reprojection error in px) of one LED assignment, or (None, inf).
+
+    Four LEDs on a glasses frame are (nearly) coplanar, where a pose and its mirror about the line of sight
+    fit almost equally well: with a previous pose (``guess``) the pose is refined from it (continuity);
+    without, every solution is tried and the one facing the camera most squarely wins.
+    """
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if guess is not None:
+        ok, rvec, tvec = cv2.solvePnP(leds, points, norm.camera_matrix, norm.distortions,
+                                      cv2.Rodrigues(guess[:3, :3])[0], guess[:3, 3].copy(),
+                                      useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+        candidates = [(rvec, tvec)] if ok else []
+    else:
+        flags = cv2.SOLVEPNP_IPPE if _coplanar(leds) else cv2.SOLVEPNP_SQPNP
+        count, rvecs, tvecs, _ = cv2.solvePnPGeneric(leds, points, norm.camera_matrix, norm.distortions,
+                                                     flags=flags)
+        candidates = list(zip(rvecs, tvecs))[:count]
+    best, best_key = None, (np.inf, np.inf)
+    for rvec, tvec in candidates:
+        head2cam = np.eye(4)
+        head2cam[:3, :3] = cv2.Rodrigues(rvec)[0]
+        head2cam[:3, 3] = np.ravel(tvec)
+        facing = (head2cam[:3, :3] @ norm.head_rig.face_normal)[2]  # < 0: the face looks at the camera
+        if head2cam[2, 3] <= 0 or facing >= 0:
+            continue
+        projected = cv2.projectPoints(leds, rvec, tvec, norm.camera_matrix, norm.distortions)[0].reshape(-1, 2)
+        error = float(np.sqrt(np.mean(np.sum((projected - points) ** 2, axis=1))))
+        key = (0.0 if error <= 1.0 else error, facing)
+        if key < best_key:
+            best, best_key = (head2cam, error), key
+    return best if best is not None else (None, np.inf)
+
+
+def _coplanar(points: np.ndarray) -> bool:
+    centred = points - points.mean(axis=0)
+    singular = np.linalg.svd(centred, compute_uv=False)
+    return bool(singular[-1] < 1e-3 * singular[0])
 
 
 def estimate_head_pose(image: np.ndarray, norm: Normalisation, state: PoseState = PoseState(),
@@ -221,7 +262,7 @@ def estimate_head_pose(image: np.ndarray, norm: Normalisation, state: PoseState 
                                       norm.camera_matrix, norm.distortions)[0].reshape(-1, 2)
         cost = np.linalg.norm(predicted[:, None] - points[None], axis=2)
         rows, cols = linear_sum_assignment(cost)
-        head2cam, error = _pnp(leds, points[cols[np.argsort(rows)]], norm)
+        head2cam, error = _pnp(leds, points[cols[np.argsort(rows)]], norm, previous)
         if error <= max_error_px:
             return PoseState(head2cam), head2cam
     head2cam, error = _best_assignment(leds, points[:8], norm)
@@ -239,27 +280,50 @@ def _best_assignment(leds: np.ndarray, points: np.ndarray, norm: Normalisation) 
     return best, best_error
 
 
-def _face_plane_pixels(norm: Normalisation, head2cam: np.ndarray) -> np.ndarray:
-    """Four points of the face plane projected (no distortion) at ``head2cam``, shape (4, 2) float32."""
-    rig = norm.head_rig
-    normal = rig.face_normal
-    helper = np.array([0.0, 1.0, 0.0]) if abs(normal[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    u = np.cross(helper, normal)
-    u /= np.linalg.norm(u)
-    v = np.cross(normal, u)
-    corners = rig.face_point + FACE_PLANE_HALF_MM * np.array([u + v, u - v, -u - v, -u + v])
-    cam = corners @ head2cam[:3, :3].T + head2cam[:3, 3]
-    pixels = cam @ norm.camera_matrix.T
-    return (pixels[:, :2] / pixels[:, 2:]).astype(np.float32)
+def canonical_surface(norm: Normalisation, head2cam: np.ndarray, vertices: np.ndarray | None = None,
+                      triangles: np.ndarray | None = None) -> np.ndarray:
+    """The head-frame point each canonical pixel shows, shape (H, W, 3) float32.
+
+    Rays through the pixels (at the canonical pose ``head2cam``) meet the rig's face plane; where a face mesh
+    is given, its front-facing vertices projected to the image and interpolated (linear, over their
+    Delaunay triangulation) give the point instead, so the warp follows the face's relief (nose, eye
+    sockets) rather than a plane when the head turns.
+    """
+    width, height = norm.input_size
+    rotation, translation = head2cam[:3, :3], head2cam[:3, 3]
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(norm.camera_matrix).T
+    normal = rotation @ norm.head_rig.face_normal
+    point = rotation @ norm.head_rig.face_point + translation
+    cam = rays * ((normal @ point) / (rays @ normal))[..., None]
+    surface = (cam - translation) @ rotation  # camera -> head: R^T (x - t)
+    if vertices is not None and triangles is not None:
+        from scipy.interpolate import griddata
+
+        from livebridge.face.meshio import vertex_normals
+
+        vertices = np.asarray(vertices, dtype=np.float64)
+        cam_vertices = vertices @ rotation.T + translation
+        facing = np.einsum("ij,ij->i", vertex_normals(vertices, triangles) @ rotation.T, cam_vertices) < 0
+        facing &= cam_vertices[:, 2] > 0
+        pixels = cam_vertices[facing] @ norm.camera_matrix.T
+        pixels = pixels[:, :2] / pixels[:, 2:]
+        on_mesh = griddata(pixels, vertices[facing], (u, v), method="linear")
+        covered = np.isfinite(on_mesh).all(axis=-1)
+        surface[covered] = on_mesh[covered]
+    return surface.astype(np.float32)
 
 
 def warp_to_canonical(image: np.ndarray, norm: Normalisation, head2cam: np.ndarray) -> np.ndarray:
-    """The image as seen at the canonical pose (the face plane's homography), same size as ``image``."""
-    canonical = _face_plane_pixels(norm, norm.canonical_head2cam)
-    current = _face_plane_pixels(norm, head2cam)
-    homography = cv2.getPerspectiveTransform(canonical, current)
-    return cv2.warpPerspective(image, homography, (image.shape[1], image.shape[0]),
-                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+    """The image as seen at the canonical pose, same size as ``image``: each canonical pixel samples the
+    image where its surface point (``norm.surface``) projects at the pose ``head2cam``."""
+    projection = (norm.camera_matrix @ head2cam[:3]).astype(np.float32)  # (3, 4)
+    surface = norm.surface
+    pixels = surface @ projection[:, :3].T + projection[:, 3]
+    depth = pixels[..., 2]
+    map_x = pixels[..., 0] / depth
+    map_y = pixels[..., 1] / depth
+    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def lighting_normalise(image: np.ndarray, blur_sigma: float = 1.0, log: bool = True) -> np.ndarray:
@@ -330,7 +394,7 @@ def normalise(image: np.ndarray, norm: Normalisation, state: PoseState = PoseSta
     if norm.head_rig is not None:
         state, head2cam = estimate_head_pose(gray, norm, state)
         lost = head2cam is None
-        if not lost and norm.pose_warp and norm.canonical_head2cam is not None:
+        if not lost and norm.pose_warp and norm.surface is not None:
             gray = warp_to_canonical(gray, norm, head2cam)
     x, y, w, h = norm.crop
     canonical = gray[y:y + h, x:x + w].astype(np.float32)

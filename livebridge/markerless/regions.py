@@ -33,6 +33,9 @@ class RegionConfig:
     min_area : float
         Smallest CR, as a fraction of the union of all ROIs.
     max_regions : int or None
+    min_cover : float
+        After merging, a muscle acts on a CR when its ROI covers at least this fraction of the CR (and every
+        muscle keeps the CR it covers most): small merged fragments do not drag their muscles along.
     """
 
     smooth_sigma: float = 3.0
@@ -40,6 +43,7 @@ class RegionConfig:
     relative: float = 0.15
     min_area: float = 0.02
     max_regions: int | None = None
+    min_cover: float = 0.25
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,8 +115,13 @@ def co_articulation_regions(rois: np.ndarray, config: RegionConfig = RegionConfi
             components[parts == part] = len(muscle_sets)
     min_pixels = config.min_area * float((label > 0).sum())
     _merge_small(components, muscle_sets, min_pixels, config.max_regions)
-    regions = [Region(components == k + 1, tuple(sorted(muscles)))
-               for k, muscles in enumerate(muscle_sets) if muscles]
+    masks = [components == k + 1 for k, muscles in enumerate(muscle_sets) if muscles]
+    cover = np.array([[(roi & mask).sum() / max(1, mask.sum()) for roi in rois] for mask in masks])  # (n_cr, n_m)
+    keep = cover >= config.min_cover
+    for m in range(n_muscles):
+        if cover[:, m].max(initial=0) > 0:
+            keep[np.argmax(cover[:, m]), m] = True
+    regions = [Region(mask, tuple(int(m) for m in np.flatnonzero(row))) for mask, row in zip(masks, keep) if row.any()]
     return sorted(regions, key=lambda r: -int(r.mask.sum()))
 
 

@@ -98,8 +98,10 @@ class TrainResult:
     rois: np.ndarray
 
 
-def canonical_frames(images: Iterable[np.ndarray], norm: Normalisation) -> tuple[Normalisation, np.ndarray, np.ndarray]:
-    """Every frame of a take in the canonical pose.
+def canonical_frames(images: Iterable[np.ndarray], norm: Normalisation, face_mesh: tuple | None = None
+                     ) -> tuple[Normalisation, np.ndarray, np.ndarray]:
+    """Every frame of a take in the canonical pose (the first frame's; the warp follows ``face_mesh``,
+    ``(vertices (n, 3), triangles (m, 3))`` in the rig's head frame, when given).
 
     Returns
     -------
@@ -111,7 +113,7 @@ def canonical_frames(images: Iterable[np.ndarray], norm: Normalisation) -> tuple
         if norm.head_rig is not None and norm.canonical_head2cam is None:
             state, frame = normalise(image, norm, state)
             if frame.head2cam is not None:
-                norm = norm.with_canonical(frame.head2cam)
+                norm = norm.with_canonical(frame.head2cam, *(face_mesh or (None, None)))
         state, frame = normalise(image, norm, state)
         frames.append(np.clip(np.rint(frame.image), 0, 255).astype(np.uint8))
         lost.append(frame.lost)
@@ -120,15 +122,20 @@ def canonical_frames(images: Iterable[np.ndarray], norm: Normalisation) -> tuple
     return norm, np.array(frames), np.array(lost)
 
 
-def activity_curve(frames: np.ndarray, lost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(activity (n,), neutral reference (h, w) float32): mean blurred difference to the first frames."""
+def activity_curve(frames: np.ndarray, lost: np.ndarray, top: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """(activity (n,), neutral reference (h, w) float32): per frame, the mean of the largest ``top`` fraction of
+    the blurred differences to the first frames (a weak muscle changes a small patch strongly; a mean over the
+    whole image would drown it in noise)."""
     seen = np.flatnonzero(~lost)
     if len(seen) == 0:
         raise InputError("the head rig's LEDs were never found in the take")
-    blurred = [cv2.GaussianBlur(f.astype(np.float32), (0, 0), ACTIVITY_SIGMA) for f in frames]
-    reference = np.median(np.array([blurred[i] for i in seen[:5]]), axis=0)
-    activity = np.array([float(np.mean(np.abs(b - reference))) for b in blurred])
-    activity[lost] = np.nan
+    reference = np.median([cv2.GaussianBlur(frames[i].astype(np.float32), (0, 0), ACTIVITY_SIGMA)
+                           for i in seen[:5]], axis=0)
+    count = max(1, int(top * reference.size))
+    activity = np.full(len(frames), np.nan)
+    for i in seen:
+        change = np.abs(cv2.GaussianBlur(frames[i].astype(np.float32), (0, 0), ACTIVITY_SIGMA) - reference).ravel()
+        activity[i] = float(np.partition(change, -count)[-count:].mean())
     return activity, reference
 
 
@@ -163,7 +170,8 @@ def _filtered(frame: np.ndarray, norm: Normalisation) -> np.ndarray:
 
 
 def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[GesturePrompt],
-          muscle_names: Sequence[str], config: TrainConfig = TrainConfig()) -> TrainResult:
+          muscle_names: Sequence[str], config: TrainConfig = TrainConfig(),
+          face_mesh: tuple[np.ndarray, np.ndarray] | None = None) -> TrainResult:
     """Train a markerless model from a take (see the module docstring).
 
     Parameters
@@ -177,6 +185,9 @@ def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[G
     muscle_names : sequence of str
         Basis muscles (every prompt's muscles must be among them).
     config : TrainConfig
+    face_mesh : (ndarray (n, 3), ndarray (m, 3)), optional
+        The performer's neutral face (vertices in mm in the head rig's frame, triangles), e.g. the basis's:
+        the pose warp follows its relief instead of a plane.
 
     Returns
     -------
@@ -187,7 +198,7 @@ def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[G
         unknown = sorted(set(prompt.actuation) - set(muscle_names))
         if unknown:
             raise InputError(f"gesture {prompt.name!r} names muscles {unknown} not in the basis")
-    norm, frames, lost = canonical_frames(images, norm)
+    norm, frames, lost = canonical_frames(images, norm, face_mesh)
     activity, reference = activity_curve(frames, lost)
     gestures = find_gestures(activity, config.gestures)
     if len(gestures) != len(prompts):
@@ -214,15 +225,19 @@ def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[G
         chosen = [isolated[i] for i in cr.muscles]
         chosen += [p for p, prompt in enumerate(prompts)
                    if not prompt.isolated and len(governed & set(prompt.actuation)) >= 2]
+        weights = np.zeros(len(muscle_names))
+        for i in cr.muscles:
+            roi = rois[isolated[i]]
+            weights[muscle_names.index(prompts[isolated[i]].name)] = (roi & cr.mask).sum() / max(1, roi.sum())
         regions.append(_region(f"cr{j + 1}", cr.mask, chosen, prompts, states, frames, neutral_filtered, norm,
-                               muscle_names, governed, config))
+                               muscle_names, weights, config))
         members.append(chosen)
     gesture_frames = _gesture_crops(prompts, states, frames, crs, members)
     model = MarkerlessModel(muscle_names, regions, norm, neutral, gesture_frames, config.method)
     return TrainResult(model, gestures, activity, rois)
 
 
-def _region(name, mask, chosen, prompts, states, frames, neutral_filtered, norm, muscle_names, governed,
+def _region(name, mask, chosen, prompts, states, frames, neutral_filtered, norm, muscle_names, weights,
             config: TrainConfig) -> RegionModel:
     pixels = np.flatnonzero(mask)
     columns = {p: np.array([_filtered(frames[i], norm).ravel()[pixels] for i in states[p]]).T for p in chosen}
@@ -233,10 +248,9 @@ def _region(name, mask, chosen, prompts, states, frames, neutral_filtered, norm,
     phis = tuple(signatures(back, np.concatenate([neutral_column, columns[p]], axis=1)).astype(np.float32)
                  for p in chosen)
     actuations = np.array([[prompts[p].actuation.get(m, 0.0) for m in muscle_names] for p in chosen])
-    governs = np.array([m in governed for m in muscle_names])
     sample_norm = float(np.median(np.linalg.norm(samples, axis=0)))
     return RegionModel(name, mask, tuple(prompts[p].name for p in chosen), tuple(len(phi) for phi in phis),
-                       back.astype(np.float32), phis, actuations, governs, sample_norm)
+                       back.astype(np.float32), phis, actuations, weights, sample_norm)
 
 
 def _gesture_crops(prompts, states, frames, crs, members) -> dict:
