@@ -96,7 +96,9 @@ def reference_blend(character: Character, states: CRStates) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------ a tiny model
 TOY_SIZE = (96, 72)
 TOY_REGIONS = (("upper", ("a",), (5,), (slice(4, 30), slice(8, 88))),
-               ("lower", ("b", "c"), (4, 3), (slice(34, 68), slice(20, 76))))
+               ("lower", ("b", "c", "mix"), (4, 3, 3), (slice(34, 68), slice(20, 76))))
+TOY_ACTUATIONS = {"a": (1.0, 0.0, 0.0), "b": (0.0, 1.0, 0.0), "c": (0.0, 0.0, 1.0), "mix": (0.0, 1.0, 0.5)}
+"""What each toy (pseudo-)muscle means in the basis muscles a, b, c: ``mix`` is b with half of c."""
 """(name, muscles, n_states per muscle (state 0 neutral), the region's rows and columns)."""
 
 
@@ -114,7 +116,8 @@ def toy_appearance(levels: dict[str, float]) -> np.ndarray:
     """
     image = toy_neutral()
     yy, xx = np.mgrid[:TOY_SIZE[1], :TOY_SIZE[0]]
-    a, b, c = (levels.get(m, 0.0) for m in "abc")
+    mix = levels.get("mix", 0.0)
+    a, b, c = (levels.get(m, 0.0) + mix * TOY_ACTUATIONS["mix"][k] for k, m in enumerate("abc"))
     if a:
         bar = np.exp(-np.square((yy - (8 + 18 * a)) / 2.5)) * (xx > 12) * (xx < 84)
         image -= 70 * a * bar
@@ -138,8 +141,9 @@ def toy_model():
         n_pixels = int(mask.sum())
         back = np.zeros((2, n_pixels), np.float32)
         signatures = tuple(np.tile(np.float32([1.0, 0.0]), (n, 1)) for n in n_states)
-        regions.append(RegionModel(name, mask, muscles, n_states, back, signatures, np.zeros((len(muscles), 3)),
-                                   np.ones(3, bool), 1.0))
+        actuations = np.array([TOY_ACTUATIONS[m] for m in muscles])
+        regions.append(RegionModel(name, mask, muscles, n_states, back, signatures, actuations, np.ones(3, bool),
+                                   1.0))
         rows, cols = window
         box = (cols.start, rows.start, cols.stop - cols.start, rows.stop - rows.start)
         for muscle, n in zip(muscles, n_states):

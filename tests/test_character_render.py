@@ -39,7 +39,8 @@ def _expected(folder, values):
     full = np.zeros((len(values), len(names)))
     for k, name in enumerate(MUSCLES):
         full[:, names.index(name)] = values[:, k]
-    mapper, compositor = ContractionStates(character.region_muscles, names), Compositor(character)
+    mapper = ContractionStates(character.region_muscles, names, character.region_actuations)
+    compositor = Compositor(character)
     return [compositor.composite(mapper(row)).copy() for row in full]
 
 

@@ -35,7 +35,7 @@ def test_a_take_rebuilt_from_the_training_samples_beats_the_neutral_image_everyw
     model = toy_model()
     character = character_from_model(model, feather_px=3.0)
     assert character.region_names == ("upper", "lower") and character.size == (96, 72)
-    assert [len(s) for s in character.regions[1].samples] == [3, 2]  # one sample per non-neutral state
+    assert [len(s) for s in character.regions[1].samples] == [3, 2, 2]  # one sample per non-neutral state
     score = rewrite_scores(Compositor(character), [r.mask for r in model.regions],
                            _held_out_take(np.random.default_rng(0)))
     assert score.frames == 40
@@ -106,3 +106,19 @@ def test_template_refuses_an_existing_folder(tmp_path, missing):
                                        str(tmp_path / "sheets")])
     assert result.exit_code != 0 and "already exists" in result.output
     assert not (tmp_path / "sheets" / missing).exists()
+
+
+def test_a_rewrite_character_keeps_the_models_pseudo_muscles_and_contractions_select_them(tmp_path):
+    from livebridge.character.definition import save_character
+    from livebridge.character.states import ContractionStates
+
+    character = character_from_model(toy_model(), 3.0)
+    assert character.regions[1].actuations == {"mix": {"b": 1.0, "c": 0.5}}
+    save_character(character, tmp_path / "char")
+    loaded = load_character(tmp_path / "char")
+    assert loaded.region_actuations == character.region_actuations
+    states = ContractionStates(loaded.region_muscles, ("a", "b", "c"), loaded.region_actuations)
+    chosen = states(np.array([0.0, 0.8, 0.4]))  # b with half as much c: the trained combination
+    assert chosen.muscle.tolist() == [NEUTRAL, 2] and chosen.level[1] == pytest.approx(0.8)
+    chosen = states(np.array([0.3, 0.0, 0.6]))
+    assert chosen.muscle.tolist() == [0, 1] and chosen.level.tolist() == pytest.approx([0.3, 0.6])

@@ -18,6 +18,8 @@ Layout of ``character.toml`` (paths relative to the folder)::
     states = [3, 2]                    # per muscle: samples K (states 1..K at levels k/K; 0 is neutral)
     mask = "masks/mouth.png"           # optional: where this region may draw (white), canvas-sized ...
     mask_space = "character"           # ... or "face": drawn on the face, carried here by [warp]
+    [regions.actuations]               # optional: what a pseudo-muscle means in basis contractions
+    "zygomatic+risorius" = { zygomatic_major_L = 1.0, risorius_L = 0.5 }   # (default: "a+b" -> a, b at 1)
 
     [[regions.samples]]                # one per muscle and state
     muscle = "jaw"
@@ -33,7 +35,9 @@ its region's mask, a mask not the size of the canvas (or of the face, for ``mask
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -87,12 +91,15 @@ class CharacterRegion:
         Per muscle, its samples for states ``1..K`` (levels ``k / K``).
     mask : ndarray of bool, shape (height, width), optional
         Where on the canvas the region may draw; None: wherever its samples were drawn.
+    actuations : mapping of str to mapping of str to float
+        Pseudo-muscle -> {basis muscle: level at full actuation}, for those whose name does not say it.
     """
 
     name: str
     muscles: tuple[str, ...]
     samples: tuple[tuple[Sample, ...], ...]
     mask: np.ndarray | None = None
+    actuations: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, eq=False)
@@ -131,6 +138,10 @@ class Character:
     @property
     def region_muscles(self) -> tuple[tuple[str, ...], ...]:
         return tuple(region.muscles for region in self.regions)
+
+    @property
+    def region_actuations(self) -> tuple[Mapping[str, Mapping[str, float]], ...]:
+        return tuple(region.actuations for region in self.regions)
 
 
 # ------------------------------------------------------------------------------------------------ images
@@ -310,7 +321,22 @@ def _read_region(folder: Path, path: Path, entry, where: str, size: tuple[int, i
     if missing:
         raise InputError(f"region {name!r}: no sample for {', '.join(missing)}", path, f"{where}.samples")
     samples = tuple(tuple(found[(m, k)] for k in range(1, K + 1)) for m, K in zip(muscles, states))
-    return CharacterRegion(name, tuple(muscles), samples, mask)
+    return CharacterRegion(name, tuple(muscles), samples, mask, _read_actuations(path, entry, where, muscles))
+
+
+def _read_actuations(path: Path, entry: dict, where: str, muscles: list[str]) -> dict[str, dict[str, float]]:
+    table = require(entry, "actuations", dict, path, where) if "actuations" in entry else {}
+    actuations = {}
+    for muscle, parts in table.items():
+        field_name = f"{where}.actuations.{muscle}"
+        if muscle not in muscles:
+            raise InputError(f"{muscle!r} is not one of the region's muscles ({', '.join(muscles)})", path,
+                             field_name)
+        if not isinstance(parts, dict) or not parts or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in parts.values()):
+            raise InputError("expected a table of basis muscle = finite level", path, field_name)
+        actuations[muscle] = {part: float(v) for part, v in parts.items()}
+    return actuations
 
 
 def _read_mask(folder: Path, path: Path, entry: dict, where: str, size: tuple[int, int], warp):
@@ -374,6 +400,8 @@ def save_character(character: Character, folder: str | Path) -> Path:
     for region in character.regions:
         entry = {"name": region.name, "muscles": list(region.muscles),
                  "states": [len(samples) for samples in region.samples], "samples": []}
+        if region.actuations:
+            entry["actuations"] = {m: dict(parts) for m, parts in region.actuations.items()}
         if region.mask is not None:
             entry["mask"] = f"masks/{_file_name(region.name)}.png"
             write_image(folder / entry["mask"], region.mask.astype(np.float32))

@@ -86,7 +86,8 @@ class CharacterOutput:
     def __init__(self, character: Character, muscle_names: Sequence[str], server=None):
         self.character = character
         self.compositor = Compositor(character)
-        self._from_contractions = ContractionStates(character.region_muscles, muscle_names)
+        self._from_contractions = ContractionStates(character.region_muscles, muscle_names,
+                                                    character.region_actuations)
         self.states = CRStates.neutral(len(character.regions))
         self.frames = 0
         self.server = None

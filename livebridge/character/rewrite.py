@@ -58,8 +58,19 @@ def character_from_model(model, feather_px: float = 10.0, name: str = "video rew
                 Sample((model.state_frame(cr.name, muscle, k)[y0:y1, x0:x1] / scale)[..., None].astype(np.float32),
                        np.ones((y1 - y0, x1 - x0), np.float32), (x0, y0), f"{cr.name} {muscle} state {k}")
                 for k in states))
-        regions.append(CharacterRegion(cr.name, tuple(cr.muscles), tuple(per_muscle), mask))
+        regions.append(CharacterRegion(cr.name, tuple(cr.muscles), tuple(per_muscle), mask,
+                                       _pseudo_actuations(cr, model.muscle_names)))
     return Character(name, neutral, tuple(regions), feather_px)
+
+
+def _pseudo_actuations(cr, muscle_names) -> dict[str, dict[str, float]]:
+    """The model's actuation of each pseudo-muscle (the muscles that are not basis muscles) of a CR."""
+    actuations = {}
+    for j, muscle in enumerate(cr.muscles):
+        if muscle not in muscle_names:
+            row = np.asarray(cr.actuations)[j]
+            actuations[muscle] = {muscle_names[i]: float(row[i]) for i in np.flatnonzero(row)}
+    return actuations
 
 
 def psnr_db(squared_error: float, count: int, peak: float = 1.0) -> float:

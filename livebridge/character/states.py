@@ -1,17 +1,19 @@
 """CR states of a frame for a character: per region the one active muscle and its level.
 
 A character's regions list their muscles: basis muscles (``jaw``) and pseudo-muscles, co-articulated
-combinations trained as one (``frontalis_L+corrugator_L``). Its state per frame comes from the markerless
+combinations trained as one. A pseudo-muscle's actuation (what it means in basis contractions at full level)
+is given (a markerless model knows it: ``"zygomatic+risorius"`` -> both zygomatics at 1, both risorii at
+0.5), or read from a name ``"a+b"`` (each component at 1). The state per frame comes from the markerless
 analysis directly (a character filled from the same model has the model's regions), or from contractions,
 the one signal every input produces, so any performer and any capture method drives any character: per
-region the muscle (or pseudo-muscle) ``S`` whose uniform level ``l`` best explains the region's
-contractions in least squares (``l`` = the mean contraction over ``S``; the residual is
-``sum_R x^2 - |S| l^2``, so the winner maximises ``|S| l^2``), neutral when every contraction is zero.
+region the candidate whose actuation ``v``, scaled by a level ``l``, best explains the contractions ``x`` in
+least squares (``l = x.v / v.v``; the squared residual falls by ``(x.v)^2 / v.v``, so the winner maximises
+that), neutral when no candidate explains anything.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,15 +49,50 @@ def components(muscle: str) -> tuple[str, ...]:
     return tuple(part.strip() for part in muscle.split("+"))
 
 
+def actuation_matrix(muscles: Sequence[str], muscle_names: Sequence[str],
+                     actuations: Mapping[str, Mapping[str, float]] | None = None, where: str = "") -> np.ndarray:
+    """Per candidate its actuation in basis contractions, shape (n_candidates, n_muscles).
+
+    Parameters
+    ----------
+    muscles : sequence of str
+        A region's muscles and pseudo-muscles.
+    muscle_names : sequence of str
+        The basis muscles.
+    actuations : mapping, optional
+        Pseudo-muscle -> {basis muscle: level at full actuation}; others are read from their names.
+    where : str
+        Names the region in errors.
+
+    Raises
+    ------
+    InputError
+        A candidate names a muscle the basis does not have.
+    """
+    index = {name: i for i, name in enumerate(muscle_names)}
+    matrix = np.zeros((len(muscles), len(muscle_names)))
+    for j, muscle in enumerate(muscles):
+        parts = dict(actuations[muscle]) if actuations and muscle in actuations else \
+            {part: 1.0 for part in components(muscle)}
+        for part, value in parts.items():
+            if part not in index:
+                raise InputError(f"{where}muscle {muscle!r}: {part!r} is no muscle of the basis "
+                                 f"({', '.join(muscle_names)})", field="muscles")
+            matrix[j, index[part]] = float(value)
+    return matrix
+
+
 class ContractionStates:
     """Maps contractions of a basis to a character's CR states (rule in the module docstring).
 
     Parameters
     ----------
     region_muscles : sequence of sequence of str
-        Per region of the character, its muscles (pseudo-muscles as ``"a+b"``).
+        Per region of the character, its muscles (pseudo-muscles as ``"a+b"`` or named in ``actuations``).
     muscle_names : sequence of str
         The basis muscles, in the order of the contraction vectors.
+    actuations : sequence of mapping, optional
+        Per region, pseudo-muscle -> {basis muscle: level} (see :func:`actuation_matrix`).
 
     Raises
     ------
@@ -63,28 +100,24 @@ class ContractionStates:
         A region's muscle has a component the basis does not have.
     """
 
-    def __init__(self, region_muscles: Sequence[Sequence[str]], muscle_names: Sequence[str]):
-        index = {name: i for i, name in enumerate(muscle_names)}
+    def __init__(self, region_muscles: Sequence[Sequence[str]], muscle_names: Sequence[str],
+                 actuations: Sequence[Mapping[str, Mapping[str, float]]] | None = None):
         self.n_regions = len(region_muscles)
-        self.n_candidates = max((len(m) for m in region_muscles), default=0)
-        n = len(muscle_names)
-        # membership (n_regions, n_candidates, n_muscles): 1 where muscle i is a component of candidate j
-        self._members = np.zeros((self.n_regions, max(self.n_candidates, 1), n))
+        n_candidates = max((len(m) for m in region_muscles), default=1)
+        # (n_regions, n_candidates, n_muscles); padding rows stay zero and never win
+        self._vectors = np.zeros((self.n_regions, n_candidates, len(muscle_names)))
         for r, muscles in enumerate(region_muscles):
-            for j, muscle in enumerate(muscles):
-                for part in components(muscle):
-                    if part not in index:
-                        raise InputError(f"region {r} muscle {muscle!r}: {part!r} is no muscle of the basis "
-                                         f"({', '.join(muscle_names)})", field="muscles")
-                    self._members[r, j, index[part]] = 1.0
-        self._sizes = self._members.sum(axis=2)  # (n_regions, n_candidates), 0 for padding
+            given = actuations[r] if actuations is not None else None
+            self._vectors[r, :len(muscles)] = actuation_matrix(muscles, muscle_names, given, f"region {r} ")
+        norms = np.square(self._vectors).sum(axis=2)
+        self._inverse_norms = np.divide(1.0, norms, out=np.zeros_like(norms), where=norms > 0)
 
     def __call__(self, contractions: np.ndarray) -> CRStates:
         """CR states for ``contractions (n_muscles,)`` (non-finite values count as 0)."""
         x = np.nan_to_num(np.asarray(contractions, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-        sums = self._members @ x  # (n_regions, n_candidates)
-        levels = np.divide(sums, self._sizes, out=np.zeros_like(sums), where=self._sizes > 0)
-        scores = self._sizes * np.square(np.clip(levels, 0.0, None))
+        along = self._vectors @ x  # (n_regions, n_candidates): x . v
+        levels = along * self._inverse_norms
+        scores = np.where(along > 0, along * levels, 0.0)
         best = np.argmax(scores, axis=1)
         rows = np.arange(self.n_regions)
         active = scores[rows, best] > 0.0

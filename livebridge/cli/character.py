@@ -115,7 +115,7 @@ def render(take: Path, character_spec, out: Path, force: bool, basis_spec, fps: 
     t, contractions, muscle_names = read_contraction_take(take, basis_spec)
     chosen = load_character_spec(character_spec)
     try:
-        mapper = ContractionStates(chosen.region_muscles, muscle_names)
+        mapper = ContractionStates(chosen.region_muscles, muscle_names, chosen.region_actuations)
     except InputError as error:  # the character names a muscle the take does not have
         where = character_spec if character_spec == "builtin" else Path(character_spec) / "character.toml"
         raise InputError(f"{error.message} (the take's muscles)", where, "regions") from None
