@@ -43,6 +43,7 @@ _COMMANDS = (
     ("livebridge.cli.take", "take"),
     ("livebridge.cli.play", "play"),
     ("livebridge.cli.solve", "solve"),
+    ("livebridge.cli.process", "process"),
 )
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a command stopped by Ctrl-C
 

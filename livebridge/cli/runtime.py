@@ -30,10 +30,10 @@ def _log(message: str) -> None:
     click.echo(message, err=True)
 
 
-def _announce_vmc(pipeline) -> None:
-    """The start-up banner's VMC line: where the datagrams go (says so when they leave this machine)."""
-    if pipeline.vmc is not None:
-        click.echo(pipeline.vmc.describe())
+def _announce_outputs(pipeline) -> None:
+    """The start-up banner's output lines: where the frames go (each says so when they leave this machine)."""
+    for output in pipeline.outputs:
+        click.echo(output.describe())
 
 
 def _print_summary(summary, score=None) -> None:
@@ -98,7 +98,7 @@ def run(session: str, frames: int | None, allow_remote: bool) -> None:
     def started(p):
         if p.render is not None:
             click.echo(f"render client: {p.render.url}")
-        _announce_vmc(p)
+        _announce_outputs(p)
         sys.stdout.flush()
 
     summary = run_until_stopped(pipeline, frames if frames is not None else loaded.frames, log=_log,
@@ -150,7 +150,7 @@ def demo(frames, cameras, seed, fps, size, host, allow_remote, port, unpaced, no
             click.echo(f"livebridge demo: open {p.render.url} in a browser (Ctrl-C to stop)")
         else:
             click.echo("livebridge demo running (Ctrl-C to stop)")
-        _announce_vmc(p)
+        _announce_outputs(p)
         sys.stdout.flush()
 
     summary = run_until_stopped(parts.pipeline, frames, log=_log, on_start=started)

@@ -17,6 +17,20 @@ from livebridge.runtime.preflight import check_calibration_used, check_cameras, 
 from livebridge.runtime.session import Session
 
 
+def display_face(session, basis):
+    """The basis the render client shows: ``[face] display`` (same muscles in the same order), else ``basis``."""
+    if session.display is None:
+        return basis
+    from livebridge.face.basis import Basis
+
+    shown = Basis.load(session.display)
+    if shown.names != basis.names:
+        raise InputError(f"the display face's muscles ({', '.join(shown.names)}) are not the solving basis's "
+                         f"({', '.join(basis.names)}): retarget the solving basis onto it", session.display,
+                         "face.display")
+    return shown
+
+
 def load_face(session: Session):
     """The session's basis and marker set (``builtin`` / ``ict`` or files; a simulated rig films this face)."""
     from livebridge.face.basis import Basis
@@ -133,6 +147,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
     ``on_frame`` is called on the outputs thread with every solved frame (see
     :class:`~livebridge.runtime.pipeline.Pipeline`).
     """
+    from livebridge.runtime.markers_front import MarkerFront
     from livebridge.runtime.pipeline import Pipeline
 
     basis, markers = load_face(session)
@@ -156,10 +171,10 @@ def build_pipeline(session: Session, log=print, on_frame=None):
         if session.render.enabled:
             from livebridge.output.render_server import RenderServer
 
-            render = RenderServer(basis, markers, session.render.host, session.render.port,
+            render = RenderServer(display_face(session, basis), markers, session.render.host, session.render.port,
                                   servo_names=servo.servo_names if servo is not None else (),
                                   allowed_origins=session.render.allowed_origins)
-        vmc = None
+        outputs = []
         if session.vmc.enabled:
             from livebridge.output.vmc import VMCOutput
 
@@ -169,6 +184,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             except InputError as error:
                 raise InputError(error.message, session.path, f"outputs.vmc.{error.field}") from None
             opened.append(vmc.close)
+            outputs.append(vmc)
         recorder = None
         if session.recording.enabled:
             from livebridge.take.recorder import TakeRecorder
@@ -182,10 +198,11 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             sources = recorder.wrap_sources(sources)
             log(f"recording to {directory}" + (" (with raw frames)" if session.recording.raw_frames else ""))
         log("set-up: warming up the per-frame kernels (compiled on their first use)")
-        return Pipeline(sources, cameras, basis, markers, period, session.reconstruct, session.solver, servo=servo,
-                        render=render, vmc=vmc, recorder=recorder, sync_tolerance=session.sync_tolerance,
-                        realtime=realtime, log=log, on_frame=on_frame, status_interval=session.status_interval,
-                        labelling_timeout_s=session.labelling_timeout_s)
+        front = MarkerFront(sources, cameras, basis, markers, period, session.reconstruct, session.solver,
+                            sync_tolerance=session.sync_tolerance, realtime=realtime,
+                            labelling_timeout_s=session.labelling_timeout_s)
+        return Pipeline(front, servo=servo, render=render, outputs=outputs, recorder=recorder, log=log,
+                        on_frame=on_frame, status_interval=session.status_interval)
     except BaseException:
         for close in reversed(opened):
             close()

@@ -15,6 +15,8 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
     [face]
     basis = "basis.npz"           # or "builtin" (the built-in face)
     markers = "markers.toml"      # or a shipped set: "builtin", "builtin-68", "ict-68"
+    # display = "target.npz"      # the render client shows this face instead of the basis (same muscles, any
+                                  # topology: from `livebridge retarget basis`)
 
     [reconstruct]
     tolerance_px = 2.0            # epipolar gate
@@ -147,6 +149,9 @@ class Session:
         0: run until stopped.
     labelling_timeout_s : float
         Seconds the pipeline waits for its first labelling before it ends with the reason; 0: forever.
+    display : Path or None
+        A basis ``.npz`` the render client shows instead of ``basis`` (same muscles, any topology: a
+        retargeted face), or None.
     """
 
     path: Path | None
@@ -164,6 +169,7 @@ class Session:
     status_interval: float = 1.0
     frames: int = 0
     labelling_timeout_s: float = LABELLING_TIMEOUT_S
+    display: Path | None = None
 
 
 class _Table:
@@ -262,6 +268,9 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     from livebridge.face import SHIPPED_MARKER_SETS
 
     markers = face.path_value("markers", SHIPPED_MARKER_SETS)
+    display = face.path_value("display")
+    if display is not None and Path(display).suffix != ".npz":
+        raise InputError("a basis .npz file to show (e.g. from `livebridge retarget basis`)", path, "face.display")
     face.check_known()
 
     calibration = top.path_value("calibration")
@@ -315,7 +324,8 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     runtime.check_known()
 
     return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_config,
-                   solver_config, servo_rig, render, vmc, recording, status_interval, frames, labelling_timeout_s)
+                   solver_config, servo_rig, render, vmc, recording, status_interval, frames, labelling_timeout_s,
+                   display)
 
 
 def _reconstruct(table: _Table, path: Path | None) -> ReconstructConfig:
