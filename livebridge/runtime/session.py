@@ -49,6 +49,11 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
     raw_frames = false            # also the camera images: replay://takes/take-... runs the take again
     frame_format = "pgm"          # raw images: "pgm" (uncompressed, keeps up live) or "png" (smaller, slow)
 
+    [markerless]                  # optional: one camera films a bare face instead of markers
+    model = "model.npz"           # from `livebridge markerless train`
+    head_rig = "leds"             # "leds" or "none" (optional: checked against the model)
+    min_confidence = 0.3          # a region less sure than this holds its last state
+
     [runtime]
     status_interval = 1.0         # seconds between live status lines
     frames = 0                    # stop after this many frame sets (0: until Ctrl-C)
@@ -75,7 +80,8 @@ if TYPE_CHECKING:
 
 BUILTIN_NAMES = ("builtin",)
 LABELLING_TIMEOUT_S = 10.0  # default [runtime] labelling_timeout_s
-_TOP_KEYS = {"cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime"}
+_TOP_KEYS = {"cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime",
+             "markerless"}
 
 
 @dataclass(frozen=True)
@@ -84,6 +90,16 @@ class RenderOptions:
     host: str = "127.0.0.1"
     port: int = 8765
     allowed_origins: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class MarkerlessOptions:
+    """``[markerless]``: the camera films a bare face analysed with a trained model (``livebridge markerless
+    train``) instead of markers; ``head_rig`` ("leds" or "none"), when given, must be the model's."""
+
+    model: Path
+    head_rig: str | None = None
+    min_confidence: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -152,6 +168,8 @@ class Session:
     display : Path or None
         A basis ``.npz`` the render client shows instead of ``basis`` (same muscles, any topology: a
         retargeted face), or None.
+    markerless : MarkerlessOptions or None
+        Markerless capture (one camera, a trained model) instead of markers.
     """
 
     path: Path | None
@@ -170,6 +188,7 @@ class Session:
     frames: int = 0
     labelling_timeout_s: float = LABELLING_TIMEOUT_S
     display: Path | None = None
+    markerless: MarkerlessOptions | None = None
 
 
 class _Table:
@@ -273,8 +292,12 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
         raise InputError("a basis .npz file to show (e.g. from `livebridge retarget basis`)", path, "face.display")
     face.check_known()
 
+    markerless = _markerless(top.table("markerless"), path) if "markerless" in data else None
     calibration = top.path_value("calibration")
-    if calibration is None and not all(u.startswith(("sim://", "replay://")) for u in urls):
+    if markerless is not None and len(urls) != 1:
+        raise InputError(f"markerless capture films with one camera, got {len(urls)} URLs", path, "cameras.urls")
+    if (calibration is None and markerless is None
+            and not all(u.startswith(("sim://", "replay://")) for u in urls)):
         raise InputError("real cameras need a calibration file", path, "calibration")
 
     reconstruct_config = _reconstruct(top.table("reconstruct"), path)
@@ -325,7 +348,19 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
 
     return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_config,
                    solver_config, servo_rig, render, vmc, recording, status_interval, frames, labelling_timeout_s,
-                   display)
+                   display, markerless)
+
+
+def _markerless(table: _Table, path: Path | None) -> MarkerlessOptions:
+    model = table.path_value("model", required=True)
+    head_rig = table.get("head_rig", str)
+    if head_rig is not None and head_rig not in ("leds", "none"):
+        raise InputError(f"must be 'leds' or 'none', got {head_rig!r}", path, "markerless.head_rig")
+    min_confidence = table.get("min_confidence", float, 0.3)
+    if not 0.0 <= min_confidence <= 1.0:
+        raise InputError(f"must be in [0, 1], got {min_confidence}", path, "markerless.min_confidence")
+    table.check_known()
+    return MarkerlessOptions(model, head_rig, min_confidence)
 
 
 def _reconstruct(table: _Table, path: Path | None) -> ReconstructConfig:
