@@ -44,6 +44,7 @@ _COMMANDS = (
     ("livebridge.cli.play", "play"),
     ("livebridge.cli.solve", "solve"),
     ("livebridge.cli.process", "process"),
+    ("livebridge.cli.markerless", "markerless"),
 )
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a command stopped by Ctrl-C
 
