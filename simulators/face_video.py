@@ -11,7 +11,7 @@ added last. The head rig (:mod:`~livebridge.simulators.head_rig`) is a dark glas
 bright LEDs, drawn only where nothing on the face is in front of them and while they face the camera.
 
 The camera looks at the face from the front (+z), from ``distance_mm``, its focal length making the face
-(brows to chin) fill ``fill`` of the image height; it has no lens distortion, and :meth:`FaceVideo.camera`
+(hairline to chin) fill ``fill`` of the image height; it has no lens distortion, and :meth:`FaceVideo.camera`
 returns it as a :class:`~livebridge.calibration.cameras.Camera`. The world frame is the model frame at
 rest: ``head_pose`` (head -> world) is the identity at ``t = 0``.
 
@@ -25,6 +25,7 @@ Through the camera registry: ``sim://face?basis=builtin&script=training&seed=3&s
 
 from __future__ import annotations
 
+import hashlib
 import math
 import threading
 import time
@@ -51,6 +52,8 @@ HEAD_RIGS = ("leds", "none")
 SIZE_RANGE = ((32, 4096), (32, 4096))
 HEAD_SHIFT_MM_PER_DEG = 1.0  # head translation amplitude per degree of head_turn_deg
 LED_MAX_VIEW_DEG = 75.0  # an LED seen further off its axis than this is too dim to show
+FOREHEAD = 0.35  # forehead height over the brows-to-chin height
+LED_HALO = 1.8  # radius of an LED's halo over its own
 FRAME_WIDTH_MM = 2.4  # drawn width of the glasses frame
 LIGHT_SWING_DEG = 90.0  # light_drift = 1 swings the light's direction by up to this
 DEFAULT_LIGHT = np.array([-0.35, 0.45, 1.0]) / np.linalg.norm([-0.35, 0.45, 1.0])
@@ -91,7 +94,7 @@ class FaceVideoConfig:
     distance_mm : float
         Camera distance from the face centre.
     fill : float
-        Fraction of the image height the face (brows to chin) fills.
+        Fraction of the image height the face (hairline to chin) fills.
     skin_level : float
         Grey level of white skin fully lit at exposure 1.
     ambient, specular, shininess : float
@@ -113,8 +116,8 @@ class FaceVideoConfig:
     head_rig: str = "leds"
     script: str = "training"
     distance_mm: float = 600.0
-    fill: float = 0.7
-    skin_level: float = 175.0
+    fill: float = 0.9
+    skin_level: float = 150.0
     ambient: float = 0.3
     specular: float = 0.15
     shininess: float = 20.0
@@ -228,7 +231,7 @@ class FaceVideo:
         self.basis = basis
         self.config = config = config or FaceVideoConfig()
         self.features = shipped_features(basis) if features is None else features
-        self.skin = skin.make_skin(basis.neutral, config.seed, self.features)
+        self.skin = _skin_for(basis.neutral, config.seed, self.features)
         self.head_rig = head_rig or default_head_rig(basis.neutral, self.features)
         self._frame_points = frame_polyline(self.head_rig)
         self._camera, self._target = _frontal_camera(basis.neutral, self.features, config)
@@ -237,6 +240,10 @@ class FaceVideo:
         self._elements = basis.elements.reshape(basis.n_muscles, -1)
         self._triangles = np.ascontiguousarray(basis.triangles, dtype=np.int64)
         self._strain = skin.strain_reference(basis.neutral, self._triangles, self.skin.vertex_texels)
+        # the texture level whose texels are about as large as the pixels' footprint on the face (a
+        # pre-filtered texture: no aliasing of pores and freckles, and it stays in the cache)
+        mm_per_pixel = (config.distance_mm - (basis.neutral[:, 2].max() - self._target[2])) / self._matrix[0, 0]
+        self._maps = self.skin.level(mm_per_pixel)
         n_vertices = basis.n_vertices
         self._pixels = np.zeros((n_vertices, 2))
         self._depth = np.zeros(n_vertices)
@@ -346,10 +353,10 @@ class FaceVideo:
             halfway /= np.linalg.norm(halfway)
             lighting = np.array([config.skin_level * config.exposure, light.intensity, config.ambient,
                                  config.specular, config.shininess, config.wrinkle])
-            texture = self.skin
+            maps = self._maps
             gbuffer = self._gbuffer
             skin.shade(gbuffer.ids, gbuffer.bary, gbuffer.front, self._triangles, self._normals,
-                       texture.vertex_texels, self._compression, texture.albedo, texture.lines_u, texture.lines_v,
+                       maps.vertex_texels, self._compression, maps.albedo, maps.lines_u, maps.lines_v,
                        direction, halfway, lighting, config.background_level * config.exposure, self._shaded)
             image = np.clip(self._shaded + 0.5, 0.0, 255.0).astype(np.uint8)
             leds = np.full((4, 2), np.nan)
@@ -376,8 +383,11 @@ class FaceVideo:
         cosine = to_camera @ axis / np.linalg.norm(to_camera, axis=1)
         shown = self._unoccluded(leds, led_depth) & (cosine > math.cos(math.radians(LED_MAX_VIEW_DEG)))
         if shown.any():
-            render_discs(image, leds[shown], focal * LED_DIAMETER_MM / 2 / led_depth[shown],
-                         np.full(int(shown.sum()), min(255.0, config.led_level * config.exposure)))
+            radius = focal * LED_DIAMETER_MM / 2 / led_depth[shown]
+            level = min(255.0, config.led_level * config.exposure)
+            # a halo around the bright core (light scattered in the lens): the blob stands on an even ring
+            render_discs(image, leds[shown], LED_HALO * radius, np.full(int(shown.sum()), 0.75 * level))
+            render_discs(image, leds[shown], radius, np.full(int(shown.sum()), level))
         return np.where(shown[:, None], leds, np.nan)
 
     def _project(self, head_points: np.ndarray, head_pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -392,7 +402,10 @@ class FaceVideo:
         width, height = self.config.size
         inside = np.isfinite(pixels).all(axis=1) & (depth > raster.NEAR_MM)
         inside &= (pixels[:, 0] >= 0) & (pixels[:, 0] <= width - 1) & (pixels[:, 1] >= 0) & (pixels[:, 1] <= height - 1)
-        surface = np.array([self._gbuffer.depth_at(p) if ok else 0.0 for p, ok in zip(pixels, inside)])
+        x = np.rint(np.where(inside, pixels[:, 0], 0)).astype(np.int64)
+        y = np.rint(np.where(inside, pixels[:, 1], 0)).astype(np.int64)
+        inverse = self._gbuffer.inverse_depth[y, x].astype(np.float64)
+        surface = np.where(inverse > 0, 1.0 / np.maximum(inverse, 1e-12), np.inf)
         return inside & (depth < surface - 0.5)
 
     # ------------------------------------------------------------------------------------ the take
@@ -416,15 +429,45 @@ class FaceVideo:
             seq += 1
 
 
+_SKINS: OrderedDict[str, skin.SkinTexture] = OrderedDict()
+_SKINS_KEPT = 4
+
+
+def _skin_for(neutral: np.ndarray, seed: int, features: dict | None) -> skin.SkinTexture:
+    """:func:`~livebridge.simulators.skin.make_skin`, remembered for the last few faces (building the texture
+    takes about a second; videos of one face and seed share it, read-only)."""
+    digest = hashlib.sha1(np.ascontiguousarray(neutral, dtype=np.float64).tobytes())
+    digest.update(str(int(seed)).encode())
+    for name in sorted(features or {}):
+        digest.update(name.encode() + np.asarray(features[name], dtype=np.float64).tobytes())
+    key = digest.hexdigest()
+    with _SKINS_LOCK:
+        if key in _SKINS:
+            _SKINS.move_to_end(key)
+            return _SKINS[key]
+    texture = skin.make_skin(neutral, seed, features)
+    for array in (texture.albedo, texture.lines_u, texture.lines_v, texture.vertex_texels):
+        array.setflags(write=False)
+    with _SKINS_LOCK:
+        _SKINS[key] = texture
+        while len(_SKINS) > _SKINS_KEPT:
+            _SKINS.popitem(last=False)
+    return texture
+
+
+_SKINS_LOCK = threading.Lock()
+
+
 def _frontal_camera(neutral: np.ndarray, features: dict | None,
                     config: FaceVideoConfig) -> tuple[Camera, np.ndarray]:
     """The camera in front of the face (see the module docstring) and the point it looks at (head frame, (3,))."""
     low, high = neutral.min(axis=0), neutral.max(axis=0)
     if features and all(n in features for n in ("brow_middle_L", "brow_middle_R", "chin")):
-        top = 0.5 * (features["brow_middle_L"][1] + features["brow_middle_R"][1])
-        bottom = features["chin"][1]
+        brows = 0.5 * (features["brow_middle_L"][1] + features["brow_middle_R"][1])
+        chin = features["chin"][1]
     else:
-        top, bottom = low[1] + 0.8 * (high[1] - low[1]), low[1] + 0.25 * (high[1] - low[1])
+        brows, chin = low[1] + 0.7 * (high[1] - low[1]), low[1] + 0.15 * (high[1] - low[1])
+    top, bottom = brows + FOREHEAD * (brows - chin), chin  # the hairline and the chin
     target = np.array([0.5 * (low[0] + high[0]), 0.5 * (top + bottom), 0.5 * (low[2] + high[2])])
     center = target + np.array([0.0, 0.0, config.distance_mm])
     to_front = config.distance_mm - (high[2] - target[2])

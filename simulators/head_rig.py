@@ -147,7 +147,7 @@ def default_head_rig(neutral: np.ndarray, features: dict[str, np.ndarray] | None
     return HeadRig(tuple(names[i] for i in order), np.array(positions)[order])
 
 
-def frame_polyline(rig: HeadRig, step_mm: float = 1.5) -> np.ndarray:
+def frame_polyline(rig: HeadRig, step_mm: float = 0.75) -> np.ndarray:
     """Points along the glasses frame (two rims through the LEDs, the bridge), head frame, shape (n, 3).
 
     Each rim is an ellipse through its side's upper and lower LED, in the plane the LEDs span; a rig whose

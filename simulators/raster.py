@@ -163,12 +163,3 @@ class GBuffer:
     def fill(self, pixels: np.ndarray, depth: np.ndarray, triangles: np.ndarray) -> None:
         """Rasterise a mesh (see :func:`rasterize`) into these buffers."""
         rasterize(pixels, depth, triangles, self.ids, self.bary, self.inverse_depth, self.front)
-
-    def depth_at(self, pixel: np.ndarray) -> float:
-        """Camera-frame z (mm) of the nearest surface at the pixel nearest ``pixel (2,)``; inf where none or
-        outside the image."""
-        x, y = int(round(float(pixel[0]))), int(round(float(pixel[1])))
-        height, width = self.ids.shape
-        if not (0 <= x < width and 0 <= y < height) or self.inverse_depth[y, x] <= 0:
-            return float("inf")
-        return 1.0 / float(self.inverse_depth[y, x])

@@ -25,6 +25,7 @@ from numba import njit
 TEXEL_MM = 0.25  # texture resolution on the skin
 MARGIN_MM = 4.0
 RADIUS_MM = 80.0  # u is the angle around the vertical axis times this
+MAX_LEVEL = 4  # coarsest pre-filtered texture level (16 texels to one)
 COMPRESSION_FULL = 0.18  # relative shortening of the skin at which wrinkles are fully drawn
 
 
@@ -46,6 +47,16 @@ class SkinTexture:
     lines_u: np.ndarray
     lines_v: np.ndarray
     vertex_texels: np.ndarray
+
+    def level(self, mm_per_pixel: float) -> SkinTexture:
+        """The texture pre-filtered (Gaussian pyramid) down to texels no smaller than about half of
+        ``mm_per_pixel``, the size of a pixel's footprint on the skin; ``vertex_texels`` scaled to match."""
+        steps = int(np.clip(np.floor(np.log2(max(mm_per_pixel, 1e-9) / (2 * TEXEL_MM))), 0, MAX_LEVEL))
+        maps = [self.albedo, self.lines_u, self.lines_v]
+        for _ in range(steps):
+            maps = [cv2.pyrDown(m) for m in maps]
+        texels = (self.vertex_texels / 2**steps).astype(np.float32)
+        return SkinTexture(*(np.ascontiguousarray(m, dtype=np.float32) for m in maps), texels)
 
 
 def cylinder_uv(points: np.ndarray, axis: np.ndarray) -> np.ndarray:
@@ -282,6 +293,7 @@ def shade(ids, bary, front, triangles, normals, texels, compression, albedo, lin
     """
     gain, intensity, ambient, specular, shininess, wrinkle = (lighting[0], lighting[1], lighting[2], lighting[3],
                                                               lighting[4], lighting[5])
+    cutoff = np.exp(np.log(1e-3) / shininess)
     height, width = ids.shape
     for y in range(height):
         for x in range(width):
@@ -311,7 +323,7 @@ def shade(ids, bary, front, triangles, normals, texels, compression, albedo, lin
                 reflectance *= 1.0 - wrinkle * min(folds, 1.0)
             diffuse = max(nx * light[0] + ny * light[1] + nz * light[2], 0.0)
             value = gain * reflectance * (ambient + intensity * diffuse)
-            if diffuse > 0.0:
-                highlight = max(nx * halfway[0] + ny * halfway[1] + nz * halfway[2], 0.0)
-                value += gain * intensity * specular * highlight ** shininess
+            highlight = nx * halfway[0] + ny * halfway[1] + nz * halfway[2]
+            if diffuse > 0.0 and highlight > cutoff:  # below the cutoff the highlight is < 1e-3 of its peak
+                value += gain * intensity * specular * np.exp(shininess * np.log(highlight))
             out[y, x] = value

@@ -491,6 +491,58 @@ CHARACTER_CASES = _toml_cases() + (
 )
 
 
+# ------------------------------------------------------------------------------------------------ scans
+_PLY = "ply\nformat {} 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n{}end_header\n"
+_FACE_HEADER = "element face 1\nproperty list uchar int vertex_indices\n"
+
+
+def _ply_binary(n_header: int, n_points: int, faces: bytes = b"", face_header: str = "") -> Callable[[Path], None]:
+    points = np.arange(3 * n_points, dtype="<f4").tobytes()
+    return _bytes(_PLY.format("binary_little_endian", n_header, face_header).encode() + points + faces)
+
+
+PLY_CASES = _common_cases() + (
+    Case("empty file", _text(""), ("empty file",)),
+    Case("not a PLY", _text("hello\n"), ("not a PLY",)),
+    Case("no end_header", _text("ply\nformat ascii 1.0\nelement vertex 1\n"), ("end_header",)),
+    Case("unknown format", _text(_PLY.format("binary_middle_endian", 1, "") + "0 0 0\n"), ("header line 2",
+                                                                                           "binary_middle_endian")),
+    Case("unknown type", _text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float128 x\nend_header\n"),
+         ("header line 4", "float128")),
+    Case("no z", _text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+                       "end_header\n0 0\n"), ("vertex", "no property z")),
+    Case("ascii too few vertices", _text(_PLY.format("ascii", 3, "") + "0 0 0\n1 1 1\n"),
+         ("vertex 2 of 3", "ends")),
+    Case("ascii short row", _text(_PLY.format("ascii", 2, "") + "0 0 0\n1 1\n"), ("line 9", "vertex 1")),
+    Case("ascii text", _text(_PLY.format("ascii", 1, "") + "0 up 0\n"), ("line 8", "vertex 0")),
+    Case("ascii NaN", _text(_PLY.format("ascii", 2, "") + "0 0 0\n1 nan 1\n"), ("vertex 1", "not finite")),
+    Case("binary truncated", _ply_binary(5, 4), ("vertex 4 of 5", "ends")),
+    Case("binary face past the end", _ply_binary(3, 3, b"\x03" + np.array([0, 1, 7], "<i4").tobytes(),
+                                                 _FACE_HEADER), ("face", "vertex 7", "does not exist")),
+    Case("binary face truncated", _ply_binary(3, 3, b"\x03\x00\x00", _FACE_HEADER), ("face 0 of 1", "ends")),
+    Case("no vertices", _text(_PLY.format("ascii", 0, "")), ("no points",)),
+)
+XYZ_CASES = _common_cases() + (
+    Case("empty file", _text(""), ("empty file",)),
+    Case("blank lines only", _text("\n  \n"), ("empty file",)),
+    Case("header only", _text("x y z\n"), ("no points",)),
+    Case("not utf-8", _bytes(b"1 2 3\n1 \xff 3\n"), ("not UTF-8",)),
+    Case("two columns", _text("1 2 3\n4 5\n"), ("line 2", "at least 3 values")),
+    Case("text", _text("1 2 3\n4 five 6\n"), ("line 2", "numbers")),
+    Case("NaN", _text("1 2 3\n4 5 nan\n"), ("line 2", "finite")),
+    Case("header with numbers after", _text("label 2 3\n"), ("line 1", "numbers")),
+)
+_SCANS = ("retarget", "scans", "--neutral-landmarks", "{dir}/lm.csv", "--expression", "jaw={dir}/jaw.ply")
+
+
+def _write_scan_landmarks(folder: Path) -> None:
+    (folder / "lm.csv").write_text("nose_tip,0,0,0\n")
+
+
+def _scans(path: Path, folder: Path) -> list[str]:
+    return [arg.format(dir=folder) for arg in _SCANS] + ["--neutral", str(path), "--out", str(folder / "b.npz")]
+
+
 FORMATS = (
     Format("basis", "basis.npz", lambda path, folder: ["basis", "show", str(path), "--out", str(folder / "out.png")],
            BASIS_CASES),
@@ -516,6 +568,8 @@ FORMATS = (
            lambda path, folder: ["character", "render", str(folder / "take.csv"), "--character",
                                  str(folder / "char"), "--out", str(folder / "frames"), "--no-progress"],
            CHARACTER_CASES, setup=_write_character_parts),
+    Format("scan ply", "neutral.ply", _scans, PLY_CASES, setup=_write_scan_landmarks),
+    Format("scan xyz", "neutral.xyz", _scans, XYZ_CASES, setup=_write_scan_landmarks),
 )
 CASES = [pytest.param(fmt, case, id=f"{fmt.name}: {case.name}") for fmt in FORMATS for case in fmt.cases]
 
@@ -630,6 +684,8 @@ _RIG = ("--cameras", "{dir}/calibration.toml")
 _CONVERT = ("take", "convert", "{dir}/take.npz", "{dir}/out.csv")
 _CHARACTER_RENDER = ("character", "render", "{dir}/contractions.csv", "--character", "builtin", "--out",
                      "{dir}/out.mp4")
+_RETARGET = ("--source", "builtin", "--source-landmarks", "builtin-22", "--target", "builtin", "--target-landmarks",
+             "builtin-22")
 _QUALITY = ("--basis", "{dir}/basis.npz", "--markers", "{dir}/markers.toml", "--take", "{dir}/take.npz")
 
 COMMANDS = (
@@ -721,6 +777,28 @@ COMMANDS = (
         Bad("FILE missing", ("solve", "{dir}/nothing.c3d", "--markers", "auto", "--out", "{dir}/c.csv"),
             ("MARKER_FILE", "nothing.c3d", "file not found"), True),
     )),
+    Command("process", ("process", "{dir}/checked", "--out", "{dir}/results", "--workers", "0"), (
+        Bad("--out missing", ("--out", _MISSING), ("--out", "folder not found")),
+        Bad("--out a file", ("--out", "{dir}/basis.npz"), ("--out", "is a file")),
+        Bad("--stage unknown", ("--stage", "all"), ("--stage", "all")),
+        Bad("--mode unknown", ("--mode", "fast"), ("--mode", "fast")),
+        *_numbers("--workers", ("-1", "x", "1.5", "2000")),
+        Bad("--scheduler and --workers", ("--scheduler", "tcp://127.0.0.1:8786"), ("--workers", "not both")),
+        *(Bad(f"--scheduler {address}", ("process", "{dir}/checked", "--out", "{dir}/results", "--scheduler",
+                                        address), ("--scheduler", address), True)
+          for address in ("http://127.0.0.1:8786", "tcp://127.0.0.1", "tcp://:8786", "tcp://127.0.0.1:0",
+                          "tcp://127.0.0.1:99999", "127.0.0.1:8786")),
+        Bad("--calibration with --stage solve", ("--calibration", "{dir}/calibration.toml"),
+            ("--calibration", "only with")),
+        Bad("--markers missing", ("--markers", "{dir}/nothing.toml"), ("--markers", "nothing.toml", "not found")),
+        *_input_cases("--basis"),
+        Bad("TAKES missing", ("process", "{dir}/nothing", "--out", "{dir}/results"),
+            ("TAKES", "nothing", "folder not found"), True),
+        Bad("TAKES given twice", ("process", "{dir}/checked", "{dir}/checked", "--out", "{dir}/results"),
+            ("checked", "given twice"), True),
+        Bad("results exist", ("process", "{dir}/checked", "--out", "{dir}", "--workers", "0"),
+            ("checked", "already exists", "--force"), True),
+    )),
     Command("markers place", ("markers", "place", "{dir}/take.npz", "--out", "{dir}/new.toml"), (
         *_output_cases(suffix=".toml"),
         *_numbers("--neutral-frame", ("-1", "2.5", "first")),
@@ -765,6 +843,9 @@ COMMANDS = (
         Bad("sim board unknown parameter", ("--sources", "a=sim://rig?board=chessboard:7x7:40&fps=30"),
             ("fps", "unknown")),
         Bad("sim board size", ("--sources", "a=sim://rig?board=chessboard:7x7:40&size=10x10"), ("size", "640x480")),
+        Bad("sim face unknown parameter", ("--sources", "a=sim://face?cameras=2"), ("cameras", "unknown")),
+        Bad("sim face size", ("--sources", "a=sim://face?size=10x10"), ("size", "32..4096")),
+        Bad("sim face head rig", ("--sources", "a=sim://face?head_rig=helmet"), ("head_rig", "leds, none")),
     )),
     Command("calibrate show", ("calibrate", "show", "{dir}/calibration.toml"), (
         Bad("PATH missing", ("calibrate", "show", "{dir}/nothing.toml"), ("PATH", "nothing.toml", "file not found"),
@@ -817,6 +898,22 @@ COMMANDS = (
     Command("bench", ("bench",), (
         Bad("NAME unknown", ("fastest",), ("NAME", "'fastest'")),
     )),
+    Command("retarget scans", ("retarget", "scans", "--neutral", "{dir}/contractions.csv", "--neutral-landmarks",
+                               "{dir}/contractions.csv", "--expression", "jaw={dir}/contractions.csv", "--out",
+                               "{dir}/b.npz"), (
+        *_output_cases(suffix=".npz"),
+        *_output_cases("--grid-obj", ".toml"),
+        *_input_cases("--neutral"),
+        *_input_cases("--neutral-landmarks"),
+        *_input_cases("--reference"),
+        *_numbers("--crop-radius", _NOT_FINITE + ("0", "-1")),
+        Bad("--grid not WxH", ("--grid", "150"), ("--grid", "WxH")),
+        Bad("--grid too small", ("--grid", "1x150"), ("--grid",)),
+        Bad("--expression without =", ("--expression", "jaw"), ("--expression", "NAME=SCAN[:LM]")),
+        Bad("--expression twice", ("--expression", "jaw=a.ply"), ("--expression", "'jaw'", "twice")),
+        Bad("--normalise unknown", ("--normalise", "warp"), ("--normalise", "warp")),
+        Bad("--units unknown", ("--units", "inch"), ("--units", "inch")),
+    )),
     Command("landmarks place", ("landmarks", "place", "builtin", "--vertices", "{dir}/ids.toml", "--out",
                                 "{dir}/lm.toml"), (
         *_output_cases(suffix=".toml"),
@@ -840,6 +937,22 @@ COMMANDS = (
         Bad("LANDMARKS not on this mesh", ("landmarks", "show", "{dir}/basis.npz", "builtin-22", "--out",
                                            "{dir}/lm.png"), ("builtin-22", "marker brow_outer_L", "does not exist"),
             True),
+    )),
+    *[Command(f"retarget {verb}", ("retarget", verb, *_RETARGET, *extra), (
+        Bad("a landmark missing on the target", ("--target-landmarks", "{dir}/lm21.toml"),
+            ("lm21.toml", "nose_tip", "missing")),
+        Bad("a non-manifold target", ("--target", "{dir}/fan.obj"), ("builtin-22", "non-manifold")),
+        Bad("a landmark off the surface", ("--target", "{dir}/collapsed.obj"),
+            ("builtin-22", "nose_tip", "off the surface")),
+        Bad("a hole at a landmark", ("--target", "{dir}/holed.obj"), ("builtin-22", "nose_tip", "hole")),
+        Bad("--source-landmarks missing", ("--source-landmarks", "{dir}/nothing.toml"),
+            ("--source-landmarks", "nothing.toml", "file not found")),
+    )) for verb, extra in (("basis", ("--out", "{dir}/target.npz")),
+                           ("au", ("--au", "12", "--out", "{dir}/au.obj")))],
+    Command("retarget au options", ("retarget", "au", *_RETARGET, "--au", "12", "--out", "{dir}/au.obj"), (
+        *_numbers("--magnitude", _NOT_FINITE + ("1.5", "-0.1")),
+        Bad("--au unknown", ("--au", "99"), ("au99", "no control points")),
+        Bad("--side unknown", ("--side", "up"), ("--side", "up")),
     )),
     Command("take show", ("take", "show", "{dir}/take.npz"), (
         *_numbers("--rate", _NOT_FINITE + ("0", "-1", "1e9")),
@@ -896,7 +1009,34 @@ def _option_work(folder: Path) -> None:
     for name in ("existing.png", "existing.npz", "existing.toml"):
         (folder / name).write_bytes(b"keep me")
     (folder / "checked").mkdir()
+    (folder / "results").mkdir()
     (folder / "checked" / "take.basis-check.txt").write_text("keep me")
+    _retarget_work(folder)
+
+
+def _retarget_work(folder: Path) -> None:
+    """Landmarks without nose_tip; the built-in face as OBJ made non-manifold, and with nose_tip's triangle
+    collapsed (the landmark off any surface); same triangle counts, so the shipped landmarks fit them."""
+    from livebridge.face.builtin import builtin_basis
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    landmarks = load_landmark_set("builtin-22")
+    landmarks.subset(np.array([n != "nose_tip" for n in landmarks.names])).save(folder / "lm21.toml")
+    basis = builtin_basis()
+    fan = basis.triangles.copy()
+    a, b = fan[0, :2]
+    fan[-2:] = [[a, b, fan[100, 2]], [a, b, fan[200, 2]]]  # edge (a, b) in four triangles
+    collapsed = basis.triangles.copy()
+    vertex = collapsed[landmarks.triangles[landmarks.names.index("nose_tip")], 0]
+    collapsed[landmarks.triangles[landmarks.names.index("nose_tip")]] = [vertex, vertex, vertex]
+    holed = basis.triangles.copy()  # the triangles around nose_tip's collapsed onto one far vertex: a hole
+    own = landmarks.triangles[landmarks.names.index("nose_tip")]
+    around = np.flatnonzero(np.isin(holed, holed[own]).any(axis=1))
+    holed[around[around != own]] = holed[0, 0]
+    for name, triangles in (("fan.obj", fan), ("collapsed.obj", collapsed), ("holed.obj", holed)):
+        lines = [f"v {x} {y} {z}" for x, y, z in basis.neutral] + [f"f {i + 1} {j + 1} {k + 1}"
+                                                                   for i, j, k in triangles]
+        (folder / name).write_text("\n".join(lines) + "\n")
 
 
 @pytest.mark.parametrize("command,case", OPTION_CASES)

@@ -128,8 +128,8 @@ def _unpaced_capture(pipeline):
     a run is a deterministic function of its frames (``SyncedCapture(realtime=False)``)."""
     from livebridge.capture.sync import SyncedCapture
 
-    old = pipeline.capture
-    pipeline.capture = SyncedCapture(old.sources, old.sync.period_s, queue_size=1, realtime=False,
+    old = pipeline.front.capture
+    pipeline.front.capture = SyncedCapture(old.sources, old.sync.period_s, queue_size=1, realtime=False,
                                      tolerance_s=old.sync.tolerance_s)
     return pipeline
 
@@ -159,7 +159,7 @@ def test_recorded_demo_replays_through_the_pipeline(tmp_path):
     frames = []
     pipeline = build_pipeline(load_session(session), log=lambda m: None, on_frame=frames.append)
     summary = run_until_stopped(_unpaced_capture(pipeline), log=lambda m: None)  # ends when the take does
-    assert summary.cameras_alive == 0 and pipeline.capture.sync.stats.framesets >= min(written.values())
+    assert summary.cameras_alive == 0 and pipeline.front.capture.sync.stats.framesets >= min(written.values())
     replayed = {f.seq: f.contractions for f in frames}
     common = [k for k, seq in enumerate(recorded.seq) if seq in replayed]
     assert len(common) >= 0.9 * recorded.n_frames

@@ -28,7 +28,8 @@ from click.testing import CliRunner
 
 from livebridge.cli import main
 from livebridge.errors import InputError
-from livebridge.runtime.pipeline import LabellingTimeout, Pipeline, run_until_stopped
+from livebridge.runtime.markers_front import LabellingTimeout, MarkerFront
+from livebridge.runtime.pipeline import Pipeline, run_until_stopped
 from livebridge.take.replay import ReplaySource
 
 SMALL = (640, 400)
@@ -148,7 +149,7 @@ def test_a_simulated_camera_whose_read_raises_is_dead_in_the_status_line():
 
     parts = build_demo(size=SMALL, realtime=False, servo=False, render=False, log=_quiet)
     pipeline = parts.pipeline
-    camera = pipeline.sources[1].source  # DetectingSource -> SimCameraSource
+    camera = pipeline.front.sources[1].source  # DetectingSource -> SimCameraSource
     original, reads = camera.read, []
 
     def read(timeout=None):
@@ -314,7 +315,8 @@ def _give_up(sources, cameras, clock, **options):
     from livebridge.simulators.rig import default_face
 
     basis, markers = default_face()
-    pipeline = Pipeline(sources, cameras, basis, markers, 1 / 30, realtime=False, log=_quiet, clock=clock, **options)
+    front = MarkerFront(sources, cameras, basis, markers, 1 / 30, realtime=False, clock=clock, **options)
+    pipeline = Pipeline(front, log=_quiet, clock=clock)
     with pytest.raises(LabellingTimeout) as error:
         _in_thread(lambda: run_until_stopped(pipeline, log=_quiet))
     return str(error.value), pipeline
@@ -365,10 +367,12 @@ def test_a_labelling_timeout_of_0_waits(monkeypatch):
     from livebridge.simulators.rig import default_face
 
     basis, markers = default_face()
-    pipeline = Pipeline(sources, rig.cameras, basis, markers, 1 / 30, realtime=False, log=_quiet,
-                        clock=_SteppingClock(1.0), labelling_timeout_s=0)
+    clock = _SteppingClock(1.0)
+    front = MarkerFront(sources, rig.cameras, basis, markers, 1 / 30, realtime=False, clock=clock,
+                        labelling_timeout_s=0)
+    pipeline = Pipeline(front, log=_quiet, clock=clock)
     summary = _in_thread(lambda: run_until_stopped(pipeline, log=_quiet))
-    assert summary.solved == 0 and pipeline.error is None and pipeline.stats.unlabelled_attempts >= 100
+    assert summary.solved == 0 and pipeline.error is None and pipeline.front.unlabelled_attempts >= 100
 
 
 def test_the_session_gives_its_labelling_timeout_to_the_pipeline(tmp_path):
@@ -378,7 +382,7 @@ def test_the_session_gives_its_labelling_timeout_to_the_pipeline(tmp_path):
     path = tmp_path / "session.toml"
     path.write_text(_SIM_URL + _NO_RENDER + "[runtime]\nlabelling_timeout_s = 2.5\n")
     pipeline = build_pipeline(load_session(path), log=_quiet)
-    assert pipeline.labelling_timeout_s == 2.5
+    assert pipeline.front.labelling_timeout_s == 2.5
 
 
 def test_run_ends_with_the_reason_and_exit_1(tmp_path):
@@ -466,7 +470,7 @@ def test_ctrl_c_while_the_servos_activate_releases_them():
         run_until_stopped(pipeline, frames=10, log=_quiet)
     assert time.monotonic() - start < GUARD_S
     assert calls[:3] == ["activated", "deactivate", "close ease=True"] and pipeline.stats.solved == 0
-    assert not pipeline.capture._threads and pipeline.capture.sources[0].ended
+    assert not pipeline.front.capture._threads and pipeline.front.capture.sources[0].ended
 
 
 def test_ctrl_c_while_the_cameras_start_eases_the_active_servos():
@@ -477,14 +481,14 @@ def test_ctrl_c_while_the_cameras_start_eases_the_active_servos():
     eased = []
     ease = servo.ease_to_neutral
     servo.ease_to_neutral = lambda timeout=None: (eased.append(servo.state is not None), ease(timeout))
-    capture_start = pipeline.capture.start
+    capture_start = pipeline.front.capture.start
 
     def interrupted():
         os.kill(os.getpid(), signal.SIGINT)
         time.sleep(5)
         capture_start()
 
-    pipeline.capture.start = interrupted
+    pipeline.front.capture.start = interrupted
     with pytest.raises(KeyboardInterrupt):
         run_until_stopped(pipeline, frames=10, log=_quiet)
     assert eased == [True] and servo.state is None and not servo.buses

@@ -247,4 +247,6 @@ def test_nothing_unsafe_reaches_a_servo_from_any_file(tmp_path_factory, shared_o
     for i, servo in enumerate(rig.servos):  # what the bus received: the same safe targets, in order
         seen = np.array(goals[servo.address], dtype=float)
         assert np.all((seen >= low[i]) & (seen <= high[i]))
-        assert set(seen[1:]) <= set(raw[:, i])  # the first: torque on holding the present position
+        # besides the sent targets, only the present position held at torque-on (sent first; on a loaded
+        # machine the simulator may log it again after the previous example's release)
+        assert set(seen[1:]) <= set(raw[:, i]) | {seen[0]}

@@ -37,7 +37,7 @@ def test_a_camera_dies_mid_take_and_the_rest_keep_going():
     parts = build_demo(size=SMALL, realtime=False, servo=False, render=False, log=lambda m: None,
                        on_frame=frames.append)
     pipeline = parts.pipeline
-    dying = pipeline.sources[2]
+    dying = pipeline.front.sources[2]
     inner = dying.source  # DetectingSource -> SimCameraSource
     inner.kill_after(40)
     summary = run_until_stopped(pipeline, frames=120, log=lambda m: None)
@@ -102,7 +102,7 @@ def test_stop_goes_in_order_servos_then_recording_then_render(tmp_path):
             return original(*args, **kwargs)
         setattr(obj, name, wrapped)
 
-    spy(pipeline.capture, "stop", "cameras")
+    spy(pipeline.front.capture, "stop", "cameras")
     spy(pipeline.servo, "close", "servos")
     spy(pipeline.recorder, "close", "recording")
     spy(pipeline.render, "stop", "render")
@@ -224,14 +224,16 @@ class _SteppingClock:
 
 
 def test_pipeline_times_every_stage_on_the_clock_it_is_given():
+    from livebridge.runtime.markers_front import MarkerFront
     from livebridge.runtime.pipeline import Pipeline
     from livebridge.simulators.rig import RigConfig, SimRig, default_face
 
     basis, markers = default_face()
     rig = SimRig(basis, markers, n_cameras=4, config=RigConfig(size=SMALL, fps=30.0), seed=1)
     clock, frames, lines = _SteppingClock(), [], []
-    pipeline = Pipeline(rig.sources(realtime=False), rig.cameras, basis, markers, rig.period, realtime=False,
-                        log=lines.append, on_frame=frames.append, status_interval=0.05, clock=clock)
+    front = MarkerFront(rig.sources(realtime=False), rig.cameras, basis, markers, rig.period, realtime=False,
+                        clock=clock)
+    pipeline = Pipeline(front, log=lines.append, on_frame=frames.append, status_interval=0.05, clock=clock)
     start = clock.now
     summary = run_until_stopped(pipeline, frames=20, log=lambda m: None)
     assert summary.solved >= 20 and len(frames) >= 20

@@ -60,7 +60,7 @@ def test_default_map_sends_arkit_names_and_values(receiver):
     x = np.linspace(0, 1, 16)
     port = receiver.getsockname()[1]
     with VMCOutput(NAMES, port=port) as out:
-        assert out.send(x) >= 1
+        assert out.send_contractions(x) >= 1
         values, sizes, applied = _receive_frame(receiver)
     got = dict(values)
     assert applied and len(got) == len(values)  # each name once
@@ -81,7 +81,7 @@ def test_case_is_configurable(receiver, case, name):
     x = np.zeros(16)
     x[NAMES.index("zygomatic_major_L")] = 0.75
     with VMCOutput(NAMES, port=receiver.getsockname()[1], case=case) as out:
-        out.send(x)
+        out.send_contractions(x)
         got = dict(_receive_frame(receiver)[0])
     assert got[name] == pytest.approx(0.75)
     assert convert_case("mouthSmileLeft", case) == name
@@ -92,7 +92,7 @@ def test_many_blendshapes_split_into_bundles_under_the_limit(receiver):
     muscles = [f"muscle_with_a_long_name_{k:03d}" for k in range(200)]
     x = np.random.default_rng(3).uniform(0, 1, 200)
     with VMCOutput(muscles, port=receiver.getsockname()[1], mapping="identity", max_datagram=1200) as out:
-        n = out.send(x)
+        n = out.send_contractions(x)
         values, sizes, _ = _receive_frame(receiver)
     assert n == len(sizes) > 5 and max(sizes) <= 1200
     assert [name for name, _ in values] == muscles
@@ -162,7 +162,7 @@ def test_a_host_that_is_not_one_receiver_is_an_error_naming_the_host(host):
 def test_loopback_by_default_and_another_machine_only_when_named_and_announced(capsys):
     from types import SimpleNamespace
 
-    from livebridge.cli.runtime import _announce_vmc
+    from livebridge.cli.runtime import _announce_outputs
 
     with VMCOutput(NAMES) as local, VMCOutput(NAMES, host="192.0.2.7", port=9000) as remote, \
             VMCOutput(NAMES, host="localhost") as named:
@@ -170,8 +170,8 @@ def test_loopback_by_default_and_another_machine_only_when_named_and_announced(c
         assert local.describe() == f"VMC/OSC: sending to 127.0.0.1:{DEFAULT_PORT} on this machine"
         assert named.describe().endswith("(localhost) on this machine")
         assert "192.0.2.7:9000" in remote.describe() and "ANOTHER MACHINE" in remote.describe()
-        _announce_vmc(SimpleNamespace(vmc=remote))
-        _announce_vmc(SimpleNamespace(vmc=None))
+        _announce_outputs(SimpleNamespace(outputs=(remote,)))
+        _announce_outputs(SimpleNamespace(outputs=()))
     assert capsys.readouterr().out == remote.describe() + "\n"
 
 
@@ -186,7 +186,7 @@ def test_a_send_the_network_refuses_is_dropped_and_kept_not_raised():
     out = VMCOutput(NAMES)
     out._socket.close()
     out._socket = Refusing()
-    assert out.send(np.zeros(len(NAMES))) == 0
+    assert out.send_contractions(np.zeros(len(NAMES))) == 0
     assert out.dropped == 1 and out.last_error.errno == 22
 
 

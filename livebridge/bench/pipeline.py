@@ -219,6 +219,7 @@ def run_once(frames: int, rig_process: bool, log, split: tuple[set[int], set[int
     import numpy as np
 
     from livebridge.runtime.demo import build_demo
+    from livebridge.runtime.markers_front import MarkerFront
     from livebridge.runtime.pipeline import Pipeline, run_until_stopped
     from livebridge.simulators.rig import rig_from_url
 
@@ -236,15 +237,15 @@ def run_once(frames: int, rig_process: bool, log, split: tuple[set[int], set[int
     else:
         sources = rig.sources(realtime=False)
     solved = []  # scored against the ground truth after the run: the scoring is not pipeline work
-    pipeline = Pipeline(sources, rig.cameras, rig.basis, rig.markers, rig.period, servo=parts.pipeline.servo,
-                        render=parts.pipeline.render, realtime=False, log=lambda message: None,
+    front = MarkerFront(sources, rig.cameras, rig.basis, rig.markers, rig.period, realtime=False)
+    pipeline = Pipeline(front, servo=parts.pipeline.servo, render=parts.pipeline.render, log=lambda message: None,
                         on_frame=solved.append)
     context = multiprocessing.get_context("spawn")
     stop, count, clients = context.Event(), context.Value("q", 0), []
 
     def started(pipeline):
         if process is not None:  # the child rig must be the demo's rig
-            expected = np.stack([c.projection for c in parts.pipeline.cameras.cameras])
+            expected = np.stack([c.projection for c in parts.pipeline.front.cameras.cameras])
             if not np.allclose(process.projections, expected, rtol=1e-9, atol=1e-9):
                 raise RuntimeError("the rig process built other cameras than the demo's rig")
         url = f"ws://127.0.0.1:{pipeline.render.port}/ws"

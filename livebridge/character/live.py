@@ -66,7 +66,8 @@ def encode_states(seq: int, states: CRStates) -> bytes:
 
 
 class CharacterOutput:
-    """An output (``send(frame)``, ``close()``) that drives a 2D character from the pipeline's frames.
+    """An :class:`~livebridge.output.Output` (``describe``, ``send(frame)``, ``close``) that drives a 2D character
+    from the pipeline's solved frames.
 
     Each frame's CR states come from its per-region markerless states (``frame.regions``) when the
     character has the model's regions, otherwise from its contractions
@@ -98,6 +99,10 @@ class CharacterOutput:
         """Show the character in ``server``'s 2D view."""
         server.show_character(*encode_character(self.compositor))
         self.server = server
+
+    def describe(self) -> str:
+        where = "the render page's 2D view" if self.server is not None else "nowhere (no render page)"
+        return f"2D character {self.character.name!r} ({len(self.character.regions)} regions) -> {where}"
 
     def states_of(self, frame) -> CRStates:
         """The CR states of a solved frame (anything with ``contractions``, maybe ``regions``)."""

@@ -5,9 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+import numpy as np
 
-from livebridge.cli._options import InputPath, OutputFile, force_option
+from livebridge.cli._attach import attach
+from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option
+from livebridge.cli.basis_show import _draw_mesh, _view
 from livebridge.cli.landmarks import MESH_TYPE, UNITS_TO_MM, load_mesh
+from livebridge.errors import InputError
 from livebridge.retarget.landmarks import SHIPPED_LANDMARK_SETS
 
 LANDMARKS_TYPE = InputPath(builtins=SHIPPED_LANDMARK_SETS)
@@ -36,24 +40,174 @@ def retarget() -> None:
 def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Path, force: bool, kernel: str,
           units: str) -> None:
     """Turn every element of a source basis into an element on a target mesh of any topology."""
-    import numpy as np
-
     from livebridge.retarget.basis import retarget_basis
-    from livebridge.retarget.landmarks import load_landmark_set
 
-    if source_spec == "builtin":
-        from livebridge.face.builtin import builtin_basis
-
-        source = builtin_basis()
-    else:
-        from livebridge.face.basis import Basis
-
-        source = Basis.load(source_spec)
+    source = _load_source(source_spec)
     vertices, triangles = load_mesh(target_spec, units)
-    on_source = load_landmark_set(source_landmarks).checked_on(len(source.triangles), source_landmarks)
-    on_target = load_landmark_set(target_landmarks).checked_on(len(triangles), target_landmarks)
+    on_source, on_target = _landmarks(source_landmarks, source, target_landmarks, vertices, triangles)
     result = retarget_basis(source, on_source, vertices, triangles, on_target, kernel)
     result.save(out)
     moving = int(np.count_nonzero(np.abs(result.elements).max(axis=(1, 2)) > 0))
     click.echo(f"wrote {out}: {result.n_muscles} elements ({moving} moving) on {result.n_vertices} vertices, "
                f"kernel {kernel}")
+
+
+@retarget.command("au")
+@click.option("--source", "source_spec", required=True, type=InputPath(builtins=("builtin",)),
+              help="Source actuation basis (.npz) or 'builtin': each AU's muscle recipe makes the expression.")
+@click.option("--source-landmarks", required=True, type=LANDMARKS_TYPE, help="Landmarks on the source.")
+@click.option("--target", "target_spec", required=True, type=MESH_TYPE,
+              help="Target face: a mesh (.obj), a basis (.npz, its neutral) or 'builtin'.")
+@click.option("--target-landmarks", required=True, type=LANDMARKS_TYPE, help="Landmarks on the target.")
+@click.option("--au", "aus", required=True, multiple=True,
+              help="Action unit (1, 2, 4, 12, 14, 15, 17, 20) or a muscle name; repeat to combine.")
+@click.option("--magnitude", type=FiniteFloat(0, 1), default=1.0, show_default=True, help="m in [0, 1].")
+@click.option("--side", type=click.Choice(["both", "left", "right"]), default="both", show_default=True,
+              help="Move one side's control points only (the subject's left: +x).")
+@click.option("--control-points", default="thesis", type=InputPath(builtins=("thesis",)), show_default=True,
+              help="Control point set: 'thesis' (shipped) or a control-point TOML file.")
+@click.option("--out", required=True, type=OutputFile(), help="AU mesh to write (.obj, mm).")
+@force_option
+@click.option("--kernel", type=click.Choice(["r", "r2lnr2"]), default="r", show_default=True,
+              help="TPS kernel: r (3D biharmonic) or r2lnr2 (the thesis's).")
+@click.option("--units", type=click.Choice(sorted(UNITS_TO_MM)), default="mm", show_default=True,
+              help="Units of an OBJ target (a basis is in mm).")
+def au(source_spec, source_landmarks, target_spec, target_landmarks, aus, magnitude: float, side: str,
+       control_points, out: Path, force: bool, kernel: str, units: str) -> None:
+    """Write the target face showing action units carried from the source (Erdoğdu §5.5-5.6) as OBJ."""
+    from livebridge.retarget.au import parse_aus, prepare_transfer, save_obj
+    from livebridge.retarget.control_points import load_control_points
+
+    source = _load_source(source_spec)
+    vertices, triangles = load_mesh(target_spec, units)
+    on_source, on_target = _landmarks(source_landmarks, source, target_landmarks, vertices, triangles)
+    points = load_control_points(control_points)
+    sides = {"both": ("L", "R", "C"), "left": ("L",), "right": ("R",)}[side]
+    transfer = prepare_transfer(points, parse_aus(aus), source, on_source, (vertices, triangles), on_target, sides,
+                                kernel)
+    moved = transfer.mesh(magnitude)
+    save_obj(out, moved, triangles)
+    click.echo(f"wrote {out}: {', '.join(aus)} at m = {magnitude:g} ({side}); largest move "
+               f"{np.linalg.norm(moved - vertices, axis=1).max():.2f} mm")
+
+
+def _load_source(spec):
+    if spec == "builtin":
+        from livebridge.face.builtin import builtin_basis
+
+        return builtin_basis()
+    from livebridge.face.basis import Basis
+
+    return Basis.load(spec)
+
+
+def _landmarks(source_spec, source, target_spec, vertices, triangles):
+    """(source landmarks, target landmarks), checked on their meshes; errors name the file and the landmark."""
+    from livebridge.retarget.checks import check_landmarks_on
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    on_source = load_landmark_set(source_spec).checked_on(len(source.triangles), source_spec)
+    on_target = load_landmark_set(target_spec).checked_on(len(triangles), target_spec)
+    try:
+        on_target.index_of(on_source.names)
+    except InputError as error:
+        raise InputError(error.message + f" (the source set {source_spec} names them)", target_spec,
+                         "landmarks") from None
+    check_landmarks_on(on_source, source.neutral, source.triangles, source_spec)
+    check_landmarks_on(on_target, vertices, triangles, target_spec)
+    return on_source, on_target
+
+
+@retarget.command("show")
+@click.argument("bases", nargs=-1, required=True, type=InputPath(builtins=("builtin",)))
+@click.option("--contractions", "contractions_file", type=InputPath(), default=None,
+              help="Contraction file (t + one column per muscle, as livebridge solve writes) to play; default: "
+                   "each muscle in turn, then a smile, a frown and an open jaw.")
+@click.option("--frames", type=click.IntRange(1, 24), default=6, show_default=True, help="Frames shown.")
+@click.option("--out", required=True, type=OutputFile(), help="Image to write (.png).")
+@force_option
+def show(bases, contractions_file, frames: int, out: Path, force: bool) -> None:
+    """Play one contraction take on several bases (a source and its retargeted copies), side by side."""
+    faces = [(Path(spec).stem if spec != "builtin" else "built-in face", _load_source(spec)) for spec in bases]
+    if contractions_file is None:
+        names, values, labels = demo_take(faces[0][1].names)
+    else:
+        from livebridge.servo.playback import read_contractions
+
+        track = read_contractions(contractions_file, faces[0][1].names, ignore_extra=True)
+        names, values, labels = track.muscle_names, track.values, [f"t = {t:.2f} s" for t in track.t]
+    render_take(faces, np.nan_to_num(values), names, out, frames=frames, labels=labels)
+    click.echo(f"wrote {out}: {min(frames, len(values))} frames on {len(faces)} faces")
+
+
+def demo_take(names) -> tuple[tuple[str, ...], np.ndarray, list[str]]:
+    """(muscle names, contractions (frames, muscles), frame labels): a smile, a frown, an open jaw, a brow raise,
+    a pucker and a one-sided sneer."""
+    poses = (("smile", ("zygomatic_major_L", "zygomatic_major_R")), ("frown", ("corrugator_L", "corrugator_R")),
+             ("jaw open", ("jaw",)), ("brows up", ("frontalis_L", "frontalis_R")), ("pucker", ("orbicularis_oris",)),
+             ("sneer (left)", ("levator_labii_L",)))
+    values = np.zeros((len(poses), len(names)))
+    for k, (_, muscles) in enumerate(poses):
+        for muscle in muscles:
+            if muscle in names:
+                values[k, list(names).index(muscle)] = 1.0
+    return tuple(names), values, [label for label, _ in poses]
+
+
+def render_take(faces, contractions: np.ndarray, muscle_names, path, frames: int = 6, dpi: int = 80,
+                yaw_deg: float = 20.0, panel_inches: float = 2.6, labels=None) -> None:
+    """A contraction take played on several faces, side by side: one column per face, one row per frame shown.
+
+    Parameters
+    ----------
+    faces : sequence of (title, Basis)
+    contractions : ndarray, shape (n_frames, n_muscles)
+        Columns named by ``muscle_names``; each face uses the columns it has.
+    muscle_names : sequence of str
+    path : str or Path
+        Image file.
+    frames : int
+        Frames shown, evenly spread over the take (the most active frames of each stretch).
+    labels : sequence of str, optional
+        One per frame of the take (row titles).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+
+    contractions = np.asarray(contractions, dtype=np.float64)
+    shown = np.linspace(0, len(contractions) - 1, min(frames, len(contractions))).round().astype(int)
+    fig, axes = plt.subplots(len(shown), len(faces), figsize=(panel_inches * len(faces), panel_inches * len(shown)),
+                             squeeze=False)
+    skin = np.array([0.93, 0.80, 0.70, 1.0])
+    for column, (title, basis) in enumerate(faces):
+        x = np.zeros((len(contractions), basis.n_muscles))
+        for j, name in enumerate(muscle_names):
+            if name in basis.names:
+                x[:, basis.index(name)] = contractions[:, j]
+        neutral = _view(basis.neutral, yaw_deg, 0.0)
+        low, high = neutral.min(axis=0), neutral.max(axis=0)
+        for row, frame in enumerate(shown):
+            ax = axes[row, column]
+            ax.set_axis_off()
+            moved = basis.synthesize(x[frame])
+            size = np.linalg.norm(moved - basis.neutral, axis=1)[basis.triangles].mean(axis=1)
+            level = np.clip(size / 6.0, 0, 1)[:, None]  # mm: warmer where the skin moved
+            colour = np.tile(skin, (len(basis.triangles), 1))
+            colour[:, :3] = (1 - 0.6 * level) * skin[:3] + 0.6 * level * np.array([0.85, 0.25, 0.2])
+            _draw_mesh(ax, _view(moved, yaw_deg, 0.0), basis.triangles, colour)
+            ax.set_xlim(low[0], high[0])
+            ax.set_ylim(low[1], high[1])
+            ax.set_aspect("equal")
+            if row == 0:
+                ax.set_title(title, fontsize=9)
+            if column == 0 and labels is not None:
+                ax.text(low[0], high[1], labels[frame], fontsize=7, va="top")
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+
+
+attach(retarget, (("livebridge.cli.retarget_scans", "scans"),))

@@ -17,7 +17,8 @@ METHODS = ("ica", "pca")
 _RELATIVE_RANK_TOL = 1e-6
 
 
-def _require_sklearn():
+def require_sklearn():
+    """scikit-learn's FastICA, or an ImportError naming the extra to install."""
     try:
         from sklearn.decomposition import FastICA
     except ImportError as error:  # the optional extra is missing
@@ -55,7 +56,7 @@ def signature_basis(samples: np.ndarray, n_components: int, method: str = "ica",
     k = max(1, min(int(n_components), rank))
     if method == "pca":
         return u[:, :k] * s[:k]
-    fast_ica = _require_sklearn()
+    fast_ica = require_sklearn()
     # pixels are the observations: the columns of B (images) are the independent, non-Gaussian sources
     ica = fast_ica(n_components=k, whiten="unit-variance", whiten_solver="svd", max_iter=400, tol=1e-4,
                    random_state=seed)

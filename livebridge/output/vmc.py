@@ -228,8 +228,12 @@ class VMCOutput:
             return f"VMC/OSC: sending to {where}{named} on this machine"
         return f"VMC/OSC: sending to {where}{named}, ANOTHER MACHINE: the face's contractions leave this computer"
 
-    def send(self, contractions: np.ndarray) -> int:
-        """Send one frame; returns the number of datagrams sent."""
+    def send(self, frame) -> None:
+        """Send one solved frame (:class:`~livebridge.output.Output`)."""
+        self.send_contractions(frame.contractions)
+
+    def send_contractions(self, contractions: np.ndarray) -> int:
+        """Send one frame's contractions; returns the number of datagrams sent."""
         count = 0
         for datagram in self.encoder.encode(self.map(contractions)):
             try:

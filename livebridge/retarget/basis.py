@@ -16,8 +16,27 @@ import numpy as np
 
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
+from livebridge.face.meshio import vertex_normals
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points
 from livebridge.retarget.tps import Kernel, ThinPlateSpline, fit_tps
+
+SURFACE_SAMPLES = 150
+"""Points spread over each surface to pin the spline onto the other surface (:func:`surface_splines`)."""
+SURFACE_ROUNDS = 2
+SURFACE_SMOOTHING = 1.0
+"""Smoothing (:func:`~livebridge.retarget.tps.fit_tps`) of the surface-pinned splines, mm."""
+BOUNDARY_STEP = 0.2
+"""How far a boundary vertex looks into its own triangles for its point on the other face (:func:`inside_boundary`)."""
+CORRESPOND_NEAR = 5
+"""Nearest source vertices whose triangles are searched for each target vertex's closest point."""
+STRETCH_LIMIT = 1.6
+"""Largest local stretch of a carried motion, relative to the landmark map's overall scale (either way)."""
+COVERED, UNCOVERED = 0.02, 0.08
+"""A target vertex farther than these fractions of the face from the source surface starts to / stops moving."""
+LINEAR_MOVE = 0.03
+"""Moves shorter than this fraction of the landmarks' extent are carried by the spline's Jacobian."""
+PAIR_SPACING = 0.01
+"""Closest two control points of a surface-pinned spline, as a fraction of the landmarks' extent."""
 
 
 @dataclass(frozen=True)
@@ -62,19 +81,145 @@ def landmark_splines(source_points: np.ndarray, target_points: np.ndarray,
     return fit_tps(source_points, target_points, kernel), fit_tps(target_points, source_points, kernel)
 
 
-def correspond(target_vertices: np.ndarray, to_source: ThinPlateSpline, source_vertices: np.ndarray,
-               source_triangles: np.ndarray) -> Correspondence:
-    """Each target vertex's point on the source surface: ``g(v)`` snapped to the closest surface point."""
-    triangle, barycentric, distance = closest_surface_points(to_source(target_vertices), source_vertices,
-                                                             source_triangles)
+def correspond(target_vertices: np.ndarray, target_triangles: np.ndarray, to_source: ThinPlateSpline,
+               source_vertices: np.ndarray, source_triangles: np.ndarray) -> Correspondence:
+    """Each target vertex's point on the source surface: ``g(v)`` snapped to the closest surface point that
+    faces the same way (the normal of the target mesh carried by ``g``), so the two lips of a closed mouth,
+    or the two sides of a lid, each find their own side."""
+    carried = to_source(inside_boundary(target_vertices, target_triangles))
+    normals = vertex_normals(carried, target_triangles)
+    triangle, barycentric, distance = closest_surface_points(carried, source_vertices, source_triangles,
+                                                             near=CORRESPOND_NEAR, normals=normals)
     return Correspondence(triangle, barycentric, distance)
+
+
+def edge_counts(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (k, 2) as sorted vertex ids, how many triangles share each (k,)) of a triangle mesh.
+
+    A collapsed triangle's zero-length edges (a vertex to itself) are not edges."""
+    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    base = int(edges.max()) + 1
+    keys, counts = np.unique(edges[:, 0].astype(np.int64) * base + edges[:, 1], return_counts=True)
+    return np.stack([keys // base, keys % base], axis=1), counts
+
+
+def inside_boundary(vertices: np.ndarray, triangles: np.ndarray, step: float = BOUNDARY_STEP) -> np.ndarray:
+    """``vertices`` (n, 3) with each seam vertex moved ``step`` of the way towards the centroid of its triangles'
+    centroids (the others unchanged): a seam vertex is on a boundary edge and has a twin, another boundary
+    vertex within a tenth of the median edge length.
+
+    A seam cut through a mesh (the built-in face's closed mouth: the vertices between the mouth corners are
+    doubled) leaves two coincident copies of each seam vertex, one in the upper lip, one in the lower lip,
+    facing the same way; moved into its own triangles each copy finds its own lip on the other face.
+    """
+    unique, counts = edge_counts(triangles)
+    boundary = np.unique(unique[counts == 1])
+    if len(boundary) < 2:
+        return vertices
+    from scipy.spatial import cKDTree
+
+    twin_distance = cKDTree(vertices[boundary]).query(vertices[boundary], k=2)[0][:, 1]
+    edge = float(np.median(np.linalg.norm(vertices[unique[:, 0]] - vertices[unique[:, 1]], axis=1)))
+    boundary = boundary[twin_distance < 0.1 * edge]
+    if not len(boundary):
+        return vertices
+    centroids = vertices[triangles].mean(axis=1)  # (n_triangles, 3)
+    total = np.zeros_like(vertices)
+    count = np.zeros(len(vertices))
+    for corner in range(3):
+        np.add.at(total, triangles[:, corner], centroids)
+        np.add.at(count, triangles[:, corner], 1.0)
+    moved = vertices.copy()
+    inner = total[boundary] / np.maximum(count[boundary], 1.0)[:, None]
+    moved[boundary] += step * (inner - vertices[boundary])
+    return moved
+
+
+def surface_splines(source_points: np.ndarray, target_points: np.ndarray, source_mesh, target_mesh,
+                    kernel: Kernel | str = Kernel.BIHARMONIC, samples: int = SURFACE_SAMPLES,
+                    rounds: int = SURFACE_ROUNDS) -> tuple[ThinPlateSpline, ThinPlateSpline]:
+    """(``f``, ``g``) fitted through the landmarks and through surface pairs, so each maps surface onto surface.
+
+    The landmark splines bend the space between the landmarks as little as they can, which leaves the source
+    surface floating above or sunk below the target's between them; the tangent planes, and with them the
+    direction of every carried displacement, tilt. Each round spreads ``samples`` points over each surface,
+    carries them with the current spline to the other surface (closest point facing the same way) and refits
+    through the landmarks and these pairs (smoothed: the pairs are approximate along the surface).
+
+    ``*_mesh`` are (vertices, triangles); the points are (n, 3) landmark positions matched row by row.
+    """
+    kernel = Kernel.parse(kernel)
+    to_target, to_source = landmark_splines(source_points, target_points, kernel)
+    if rounds <= 0 or samples <= 0:
+        return to_target, to_source
+    spacing = PAIR_SPACING * float(np.ptp(target_points, axis=0).max())
+    source_samples, target_samples = (spread_surface_points(mesh, samples) for mesh in (source_mesh, target_mesh))
+    for _ in range(rounds):
+        onto_target = snap_onto(*source_samples, to_target, target_mesh)
+        onto_source = snap_onto(*target_samples, to_source, source_mesh)
+        pairs_source = np.vstack([source_points, source_samples[0], onto_source])
+        pairs_target = np.vstack([target_points, onto_target, target_samples[0]])
+        keep = spaced(pairs_source, pairs_target, spacing, first=len(source_points))
+        to_target = fit_tps(pairs_source[keep], pairs_target[keep], kernel, SURFACE_SMOOTHING)
+        to_source = fit_tps(pairs_target[keep], pairs_source[keep], kernel, SURFACE_SMOOTHING)
+    return to_target, to_source
+
+
+def spread_surface_points(mesh, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(points (k, 3), unit normals (k, 3)) at ``k <= n`` vertices of ``mesh`` spread by farthest-point sampling.
+
+    Only vertices of some triangle count; deterministic (starts at the lowest vertex).
+    """
+    vertices, triangles = mesh
+    used = np.unique(triangles)
+    points = vertices[used]
+    chosen = [int(np.argmin(points[:, 1]))]
+    offsets = points - points[chosen[0]]
+    distance = np.einsum("nd,nd->n", offsets, offsets)  # squared: the same farthest point, no square roots
+    for _ in range(min(n, len(points)) - 1):
+        chosen.append(int(np.argmax(distance)))
+        offsets = points - points[chosen[-1]]
+        np.minimum(distance, np.einsum("nd,nd->n", offsets, offsets), out=distance)
+    normals = vertex_normals(vertices, triangles)[used]
+    return points[chosen], normals[chosen]
+
+
+def snap_onto(points: np.ndarray, normals: np.ndarray, spline: ThinPlateSpline, mesh) -> np.ndarray:
+    """``spline(points)`` snapped onto ``mesh``'s surface where it faces the same way, shape (k, 3).
+
+    ``normals`` (k, 3) are the points' unit normals; the spline turns them by the inverse transpose of its
+    Jacobian (central differences).
+    """
+    step = 1e-3 * float(np.ptp(points, axis=0).max())
+    columns = [spline(points + step * axis) - spline(points - step * axis) for axis in np.eye(3)]
+    jacobian = np.stack(columns, axis=2) / (2 * step)  # (k, 3 out, 3 in)
+    turned = np.linalg.solve(np.transpose(jacobian, (0, 2, 1)), normals[..., None])[..., 0]
+    turned /= np.maximum(np.linalg.norm(turned, axis=1, keepdims=True), np.finfo(float).tiny)
+    vertices, triangles = mesh
+    triangle, barycentric, _ = closest_surface_points(spline(points), vertices, triangles, normals=turned)
+    return np.einsum("nk,nkd->nd", barycentric, vertices[triangles[triangle]])
+
+
+def spaced(source: np.ndarray, target: np.ndarray, spacing: float, first: int) -> np.ndarray:
+    """Indices of the pairs kept, greedily, so that no two kept points are closer than ``spacing`` on either
+    side (a spline through two near-coincident points with different targets kinks); the ``first`` pairs
+    (the landmarks) are always kept."""
+    keep = list(range(first))
+    for k in range(first, len(source)):
+        if (np.linalg.norm(source[keep] - source[k], axis=1).min() >= spacing
+                and np.linalg.norm(target[keep] - target[k], axis=1).min() >= spacing):
+            keep.append(k)
+    return np.array(keep)
 
 
 def transfer_elements(elements: np.ndarray, source: Basis, correspondence: Correspondence,
                       to_target: ThinPlateSpline) -> np.ndarray:
     """Source elements ``(k, n_source, 3)`` as target elements ``(k, n_target, 3)``: ``f(p + d) - f(p)``.
 
-    An element that is zero at a surface point stays exactly zero there.
+    Small moves (below :data:`LINEAR_MOVE` of the spline's extent, most of an element's reach) go through the
+    spline's Jacobian, ``J(p) d``, which differs from the exact difference by the spline's curvature times
+    ``|d|^2``; larger ones are carried exactly. An element that is zero at a surface point stays exactly zero.
     """
     points = correspondence.interpolate(source.neutral, source.triangles)  # p, (n_target, 3)
     moves = correspondence.interpolate(elements, source.triangles)  # d, (k, n_target, 3)
@@ -82,10 +227,40 @@ def transfer_elements(elements: np.ndarray, source: Basis, correspondence: Corre
     out = np.zeros(moves.shape)
     if not moving.any():
         return out
-    base = to_target(points[moving])
-    displaced = to_target((points[moving][None] + moves[:, moving]).reshape(-1, 3))
-    out[:, moving] = displaced.reshape(len(elements), -1, 3) - base[None]
-    return out
+    jacobian = bounded_stretch(to_target.jacobian(points[moving]), to_target)
+    out[:, moving] = np.einsum("noi,kni->kno", jacobian, moves[:, moving])
+    limit = LINEAR_MOVE * float(np.ptp(to_target.centres, axis=0).max())
+    element, vertex = np.nonzero(np.linalg.norm(moves, axis=2) > limit)
+    if len(vertex):
+        start = points[vertex]
+        out[element, vertex] = to_target(start + moves[element, vertex]) - to_target(start)
+    return out * uncovered_fade(correspondence.distance, limit / LINEAR_MOVE)[None, :, None]
+
+
+def bounded_stretch(jacobian: np.ndarray, spline: ThinPlateSpline) -> np.ndarray:
+    """Jacobians (n, 3, 3) with their singular values clipped to :data:`STRETCH_LIMIT` times the spline's overall
+    scale either way (the cube root of its affine part's determinant).
+
+    Far from every control point (the back of a head, behind the ears) a spline extrapolates, ``r^2 ln r^2``
+    most of all, and its local stretch can grow many times a face's real proportions; a small motion there
+    would be blown up into spikes.
+    """
+    scale = abs(float(np.linalg.det(spline.affine[1:]))) ** (1.0 / 3.0)
+    u, stretch, vt = np.linalg.svd(jacobian)
+    stretch = np.clip(stretch, scale / STRETCH_LIMIT, scale * STRETCH_LIMIT)
+    return np.einsum("nij,nj,njk->nik", u, stretch, vt)
+
+
+def uncovered_fade(distance: np.ndarray, extent: float) -> np.ndarray:
+    """Weight (n,) of each target vertex's carried motion by how far its source point is: 1 up to
+    :data:`COVERED` of ``extent``, smoothly 0 at :data:`UNCOVERED`.
+
+    Where the target reaches beyond the source surface (a whole head onto a face mask: the scalp, the ears,
+    the neck) the closest source point is on the source's border, and copying the border's motion outwards
+    would tear those regions; the motion fades out instead.
+    """
+    t = np.clip((distance / extent - COVERED) / (UNCOVERED - COVERED), 0.0, 1.0)
+    return 1.0 - t * t * (3.0 - 2.0 * t)
 
 
 def retarget_basis(source: Basis, source_landmarks: LandmarkSet, target_neutral: np.ndarray,
@@ -117,8 +292,9 @@ def retarget_basis(source: Basis, source_landmarks: LandmarkSet, target_neutral:
                          f"and {len(target_triangles)} triangles", field="target")
     source_points, target_points = landmark_pairs(source_landmarks, (source.neutral, source.triangles),
                                                   target_landmarks, (target_neutral, target_triangles))
-    to_target, to_source = landmark_splines(source_points, target_points, kernel)
-    correspondence = correspond(target_neutral, to_source, source.neutral, source.triangles)
+    to_target, to_source = surface_splines(source_points, target_points, (source.neutral, source.triangles),
+                                           (target_neutral, target_triangles), kernel)
+    correspondence = correspond(target_neutral, target_triangles, to_source, source.neutral, source.triangles)
     elements = transfer_elements(source.elements, source, correspondence, to_target)
     return Basis(target_neutral, target_triangles, elements, source.muscles)
 

@@ -25,9 +25,11 @@ from livebridge.face.markers import LANDMARKS_68_UPPER, MarkerSet, landmark_name
 from livebridge.tomlio import load_toml
 
 DATA = Path(__file__).parent / "data"
-SHIPPED_LANDMARK_SETS = ("builtin-22", "ict-22")
+SHIPPED_LANDMARK_SETS = ("builtin-22", "ict-22", "builtin-68", "ict-68")
 """Landmark sets shipped with livebridge, by name: the 22 thesis landmarks on the built-in face and on the
-ICT-FaceKit face region (as ``livebridge basis import choe-ko-ict`` builds it)."""
+ICT-FaceKit face region (as ``livebridge basis import choe-ko-ict`` builds it), and the 68 Multi-PIE/iBUG
+landmarks on the same two faces (the shipped marker sets of those names): any landmark detector's 68 points
+pin the proportions between the thesis's 22 (the jaw line, the lips, the nose) and transfer better."""
 
 SADDLE = "saddle"
 THESIS_22 = (
@@ -52,6 +54,12 @@ MIRROR_PAIRS = tuple((name, name[:-1] + "R") for name in THESIS_22_NAMES if name
 
 class LandmarkSet(MarkerSet):
     """Named landmarks on a mesh (a :class:`MarkerSet`; see the module docstring)."""
+
+    @classmethod
+    def of(cls, markers: MarkerSet) -> LandmarkSet:
+        """A marker set's points as a landmark set (same names, places, regions, roles, mesh)."""
+        return cls(markers.names, markers.triangles, markers.barycentric, markers.regions, markers.roles,
+                   markers.mesh_triangles)
 
     def index_of(self, names) -> np.ndarray:
         """Positions in this set of ``names``, shape (len(names),); a missing one raises naming them all."""
@@ -85,6 +93,10 @@ class LandmarkSet(MarkerSet):
 # ------------------------------------------------------------------------------------------------ shipped sets
 def load_landmark_set(spec: str | Path) -> LandmarkSet:
     """A landmark set by shipped name (:data:`SHIPPED_LANDMARK_SETS`) or from a landmark (marker-set) TOML file."""
+    if isinstance(spec, str) and spec.endswith("-68") and spec in SHIPPED_LANDMARK_SETS:
+        from livebridge.face.shipped import shipped_marker_set
+
+        return LandmarkSet.of(shipped_marker_set(spec))
     if isinstance(spec, str) and spec in SHIPPED_LANDMARK_SETS:
         return LandmarkSet.load(DATA / f"{spec.replace('-', '_')}.toml")
     return LandmarkSet.load(spec)
@@ -123,10 +135,14 @@ def thesis_22_from_68(markers_68: MarkerSet, vertices: np.ndarray, triangles: np
 
 
 # ------------------------------------------------------------------------------------------------ the surface
-def closest_surface_points(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, near: int = 8):
+def closest_surface_points(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, near: int = 8,
+                           normals: np.ndarray | None = None, min_cos: float = 0.0):
     """The closest point on a triangle mesh to each point, as triangle + barycentric coordinates.
 
     Searched among the triangles incident to the ``near`` mesh vertices nearest each point (scipy cKDTree).
+    With ``normals``, only triangles facing the same way as the point's normal (cosine above ``min_cos``) are
+    taken while any candidate does: the two sides of a closed lip seam, or of a thin lid, lie within a
+    fraction of a millimetre of each other but face opposite ways.
 
     Parameters
     ----------
@@ -134,6 +150,9 @@ def closest_surface_points(points: np.ndarray, vertices: np.ndarray, triangles: 
     vertices : ndarray, shape (n_vertices, 3)
     triangles : ndarray of int, shape (n_triangles, 3)
     near : int
+    normals : ndarray, shape (n, 3), optional
+        Unit normals at ``points`` (of the surface the points come from).
+    min_cos : float
 
     Returns
     -------
@@ -160,7 +179,13 @@ def closest_surface_points(points: np.ndarray, vertices: np.ndarray, triangles: 
     corners = vertices[triangles[triangle_of]]
     barycentric = _closest_on_triangles(points[point_of], corners)
     distance = np.linalg.norm(np.einsum("nk,nkd->nd", barycentric, corners) - points[point_of], axis=1)
-    order = np.lexsort((distance, point_of))  # per point, nearest first
+    disagrees = np.zeros(len(distance), dtype=bool)
+    if normals is not None:
+        facing = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        facing /= np.maximum(np.linalg.norm(facing, axis=1, keepdims=True), np.finfo(float).tiny)
+        along = np.einsum("nd,nd->n", facing, np.asarray(normals, dtype=np.float64).reshape(-1, 3)[point_of])
+        disagrees = along <= min_cos
+    order = np.lexsort((distance, disagrees, point_of))  # per point: agreeing first, then nearest first
     first = order[np.r_[True, point_of[order][1:] != point_of[order][:-1]]]
     return triangle_of[first], barycentric[first], distance[first]
 

@@ -95,6 +95,29 @@ class ThinPlateSpline:
         points = _as_points(points, "points")
         return design_matrix(points, self.centres, self.kernel) @ np.vstack([self.weights, self.affine])
 
+    def jacobian(self, points: np.ndarray, chunk: int = 4096) -> np.ndarray:
+        """``df/dp`` at points (m, 3), shape (m, 3 out, 3 in), from the kernel's gradient.
+
+        ``grad U(|p - c|)`` is ``(p - c) / r`` for ``U = r`` (0 at a centre, where ``r`` has no gradient) and
+        ``(2 ln r^2 + 2)(p - c)`` for ``U = r^2 ln r^2``. Evaluated ``chunk`` points at a time to bound memory.
+        """
+        points = _as_points(points, "points")
+        out = np.empty((len(points), 3, 3))
+        for start in range(0, len(points), chunk):
+            part = points[start:start + chunk]
+            offsets = part[:, None, :] - self.centres[None]  # (m, n, 3)
+            r2 = np.einsum("mnd,mnd->mn", offsets, offsets)
+            if self.kernel is Kernel.BIHARMONIC:
+                r = np.sqrt(r2)
+                scale = np.divide(1.0, r, out=np.zeros_like(r), where=r > 0)
+            else:
+                scale = 2.0 * np.log(np.maximum(r2, np.finfo(float).tiny)) + 2.0
+                scale[r2 == 0] = 0.0
+            # J[m, out, in] = A_lin[in, out] + sum_n W[n, out] * scale[m, n] * offsets[m, n, in]
+            gradients = (offsets * scale[..., None]).transpose(0, 2, 1)  # (m, in, n)
+            out[start:start + chunk] = (self.affine[1:][None] + gradients @ self.weights).transpose(0, 2, 1)
+        return out
+
     def bending_energy(self) -> float:
         """The bending energy up to the kernel's constant factor: ``s trace(W^T K W)`` (>= 0, 0 iff affine).
 

@@ -17,6 +17,20 @@ from livebridge.runtime.preflight import check_calibration_used, check_cameras, 
 from livebridge.runtime.session import Session
 
 
+def display_face(session, basis):
+    """The basis the render client shows: ``[face] display`` (same muscles in the same order), else ``basis``."""
+    if session.display is None:
+        return basis
+    from livebridge.face.basis import Basis
+
+    shown = Basis.load(session.display)
+    if shown.names != basis.names:
+        raise InputError(f"the display face's muscles ({', '.join(shown.names)}) are not the solving basis's "
+                         f"({', '.join(basis.names)}): retarget the solving basis onto it", session.display,
+                         "face.display")
+    return shown
+
+
 def load_face(session: Session):
     """The session's basis and marker set (``builtin`` / ``ict`` or files; a simulated rig films this face)."""
     from livebridge.face.basis import Basis
@@ -133,13 +147,19 @@ def build_pipeline(session: Session, log=print, on_frame=None):
     ``on_frame`` is called on the outputs thread with every solved frame (see
     :class:`~livebridge.runtime.pipeline.Pipeline`).
     """
+    from livebridge.runtime.markers_front import MarkerFront
     from livebridge.runtime.pipeline import Pipeline
 
     basis, markers = load_face(session)
-    check_markers(markers, basis, session)
+    model = _markerless_model(session, basis) if session.markerless is not None else None
+    if model is None:
+        check_markers(markers, basis, session)
     log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
-    sources, cameras, realtime = open_session_cameras(session)
-    check_cameras(cameras, session)
+    if model is None:
+        sources, cameras, realtime = open_session_cameras(session)
+        check_cameras(cameras, session)
+    else:
+        sources, cameras, realtime = _markerless_camera(session)
     fps = _fps(sources)
     period = 1.0 / fps
     opened = []
@@ -156,10 +176,10 @@ def build_pipeline(session: Session, log=print, on_frame=None):
         if session.render.enabled:
             from livebridge.output.render_server import RenderServer
 
-            render = RenderServer(basis, markers, session.render.host, session.render.port,
+            render = RenderServer(display_face(session, basis), markers, session.render.host, session.render.port,
                                   servo_names=servo.servo_names if servo is not None else (),
                                   allowed_origins=session.render.allowed_origins)
-        vmc = None
+        outputs = []
         if session.vmc.enabled:
             from livebridge.output.vmc import VMCOutput
 
@@ -169,6 +189,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             except InputError as error:
                 raise InputError(error.message, session.path, f"outputs.vmc.{error.field}") from None
             opened.append(vmc.close)
+            outputs.append(vmc)
         recorder = None
         if session.recording.enabled:
             from livebridge.take.recorder import TakeRecorder
@@ -182,14 +203,51 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             sources = recorder.wrap_sources(sources)
             log(f"recording to {directory}" + (" (with raw frames)" if session.recording.raw_frames else ""))
         log("set-up: warming up the per-frame kernels (compiled on their first use)")
-        return Pipeline(sources, cameras, basis, markers, period, session.reconstruct, session.solver, servo=servo,
-                        render=render, vmc=vmc, recorder=recorder, sync_tolerance=session.sync_tolerance,
-                        realtime=realtime, log=log, on_frame=on_frame, status_interval=session.status_interval,
-                        labelling_timeout_s=session.labelling_timeout_s)
+        if model is not None:
+            from livebridge.markerless.front import MarkerlessFront
+
+            front = MarkerlessFront(sources[0], model, period, realtime, session.markerless.min_confidence)
+        else:
+            front = MarkerFront(sources, cameras, basis, markers, period, session.reconstruct, session.solver,
+                                sync_tolerance=session.sync_tolerance, realtime=realtime,
+                                labelling_timeout_s=session.labelling_timeout_s)
+        return Pipeline(front, servo=servo, render=render, outputs=outputs, recorder=recorder, log=log,
+                        on_frame=on_frame, status_interval=session.status_interval)
     except BaseException:
         for close in reversed(opened):
             close()
         raise
+
+
+def _markerless_model(session: Session, basis):
+    """The session's markerless model, checked against the basis's muscles and ``[markerless] head_rig``."""
+    from livebridge.markerless.model import MarkerlessModel
+
+    model = MarkerlessModel.load(session.markerless.model)
+    if model.muscle_names != tuple(basis.names):
+        raise InputError(f"the markerless model's muscles ({', '.join(model.muscle_names)}) are not the basis's "
+                         f"({', '.join(basis.names)})", session.path, "markerless.model")
+    rig = "none" if model.normalisation.head_rig is None else "leds"
+    if session.markerless.head_rig not in (None, rig):
+        raise InputError(f"the model was trained with head_rig = {rig!r}", session.path, "markerless.head_rig")
+    return model
+
+
+def _markerless_camera(session: Session):
+    """The one camera of a markerless session: ``(sources, None, realtime)``."""
+    from livebridge.devices.registry import open_cameras
+
+    url = _session_url(session.camera_urls[0], session, 0) if not session.camera_urls[0].startswith("sim://") \
+        else session.camera_urls[0]
+    try:
+        sources = open_cameras(url)
+    except InputError as error:
+        inner = f"{error.field}: {error.message}" if error.field else error.message
+        raise InputError(f"{url}: {inner}", session.path, "cameras.urls[0]") from None
+    if len(sources) != 1:
+        raise InputError(f"markerless capture films with one camera, the URL opened {len(sources)}", session.path,
+                         "cameras.urls[0]")
+    return sources, None, bool(sources[0].realtime)
 
 
 def _fps(sources) -> float:

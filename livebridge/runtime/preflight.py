@@ -13,7 +13,7 @@ labelling". What can be known from the files is checked here, each failure an
   :func:`~livebridge.runtime.build.open_session_cameras`).
 
 What only the live frames tell (the face out of view, markers seen by one camera only) ends the pipeline
-after ``[runtime] labelling_timeout_s`` instead (:class:`~livebridge.runtime.pipeline.LabellingTimeout`).
+after ``[runtime] labelling_timeout_s`` instead (:class:`~livebridge.runtime.markers_front.LabellingTimeout`).
 """
 
 from __future__ import annotations

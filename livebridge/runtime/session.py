@@ -15,6 +15,8 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
     [face]
     basis = "basis.npz"           # or "builtin" (the built-in face)
     markers = "markers.toml"      # or a shipped set: "builtin", "builtin-68", "ict-68"
+    # display = "target.npz"      # the render client shows this face instead of the basis (same muscles, any
+                                  # topology: from `livebridge retarget basis`)
 
     [reconstruct]
     tolerance_px = 2.0            # epipolar gate
@@ -47,6 +49,11 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
     raw_frames = false            # also the camera images: replay://takes/take-... runs the take again
     frame_format = "pgm"          # raw images: "pgm" (uncompressed, keeps up live) or "png" (smaller, slow)
 
+    [markerless]                  # optional: one camera films a bare face instead of markers
+    model = "model.npz"           # from `livebridge markerless train`
+    head_rig = "leds"             # "leds" or "none" (optional: checked against the model)
+    min_confidence = 0.3          # a region less sure than this holds its last state
+
     [runtime]
     status_interval = 1.0         # seconds between live status lines
     frames = 0                    # stop after this many frame sets (0: until Ctrl-C)
@@ -73,7 +80,8 @@ if TYPE_CHECKING:
 
 BUILTIN_NAMES = ("builtin",)
 LABELLING_TIMEOUT_S = 10.0  # default [runtime] labelling_timeout_s
-_TOP_KEYS = {"cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime"}
+_TOP_KEYS = {"cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime",
+             "markerless"}
 
 
 @dataclass(frozen=True)
@@ -82,6 +90,16 @@ class RenderOptions:
     host: str = "127.0.0.1"
     port: int = 8765
     allowed_origins: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class MarkerlessOptions:
+    """``[markerless]``: the camera films a bare face analysed with a trained model (``livebridge markerless
+    train``) instead of markers; ``head_rig`` ("leds" or "none"), when given, must be the model's."""
+
+    model: Path
+    head_rig: str | None = None
+    min_confidence: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -147,6 +165,11 @@ class Session:
         0: run until stopped.
     labelling_timeout_s : float
         Seconds the pipeline waits for its first labelling before it ends with the reason; 0: forever.
+    display : Path or None
+        A basis ``.npz`` the render client shows instead of ``basis`` (same muscles, any topology: a
+        retargeted face), or None.
+    markerless : MarkerlessOptions or None
+        Markerless capture (one camera, a trained model) instead of markers.
     """
 
     path: Path | None
@@ -164,6 +187,8 @@ class Session:
     status_interval: float = 1.0
     frames: int = 0
     labelling_timeout_s: float = LABELLING_TIMEOUT_S
+    display: Path | None = None
+    markerless: MarkerlessOptions | None = None
 
 
 class _Table:
@@ -262,10 +287,17 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     from livebridge.face import SHIPPED_MARKER_SETS
 
     markers = face.path_value("markers", SHIPPED_MARKER_SETS)
+    display = face.path_value("display")
+    if display is not None and Path(display).suffix != ".npz":
+        raise InputError("a basis .npz file to show (e.g. from `livebridge retarget basis`)", path, "face.display")
     face.check_known()
 
+    markerless = _markerless(top.table("markerless"), path) if "markerless" in data else None
     calibration = top.path_value("calibration")
-    if calibration is None and not all(u.startswith(("sim://", "replay://")) for u in urls):
+    if markerless is not None and len(urls) != 1:
+        raise InputError(f"markerless capture films with one camera, got {len(urls)} URLs", path, "cameras.urls")
+    if (calibration is None and markerless is None
+            and not all(u.startswith(("sim://", "replay://")) for u in urls)):
         raise InputError("real cameras need a calibration file", path, "calibration")
 
     reconstruct_config = _reconstruct(top.table("reconstruct"), path)
@@ -315,7 +347,20 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     runtime.check_known()
 
     return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_config,
-                   solver_config, servo_rig, render, vmc, recording, status_interval, frames, labelling_timeout_s)
+                   solver_config, servo_rig, render, vmc, recording, status_interval, frames, labelling_timeout_s,
+                   display, markerless)
+
+
+def _markerless(table: _Table, path: Path | None) -> MarkerlessOptions:
+    model = table.path_value("model", required=True)
+    head_rig = table.get("head_rig", str)
+    if head_rig is not None and head_rig not in ("leds", "none"):
+        raise InputError(f"must be 'leds' or 'none', got {head_rig!r}", path, "markerless.head_rig")
+    min_confidence = table.get("min_confidence", float, 0.3)
+    if not 0.0 <= min_confidence <= 1.0:
+        raise InputError(f"must be in [0, 1], got {min_confidence}", path, "markerless.min_confidence")
+    table.check_known()
+    return MarkerlessOptions(model, head_rig, min_confidence)
 
 
 def _reconstruct(table: _Table, path: Path | None) -> ReconstructConfig:

@@ -79,17 +79,21 @@ class Take:
     def n_frames(self) -> int:
         return len(self.t)
 
-    def save(self, path: str | Path) -> None:
-        """Write the take as one ``.npz`` (format in the module docstring)."""
+    def save(self, path) -> None:
+        """Write the take as one ``.npz`` (format in the module docstring) to the file ``path`` (str or Path) or
+        into an open binary stream."""
         manifest = {
             "format": TAKE_FORMAT, "version": TAKE_VERSION, "marker_names": list(self.marker_names),
             "muscle_names": list(self.muscle_names) if self.muscle_names else None, "fps": self.fps,
         }
         arrays = {name: np.asarray(getattr(self, name), dtype=np.float64)
                   for name in _ARRAYS if getattr(self, name) is not None}
+        if hasattr(path, "write"):
+            np.savez_compressed(path, manifest=np.array(json.dumps(manifest)), t=np.asarray(self.t, dtype=np.float64),
+                                **arrays)
+            return
         with Path(path).open("wb") as stream:
-            np.savez_compressed(stream, manifest=np.array(json.dumps(manifest)),
-                                t=np.asarray(self.t, dtype=np.float64), **arrays)
+            self.save(stream)
 
     @classmethod
     def load(cls, path: str | Path) -> Take:

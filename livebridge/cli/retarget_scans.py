@@ -1,0 +1,118 @@
+"""``livebridge retarget scans``: an actuation basis from a neutral scan and one scan per muscle."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from livebridge.cli._options import FiniteFloat, InputPath, Named, OutputFile, Size, force_option, unique_names
+from livebridge.cli.landmarks import UNITS_TO_MM
+
+LANDMARK_SUFFIXES = (".csv", ".toml")
+SCAN_HELP = ("Scans: PLY (ascii or binary, point cloud or mesh), OBJ, or XYZ/CSV text (x y z per line). Landmarks: "
+             "a CSV of name,x,y,z rows or a TOML of name = [x, y, z] lines, in the scan's coordinates and units; "
+             "an expression's landmark file defaults to SCAN with the suffix .landmarks.csv.")
+
+
+def split_scan_spec(text: str) -> tuple[Path, Path]:
+    """``SCAN[:LANDMARKS]`` -> (scan, landmarks); the default landmarks are ``SCAN.landmarks.csv``."""
+    scan, sep, landmarks = text.rpartition(":")
+    if sep and Path(landmarks).suffix.lower() in LANDMARK_SUFFIXES and scan:
+        return Path(scan), Path(landmarks)
+    return Path(text), Path(text).with_suffix(".landmarks.csv")
+
+
+def read_landmark_points(path: Path, scale: float) -> dict:
+    """Named 3D points from a CSV (``name,x,y,z``) or TOML (``name = [x, y, z]``) file, times ``scale``."""
+    import math
+
+    import numpy as np
+
+    from livebridge.errors import InputError
+    from livebridge.retarget.landmarks import read_points_csv
+    from livebridge.tomlio import load_toml
+
+    if path.suffix.lower() != ".toml":
+        return {name: xyz * scale for name, xyz in read_points_csv(path).items()}
+    points = {}
+    for name, value in load_toml(path).items():
+        if (not isinstance(value, list) or len(value) != 3
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                           for v in value)):
+            raise InputError(f"expected [x, y, z] (three finite numbers), got {value!r}", path, name)
+        points[name] = np.array(value, dtype=np.float64) * scale
+    if not points:
+        raise InputError("no landmarks (expected lines like 'nose_tip = [0.0, 0.0, 0.0]')", path)
+    return points
+
+
+def reference_landmarks(spec: str, scale: float) -> dict:
+    """The reference face's landmarks: ``builtin`` (the built-in face's builtin-22) or a landmark points file."""
+    if spec != "builtin":
+        return read_landmark_points(Path(spec), scale)
+    from livebridge.face.builtin import builtin_basis
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    face = builtin_basis()
+    return load_landmark_set("builtin-22").as_dict(face.neutral, face.triangles)
+
+
+@click.command("scans")
+@click.option("--neutral", "neutral_scan", required=True, type=InputPath(), help="The neutral scan.")
+@click.option("--neutral-landmarks", required=True, type=InputPath(), help="Landmarks of the neutral scan.")
+@click.option("--expression", "expressions", multiple=True, required=True, type=Named(click.STRING, "SCAN[:LM]"),
+              help="MUSCLE=SCAN[:LANDMARKS], once per element (Choe-Ko names get their region and side).")
+@click.option("--out", required=True, type=OutputFile(), help="Basis to write (.npz).")
+@force_option
+@click.option("--reference", default="builtin", show_default=True, type=InputPath(builtins=("builtin",)),
+              help="Reference face for the normalisation: 'builtin' or a landmark points file (CSV/TOML, mm).")
+@click.option("--normalise", "method", type=click.Choice(["rigid", "similarity", "affine"]), default="rigid",
+              show_default=True, help="rigid/similarity keep the person's shape; affine is the thesis's T = A B^-1 "
+                                      "(the face takes the reference's proportions).")
+@click.option("--grid", "grid_size", type=Size(2, 2000), default="150x150", show_default=True,
+              help="Resampling grid, columns x rows.")
+@click.option("--crop-radius", type=FiniteFloat(0, 1e4, low_open=True), default=None,
+              help="Face crop around the nose tip, mm (default: 1.2 x the farthest landmark).")
+@click.option("--units", type=click.Choice(sorted(UNITS_TO_MM)), default="mm", show_default=True,
+              help="Units of the scans and landmark files.")
+@click.option("--kernel", type=click.Choice(["r", "r2lnr2"]), default="r", show_default=True,
+              help="TPS kernel: r (3D biharmonic) or r2lnr2 (the thesis's).")
+@click.option("--grid-obj", type=OutputFile(), default=None, help="Also write the neutral grid (OBJ with UVs).")
+@click.option("--landmarks-out", type=OutputFile(), default=None,
+              help="Also write the landmarks on the neutral grid (landmark .toml, for retarget basis).")
+def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, force: bool, reference: str,
+          method: str, grid_size, crop_radius, units: str, kernel: str, grid_obj, landmarks_out) -> None:
+    """Build an actuation basis for a scanned person from a neutral scan and one scan per muscle.
+
+    Each scan is normalised (nose tip at the origin, facing +z), cropped to the face and resampled on a
+    regular grid; each expression's displacement of the neutral grid comes from a landmark TPS, control
+    points snapped to the expressive surface and a TPS warp (Erdoğdu §5.4-5.5).
+    """
+    import numpy as np
+
+    from livebridge.retarget.scan import read_scan
+    from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
+
+    scale = UNITS_TO_MM[units]
+    columns, rows = grid_size
+    named = unique_names(expressions, "--expression")
+    neutral = prepare_neutral(read_scan(neutral_scan, scale), read_landmark_points(neutral_landmarks, scale),
+                              reference_landmarks(reference, 1.0), method, (rows, columns), crop_radius,
+                              neutral_landmarks)
+    faces = {}
+    for name, spec in named.items():
+        scan_path, landmark_path = split_scan_spec(spec)
+        faces[name] = prepare_expression(read_scan(scan_path, scale), read_landmark_points(landmark_path, scale),
+                                         neutral, scan_path)
+    basis = basis_from_scans(neutral, faces, kernel)
+    basis.save(out)
+    if grid_obj is not None:
+        neutral.grid.write_obj(grid_obj)
+    if landmarks_out is not None:
+        neutral.landmark_set(neutral_landmarks).save(landmarks_out)
+    largest = np.linalg.norm(basis.elements, axis=2).max(axis=1)
+    click.echo(f"wrote {out}: {basis.n_muscles} elements on {basis.n_vertices} grid vertices "
+               f"({columns}x{rows}, normalise {method}, kernel {kernel})")
+    for muscle, size in zip(basis.muscles, largest):
+        click.echo(f"  {muscle.name:24s} {muscle.region:5s} largest motion {size:6.2f} mm")

@@ -1,0 +1,275 @@
+"""Action units carried from a source face to a target face (Erdoğdu §5.5-5.6): modeling, then animation.
+
+Modeling (§5.5): the control points of the chosen AUs sit on the neutral source face; on the expressive
+source face they have moved by ``v_i`` (:func:`control_point_moves` carries them there by the landmark spline
+and the nearest surface point, eq. 5.6; with a basis as the source the expression shares the neutral's
+topology and :func:`basis_moves` reads ``v_i`` exactly at each point).
+
+Animation (§5.6): the control points are carried to the neutral target face, moved by ``m v_i`` (upper face,
+eq. 5.10) or ``m v_i s_t / s_s`` (lower face, eq. 5.8; ``s``: the mouth-corner distance), and the target is
+warped by one thin-plate spline per region through the moved points and fixed anchor points (the landmarks
+away from the moving points, and a band of target vertices along the border between the regions). A region
+with no moving point is not touched: a brow expression never moves the mouth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from livebridge.errors import InputError
+from livebridge.face.basis import Basis
+from livebridge.retarget.control_points import ControlPointSet, carry_control_points
+from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points
+from livebridge.retarget.tps import Kernel, fit_tps
+
+MERGE_DISTANCE = 1.0
+"""Control points of combined AUs closer than this (mm) are one point (their moves add)."""
+ANCHOR_CLEARANCE = 0.12
+"""A landmark closer than this fraction of the face's landmark extent to a moving point is not an anchor."""
+BORDER_SPACING = 0.06
+"""Spacing of the anchors along the border between the regions, as a fraction of the landmark extent."""
+
+
+@dataclass(frozen=True)
+class FaceRegions:
+    """Which vertices of a face are upper face and which lower (thesis §5.6.2), from its landmarks.
+
+    The border is a plane across the face between the eyes' corners and the nose tip (40% of the way down),
+    perpendicular to the face's up direction (chin to the inner brows, orthogonal to the eye line).
+    """
+
+    up: np.ndarray
+    """Unit up direction (3,)."""
+    border: float
+    """Height of the border along ``up``, mm."""
+
+    @classmethod
+    def of(cls, landmarks: dict[str, np.ndarray]) -> FaceRegions:
+        _require(landmarks, ("eye_outer_L", "eye_outer_R", "eye_inner_L", "eye_inner_R", "nose_tip", "chin",
+                             "brow_inner_L", "brow_inner_R"))
+        across = landmarks["eye_outer_L"] - landmarks["eye_outer_R"]
+        across /= np.linalg.norm(across)
+        up = 0.5 * (landmarks["brow_inner_L"] + landmarks["brow_inner_R"]) - landmarks["chin"]
+        up -= (up @ across) * across
+        up /= np.linalg.norm(up)
+        eyes = np.mean([landmarks[n] for n in ("eye_outer_L", "eye_outer_R", "eye_inner_L", "eye_inner_R")], axis=0)
+        border = float(eyes @ up - 0.4 * (eyes - landmarks["nose_tip"]) @ up)
+        return cls(up, border)
+
+    def upper(self, points: np.ndarray) -> np.ndarray:
+        """Boolean mask (n,) of points (n, 3) in the upper face."""
+        return points @ self.up > self.border
+
+
+def _require(landmarks: dict, names) -> None:
+    missing = [n for n in names if n not in landmarks]
+    if missing:
+        raise InputError(f"{len(missing)} landmark{'s' if len(missing) > 1 else ''} missing: {', '.join(missing)}",
+                         field="landmarks")
+
+
+def mouth_width(landmarks: dict[str, np.ndarray]) -> float:
+    """``s``: the distance between the mouth corners, mm."""
+    _require(landmarks, ("mouth_corner_L", "mouth_corner_R"))
+    return float(np.linalg.norm(landmarks["mouth_corner_L"] - landmarks["mouth_corner_R"]))
+
+
+# ------------------------------------------------------------------------------------------------ modeling
+def control_point_moves(points: np.ndarray, neutral_mesh, neutral_landmarks: LandmarkSet, expressive_mesh,
+                        expressive_landmarks: LandmarkSet, kernel: Kernel | str = Kernel.BIHARMONIC) -> np.ndarray:
+    """``v_i`` (n, 3): points on the neutral source face carried to the expressive one (§5.5.3), minus where
+    they were. ``*_mesh``: (vertices, triangles); the landmarks are on each mesh."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    return carry_control_points(points, neutral_mesh, neutral_landmarks, expressive_mesh, expressive_landmarks,
+                                kernel) - points
+
+
+def basis_moves(points: np.ndarray, basis: Basis, contractions: dict[str, float]) -> np.ndarray:
+    """``v_i`` (n, 3) of points on a basis's neutral face under ``contractions`` (``{muscle: x}``), exactly:
+    the synthesized displacement at each point's place on the surface."""
+    unknown = [name for name in contractions if name not in basis.names]
+    if unknown:
+        raise InputError(f"the source basis has no muscle {', '.join(unknown)} (it has {', '.join(basis.names)})",
+                         field="muscles")
+    x = np.zeros(basis.n_muscles)
+    for name, value in contractions.items():
+        x[basis.index(name)] = value
+    displacement = np.tensordot(x, basis.elements, axes=1)
+    triangle, barycentric, _ = closest_surface_points(points, basis.neutral, basis.triangles)
+    return np.einsum("nk,nkd->nd", barycentric, displacement[basis.triangles[triangle]])
+
+
+# ------------------------------------------------------------------------------------------------ animation
+@dataclass(frozen=True)
+class Motion:
+    """Control points on the target and how far each moves at magnitude 1 (already scaled for its region).
+
+    positions, moves : ndarray, shape (n, 3); upper : ndarray of bool, shape (n,).
+    """
+
+    positions: np.ndarray
+    moves: np.ndarray
+    upper: np.ndarray
+
+
+def merged(positions: np.ndarray, moves: np.ndarray, upper: np.ndarray) -> Motion:
+    """Points closer than :data:`MERGE_DISTANCE` become one (mean place, summed move, upper if any is)."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(positions).query_pairs(MERGE_DISTANCE, output_type="ndarray")
+    n = len(positions)
+    from scipy.sparse import coo_matrix
+
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else \
+        coo_matrix((n, n))
+    count, label = connected_components(graph, directed=False)
+    weight = np.bincount(label, minlength=count)[:, None]
+    place = np.zeros((count, 3))
+    move = np.zeros((count, 3))
+    np.add.at(place, label, positions)
+    np.add.at(move, label, moves)
+    region = np.zeros(count, dtype=bool)
+    np.logical_or.at(region, label, upper)
+    return Motion(place / weight, move, region)
+
+
+def warp_regions(vertices: np.ndarray, triangles: np.ndarray, landmarks: dict[str, np.ndarray], motion: Motion,
+                 magnitude: float, kernel: Kernel | str = Kernel.BIHARMONIC) -> np.ndarray:
+    """The target face with its control points moved by ``magnitude`` times their moves, shape (m, 3).
+
+    One spline per region (§5.6.2) through the region's moved points and fixed anchors; only that region's
+    vertices move. Parameters: ``vertices (m, 3)``, ``triangles (t, 3)``, ``landmarks {name: (3,)}`` on it.
+    """
+    if not (np.isfinite(magnitude) and 0.0 <= magnitude <= 1.0):
+        raise InputError(f"the magnitude m must be in [0, 1], got {magnitude}", field="magnitude")
+    regions = FaceRegions.of(landmarks)
+    extent = float(np.ptp(np.array(list(landmarks.values())), axis=0).max())
+    in_upper = regions.upper(vertices)
+    border = border_points(vertices, triangles, in_upper, BORDER_SPACING * extent)
+    out = np.array(vertices, dtype=np.float64)
+    for upper in (True, False):
+        moving = (motion.upper == upper) & (np.linalg.norm(motion.moves, axis=1) > 0)
+        if not moving.any() or magnitude == 0.0:
+            continue
+        points = motion.positions[moving]
+        anchors = [p for p in landmarks.values()
+                   if np.linalg.norm(points - p, axis=1).min() > ANCHOR_CLEARANCE * extent]
+        fixed = np.vstack([np.array(anchors).reshape(-1, 3), border])
+        fixed = fixed[np.linalg.norm(fixed[:, None] - points[None], axis=2).min(axis=1) > MERGE_DISTANCE]
+        spline = fit_tps(np.vstack([points, fixed]), np.vstack([points + magnitude * motion.moves[moving], fixed]),
+                         kernel)
+        chosen = in_upper if upper else ~in_upper
+        out[chosen] = spline(vertices[chosen])
+    return out
+
+
+def border_points(vertices: np.ndarray, triangles: np.ndarray, in_upper: np.ndarray, spacing: float) -> np.ndarray:
+    """Vertices (k, 3) along the border between the regions (on an edge that crosses it), ``spacing`` apart."""
+    edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    crossing = edges[in_upper[edges[:, 0]] != in_upper[edges[:, 1]]]
+    candidates = vertices[np.unique(crossing)]
+    chosen: list[np.ndarray] = []
+    for point in candidates[np.argsort(candidates[:, 0])]:
+        if not chosen or np.linalg.norm(np.array(chosen) - point, axis=1).min() >= spacing:
+            chosen.append(point)
+    return np.array(chosen).reshape(-1, 3)
+
+
+# ------------------------------------------------------------------------------------------------ the whole way
+@dataclass(frozen=True)
+class AUTransfer:
+    """Everything an AU mesh of the target needs, prepared once; :meth:`mesh` per magnitude."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    landmarks: dict
+    motion: Motion
+    kernel: Kernel
+
+    def mesh(self, magnitude: float) -> np.ndarray:
+        """The target's vertices (m, 3) at AU magnitude ``m`` in [0, 1]."""
+        return warp_regions(self.vertices, self.triangles, self.landmarks, self.motion, magnitude, self.kernel)
+
+
+def prepare_transfer(control_points: ControlPointSet, groups, source: Basis, source_landmarks: LandmarkSet,
+                     target_mesh, target_landmarks: LandmarkSet, sides=("L", "R", "C"),
+                     kernel: Kernel | str = Kernel.BIHARMONIC) -> AUTransfer:
+    """AUs (``groups``: ``au12``, or muscle names; several combine) of a source basis, ready for the target.
+
+    Parameters
+    ----------
+    control_points : ControlPointSet
+        On its reference face; carried to the source and to the target by their landmarks.
+    groups : sequence of str
+    source : Basis
+        Its recipes' contractions make the expressive source (:func:`basis_moves`).
+    source_landmarks, target_landmarks : LandmarkSet
+    target_mesh : (vertices (m, 3), triangles (t, 3))
+    sides : sequence of str
+        Sides whose points move (``("L",)``: the subject's left only); the others' points stay fixed, and the
+        midline's move half as far when only one side moves.
+    """
+    kernel = Kernel.parse(kernel)
+    chosen = control_points.subset(control_points.select(groups))
+    target_vertices, target_triangles = (np.asarray(a) for a in target_mesh)
+    on_source = chosen.on(source.neutral, source.triangles, source_landmarks, kernel)
+    on_target = chosen.on(target_vertices, target_triangles, target_landmarks, kernel)
+    moves = np.zeros_like(on_source)
+    for group in chosen.group_names:
+        recipe = control_points.recipes.get(group)
+        if recipe is None or not recipe.muscles:
+            raise InputError(f"group {group} has no muscle recipe: add muscles = {{...}} to its [[group]]",
+                             field=group)
+        mask = np.array([g == group for g in chosen.groups])
+        moves[mask] += basis_moves(on_source[mask], source, recipe.muscles)
+    sides = tuple(sides)
+    share = np.array([1.0 if side in sides else (0.5 if side == "C" and len(sides) < 3 else 0.0)
+                      for side in chosen.sides])
+    source_marks = source_landmarks.as_dict(source.neutral, source.triangles)
+    target_marks = target_landmarks.as_dict(target_vertices, target_triangles)
+    upper = np.array([region == "upper" for region in chosen.regions])
+    ratio = mouth_width(target_marks) / mouth_width(source_marks)
+    # the source's moves in the target's frame: the landmark spline's Jacobian at each point (sizes and pose)
+    from livebridge.retarget.basis import landmark_pairs
+
+    pairs = landmark_pairs(source_landmarks, (source.neutral, source.triangles), target_landmarks,
+                           (target_vertices, target_triangles))
+    jacobian = fit_tps(*pairs, kernel).jacobian(on_source)
+    rotation = np.array([_rotation_of(j) for j in jacobian])
+    turned = np.einsum("nij,nj->ni", rotation, moves)
+    scaled = turned * np.where(upper, 1.0, ratio)[:, None] * share[:, None]
+    return AUTransfer(target_vertices, target_triangles, target_marks, merged(on_target, scaled, upper), kernel)
+
+
+def _rotation_of(jacobian: np.ndarray) -> np.ndarray:
+    """The rotation (3, 3) nearest a Jacobian (polar decomposition): the thesis scales moves only by ``s_t/s_s``
+    (lower face), so only the pose difference is taken from the spline."""
+    u, _, vt = np.linalg.svd(jacobian)
+    rotation = u @ vt
+    if np.linalg.det(rotation) < 0:
+        u[:, -1] *= -1
+        rotation = u @ vt
+    return rotation
+
+
+def parse_aus(values) -> list[str]:
+    """Group names from ``--au`` values: ``12`` -> ``au12``, ``au12`` and muscle names as given."""
+    out = []
+    for value in values:
+        text = str(value).strip()
+        out.append(f"au{int(text)}" if text.isdigit() else text)
+    return out
+
+
+def save_obj(path: str | Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
+    """A triangle mesh as Wavefront OBJ (vertices in mm), written atomically."""
+    from livebridge.atomic import write_bytes_atomically
+
+    lines = [f"# livebridge retarget au: {len(vertices)} vertices, {len(triangles)} triangles, mm"]
+    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in triangles]
+    write_bytes_atomically(path, ("\n".join(lines) + "\n").encode(), "OBJ file")

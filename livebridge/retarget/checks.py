@@ -1,0 +1,69 @@
+"""Checks of a user's mesh and landmarks before a transfer: one clear error naming the file and the landmark."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from livebridge.errors import InputError
+from livebridge.retarget.landmarks import LandmarkSet
+
+OPENING_LANDMARKS = ("lip_", "mouth_", "eye_", "lm_")
+"""Landmarks that may sit on the rim of an opening (the mouth, the eyes; iBUG ``lm_NN`` points include the lids
+and the inner lips)."""
+DEGENERATE_AREA = 1e-12
+"""A triangle with less area than this fraction of the mesh's mean triangle area has no surface."""
+
+
+def non_manifold_edges(triangles: np.ndarray) -> np.ndarray:
+    """Edges (k, 2) (sorted vertex ids) shared by more than two triangles."""
+    from livebridge.retarget.basis import edge_counts
+
+    unique, counts = edge_counts(triangles)
+    return unique[counts > 2]
+
+
+def check_landmarks_on(landmarks: LandmarkSet, vertices: np.ndarray, triangles: np.ndarray, source=None) -> None:
+    """Raise an :class:`InputError` naming ``source`` (the landmark file) and the landmark when the mesh cannot
+    carry a transfer at that landmark.
+
+    Faults: a vertex of a landmark's triangle is not finite; a landmark's triangle has no area (the landmark is
+    off any surface); a landmark's triangle is on the rim of a hole (a boundary edge; landmarks of the lips,
+    mouth corners and eyes may sit on the mouth and eye openings); the mesh has an edge shared by more than two
+    triangles (non-manifold: "the closest surface point" and the normals have no single answer there; the error
+    names the landmark nearest it).
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    corners = vertices[triangles[landmarks.triangles]]  # (n, 3, 3)
+    for name, corner in zip(landmarks.names, corners):
+        if not np.isfinite(corner).all():
+            raise InputError("a vertex of this landmark's triangle is not finite", source, name)
+    all_corners = vertices[triangles]
+    areas = 0.5 * np.linalg.norm(np.cross(all_corners[:, 1] - all_corners[:, 0],
+                                          all_corners[:, 2] - all_corners[:, 0]), axis=1)
+    mean_area = float(np.nanmean(areas)) if len(areas) else 0.0
+    for name, triangle in zip(landmarks.names, landmarks.triangles):
+        if not areas[triangle] > DEGENERATE_AREA * mean_area:
+            raise InputError(f"off the surface: its triangle {int(triangle)} has no area (its corners coincide or "
+                             "lie on a line)", source, name)
+    from livebridge.retarget.basis import edge_counts
+
+    edges, counts = edge_counts(triangles)
+    base = len(vertices) + 1
+    rim = set((edges[counts == 1, 0] * base + edges[counts == 1, 1]).tolist())
+    for name, triangle in zip(landmarks.names, landmarks.triangles):
+        if name.startswith(OPENING_LANDMARKS):
+            continue
+        a, b, c = np.sort(triangles[triangle])
+        if {int(a) * base + int(b), int(b) * base + int(c), int(a) * base + int(c)} & rim:
+            raise InputError(f"on the rim of a hole in the mesh: its triangle {int(triangle)} has an edge no other "
+                             "triangle shares (fill the hole, or place the landmark on closed surface)", source, name)
+    bad = non_manifold_edges(triangles)
+    if len(bad):
+        middle = vertices[bad[0]].mean(axis=0)
+        positions = landmarks.positions(vertices, triangles)
+        nearest = landmarks.names[int(np.argmin(np.linalg.norm(positions - middle, axis=1)))]
+        raise InputError(f"the mesh is non-manifold: {len(bad)} edge{'s' if len(bad) > 1 else ''} shared by more "
+                         f"than two triangles (the first between vertices {int(bad[0][0])} and {int(bad[0][1])}, "
+                         f"{np.linalg.norm(positions - middle, axis=1).min():.1f} mm from this landmark); "
+                         "repair the mesh (e.g. split the fan) and place the landmarks again", source, nearest)

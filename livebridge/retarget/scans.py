@@ -1,0 +1,170 @@
+"""An actuation basis from scans of one person: a neutral scan and one scan per muscle (Erdoğdu §5.4-5.5).
+
+Preprocessing (§5.4): the neutral scan is normalised (nose tip to the origin, its outer eye corners, chin
+and nose tip onto a reference face's; :mod:`~livebridge.retarget.normalise`), cropped to the face and
+resampled onto a regular x-y grid (:mod:`~livebridge.retarget.grid`). Each expression scan is registered
+onto it rigidly (skull landmarks, then trimmed ICP: the person's head moved between scans, their skull did
+not change) and resampled on the same grid lines.
+
+Modeling (§5.5): a landmark TPS ``f`` carries the neutral face towards the expressive one; control points
+(every ``stride``-th grid vertex) go through ``f`` and are snapped to the closest point of the expressive
+surface (dropped where that point is on the edge of the scan or of a hole: the surface is not known there),
+and a TPS through the control points' moves warps the whole neutral grid. The warp minus the neutral grid
+is the muscle's element.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from livebridge.errors import InputError
+from livebridge.face.basis import CHOE_KO_BY_NAME, Basis, Muscle
+from livebridge.face.meshio import vertex_normals
+from livebridge.geometry.transforms import apply
+from livebridge.retarget.grid import GRID_SHAPE, FaceGrid, crop_sphere, resample, square_axes
+from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points, place_at_points
+from livebridge.retarget.normalise import normalisation, register_rigid, transform_landmarks
+from livebridge.retarget.scan import Scan
+from livebridge.retarget.tps import Kernel, fit_tps
+
+CROP_FACTOR = 1.2
+"""Default crop radius: this times the farthest landmark from the nose tip."""
+CONTROL_STRIDE = 3
+"""Every this many grid rows and columns, a control point."""
+LANDMARK_SMOOTHING = 1.0
+"""TPS smoothing of the landmark spline (landmarks are placed by hand or detected: never exact)."""
+CONTROL_SMOOTHING = 0.1
+"""TPS smoothing of the control-point warp (the snapped points carry the scanner's noise)."""
+LANDMARK_MAX_DISTANCE_MM = 5.0
+"""A landmark farther than this from the resampled surface is an error (off the face, or in a hole)."""
+
+
+@dataclass(frozen=True, eq=False)
+class FaceScan:
+    """A scan cropped, resampled and in the face frame.
+
+    Attributes
+    ----------
+    grid : FaceGrid
+    landmarks : dict of str to ndarray, shape (3,)
+        The scan's landmarks in the face frame (where the landmark file puts them, carried by ``scan2face``).
+    scan2face : ndarray, shape (4, 4)
+        From the scan's coordinates to the face frame (nose tip of the neutral at the origin, facing +z).
+    """
+
+    grid: FaceGrid
+    landmarks: dict
+    scan2face: np.ndarray
+
+    @property
+    def vertices(self) -> np.ndarray:
+        return self.grid.vertices
+
+    @property
+    def triangles(self) -> np.ndarray:
+        return self.grid.triangles
+
+    def landmark_set(self, source=None) -> LandmarkSet:
+        """The landmarks at their closest points of the grid mesh (an error names any farther than
+        :data:`LANDMARK_MAX_DISTANCE_MM`: off the crop or in a hole)."""
+        return place_at_points(self.landmarks, self.vertices, self.triangles, LANDMARK_MAX_DISTANCE_MM, source)
+
+
+def crop_radius(landmarks: dict[str, np.ndarray]) -> float:
+    """:data:`CROP_FACTOR` times the farthest landmark from the nose tip, mm."""
+    tip = np.asarray(landmarks["nose_tip"], dtype=np.float64)
+    return CROP_FACTOR * max(float(np.linalg.norm(np.asarray(p) - tip)) for p in landmarks.values())
+
+
+def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dict[str, np.ndarray],
+                    method: str = "rigid", shape: tuple[int, int] = GRID_SHAPE, radius: float | None = None,
+                    source=None) -> FaceScan:
+    """The neutral scan normalised onto ``reference`` by ``method`` (see
+    :func:`~livebridge.retarget.normalise.normalisation`), cropped to a sphere of ``radius`` around the nose
+    tip and resampled on a ``shape`` grid over ``[-radius, radius]^2``."""
+    scan2face = normalisation(landmarks, reference, method, source)
+    points = apply(scan2face, scan.points)
+    moved = transform_landmarks(scan2face, landmarks)
+    radius = crop_radius(moved) if radius is None else float(radius)
+    x, y = square_axes(radius, shape)
+    grid = resample(points[crop_sphere(points, np.zeros(3), radius)], x, y, source=source)
+    face = FaceScan(grid, moved, scan2face)
+    face.landmark_set(source)  # every landmark on the resampled face, or a clear error
+    return face
+
+
+def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: FaceScan, source=None) -> FaceScan:
+    """An expression scan of the neutral's person, registered onto it and resampled on its grid lines."""
+    radius = float(neutral.grid.x[-1])
+    normals = vertex_normals(neutral.vertices, neutral.triangles)
+    scan2face = register_rigid(scan.points, landmarks, neutral.vertices, normals, neutral.landmarks, radius,
+                               source=source)
+    points = apply(scan2face, scan.points)
+    grid = resample(points[crop_sphere(points, np.zeros(3), radius)], neutral.grid.x, neutral.grid.y, source=source)
+    return FaceScan(grid, transform_landmarks(scan2face, landmarks), scan2face)
+
+
+def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,
+                       kernel: Kernel | str = Kernel.BIHARMONIC, source=None) -> np.ndarray:
+    """The displacement (n_vertices, 3) of every neutral grid vertex into the expressive surface (§5.5)."""
+    names = [name for name in neutral.landmarks if name in expression.landmarks]
+    if len(names) < 4:
+        raise InputError(f"the expression scan shares {len(names)} landmarks with the neutral (at least 4)",
+                         source, "landmarks")
+    f = fit_tps(np.array([neutral.landmarks[n] for n in names]), np.array([expression.landmarks[n] for n in names]),
+                kernel, LANDMARK_SMOOTHING)
+    controls = _control_vertices(neutral.grid, stride)
+    start = neutral.vertices[controls]
+    triangle, barycentric, _ = closest_surface_points(f(start), expression.vertices, expression.triangles)
+    corners = expression.triangles[triangle]
+    known = ~_border_vertices(expression.grid)[corners].any(axis=1)
+    if known.sum() < 4:
+        raise InputError("the expression scan does not overlap the neutral face", source, "points")
+    end = np.einsum("nk,nkd->nd", barycentric, expression.vertices[corners])
+    warp = fit_tps(start[known], end[known], kernel, CONTROL_SMOOTHING)
+    return warp(neutral.vertices) - neutral.vertices
+
+
+def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
+                     kernel: Kernel | str = Kernel.BIHARMONIC) -> Basis:
+    """One element per expression scan (by muscle name) on the neutral's grid mesh."""
+    elements = np.stack([expression_element(neutral, face, kernel=kernel, source=name)
+                         for name, face in expressions.items()])
+    muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks)
+                    for name, element in zip(expressions, elements))
+    return Basis(neutral.vertices, neutral.triangles, elements, muscles)
+
+
+def muscle_for(name: str, element: np.ndarray, vertices: np.ndarray, landmarks: dict[str, np.ndarray]) -> Muscle:
+    """The Choe-Ko muscle of that name, or a new one placed by where ``element`` (n, 3) moves ``vertices``.
+
+    A new muscle's region is ``upper`` when its motion-weighted centre is above the outer eye corners, its
+    side ``L`` / ``R`` (+x / -x) when that centre is off the midline by more than a tenth of the eyes' distance.
+    """
+    if name in CHOE_KO_BY_NAME:
+        return CHOE_KO_BY_NAME[name]
+    weight = np.linalg.norm(element, axis=1)
+    centre = weight @ vertices / max(float(weight.sum()), np.finfo(float).tiny)
+    eyes = np.array([landmarks["eye_outer_L"], landmarks["eye_outer_R"]])
+    region = "upper" if centre[1] > eyes[:, 1].mean() else "lower"
+    off = centre[0] - eyes[:, 0].mean()
+    side = None if abs(off) <= 0.1 * np.linalg.norm(eyes[0] - eyes[1]) else ("L" if off > 0 else "R")
+    return Muscle(name, region, side, "from a scan")
+
+
+def _control_vertices(grid: FaceGrid, stride: int) -> np.ndarray:
+    """Vertex ids of every ``stride``-th valid grid point in rows and columns."""
+    index = grid.index[::stride, ::stride]
+    return index[index >= 0]
+
+
+def _border_vertices(grid: FaceGrid) -> np.ndarray:
+    """Vertices with a masked grid point (or the grid's edge) among their 8 neighbours, shape (n_vertices,)."""
+    valid = np.pad(grid.valid, 1)
+    inner = np.ones(grid.shape, bool)
+    for dr in (0, 1, 2):
+        for dc in (0, 1, 2):
+            inner &= valid[dr:dr + grid.shape[0], dc:dc + grid.shape[1]]
+    return ~inner[grid.valid]

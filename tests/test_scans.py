@@ -1,0 +1,239 @@
+"""Scans: readers against the bytes they wrote, resampling against an analytic surface, normalisation and
+registration against known transforms, and a basis from simulated ICT scans against the ICT elements."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from livebridge.bench.scans import ERROR_LIMIT, build_and_measure, synthetic_scans
+from livebridge.geometry.transforms import apply
+from livebridge.retarget.grid import crop_sphere, resample, square_axes
+from livebridge.retarget.normalise import NORMALISATION_LANDMARKS, normalisation, register_rigid
+from livebridge.retarget.scan import read_scan, write_ply
+
+
+# ------------------------------------------------------------------------------------------------ reading
+@pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian", "binary_big_endian"])
+@pytest.mark.parametrize("with_faces", [True, False])
+def test_ply_round_trip(tmp_path, rng, encoding, with_faces):
+    points = rng.normal(0, 50, (200, 3))
+    triangles = rng.integers(0, 200, (300, 3)) if with_faces else None
+    write_ply(tmp_path / "s.ply", points, triangles, encoding)
+    scan = read_scan(tmp_path / "s.ply", scale=10.0)
+    np.testing.assert_allclose(scan.points, 10 * points.astype(np.float32), rtol=1e-6, atol=1e-5)  # ascii: 6 decimals
+    assert scan.is_mesh == with_faces
+    if with_faces:
+        np.testing.assert_array_equal(scan.triangles, triangles)
+
+
+def test_ply_with_quads_colours_and_extra_elements(tmp_path):
+    header = ("ply\nformat binary_big_endian 1.0\ncomment made by a scanner\nelement vertex 5\nproperty double x\n"
+              "property double y\nproperty double z\nproperty uchar red\nelement face 2\n"
+              "property list uchar uint vertex_indices\nelement edge 1\nproperty int vertex1\nproperty int vertex2\n"
+              "end_header\n")
+    vertices = np.zeros(5, np.dtype([("p", ">f8", 3), ("r", "u1")]))
+    vertices["p"] = np.arange(15).reshape(5, 3)
+    quad = b"\x04" + np.array([0, 1, 2, 3], ">u4").tobytes()
+    tri = b"\x03" + np.array([2, 3, 4], ">u4").tobytes()
+    (tmp_path / "q.ply").write_bytes(header.encode() + vertices.tobytes() + quad + tri + np.array([0, 1], ">i4")
+                                     .tobytes())
+    scan = read_scan(tmp_path / "q.ply")
+    np.testing.assert_array_equal(scan.points, np.arange(15).reshape(5, 3))
+    np.testing.assert_array_equal(scan.triangles, [[0, 1, 2], [0, 2, 3], [2, 3, 4]])
+
+
+def test_obj_and_text_point_lists(tmp_path):
+    (tmp_path / "s.obj").write_text("# scan\nv 0 0 0 255 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\n"
+                                    "f 1/1 2/1 3/1 4/1\nf -1 -2 -3\n")
+    scan = read_scan(tmp_path / "s.obj")
+    np.testing.assert_array_equal(scan.triangles, [[0, 1, 2], [0, 2, 3], [3, 2, 1]])
+    (tmp_path / "s.csv").write_text("# exported\nnx;X;Y;Z\n9;1;2;3\n9;4;5;6\n")
+    np.testing.assert_array_equal(read_scan(tmp_path / "s.csv").points, [[1, 2, 3], [4, 5, 6]])
+    (tmp_path / "s.xyz").write_text("1 2 3 0.1 0.2 0.3\n\n4\t5\t6 0 0 1\n")
+    np.testing.assert_array_equal(read_scan(tmp_path / "s.xyz").points, [[1, 2, 3], [4, 5, 6]])
+
+
+# ------------------------------------------------------------------------------------------------ resampling
+def _dome(rng, n=20_000, radius=60.0, hole=None):
+    """Points of the cap z = sqrt(R^2 - x^2 - y^2) - R over |(x, y)| < radius (R = 100), optional hole."""
+    xy = rng.uniform(-radius, radius, (n, 2))
+    xy = xy[np.linalg.norm(xy, axis=1) < radius]
+    if hole is not None:
+        xy = xy[np.linalg.norm(xy - hole[0], axis=1) > hole[1]]
+    return np.column_stack([xy, np.sqrt(100.0 ** 2 - (xy ** 2).sum(axis=1)) - 100.0])
+
+
+def test_resampling_follows_the_surface_and_masks_a_hole(rng):
+    hole = (np.array([20.0, -10.0]), 8.0)
+    x, y = square_axes(70.0, (120, 100))
+    grid = resample(_dome(rng, hole=hole), x, y)
+    vertices = grid.vertices
+    truth = np.sqrt(100.0 ** 2 - (vertices[:, :2] ** 2).sum(axis=1)) - 100.0
+    error = np.abs(vertices[:, 2] - truth)  # linear interpolation of a curved surface: the chord error
+    assert np.median(error) < 0.01 and error.max() < 0.15
+    from_hole = np.linalg.norm(vertices[:, :2] - hole[0], axis=1)
+    assert from_hole.min() > hole[1] - 2.5  # nothing invented inside the hole (up to the gap allowance)
+    xx, yy = np.meshgrid(x, y)
+    inside = (np.hypot(xx, yy) < 55) & (np.hypot(xx - hole[0][0], yy - hole[0][1]) > hole[1] + 3)
+    assert grid.valid[inside].all()  # everywhere else on the scan: a vertex
+    assert not grid.valid[np.hypot(xx, yy) > 63].any()
+    corners = vertices[grid.triangles]
+    normal_z = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])[:, 2]
+    assert (normal_z > 0).all()
+    assert grid.uv.min() >= 0 and grid.uv.max() <= 1 and len(grid.uv) == len(vertices)
+
+
+def test_resampling_keeps_the_front_surface(rng):
+    front = _dome(rng)
+    behind = front - [0, 0, 40.0]  # e.g. the back of a head seen through the face
+    x, y = square_axes(70.0, (60, 60))
+    grid = resample(np.vstack([front, behind]), x, y)
+    truth = np.sqrt(100.0 ** 2 - (grid.vertices[:, :2] ** 2).sum(axis=1)) - 100.0
+    assert np.abs(grid.vertices[:, 2] - truth).max() < 0.1
+
+
+# ------------------------------------------------------------------------------------------------ normalising
+def _landmarks(rng):
+    names = NORMALISATION_LANDMARKS + ("eye_inner_L", "eye_inner_R", "nose_saddle_L", "nose_saddle_R")
+    base = {"eye_outer_L": [45, 35, -45], "eye_outer_R": [-45, 35, -45], "chin": [0, -80, -25],
+            "nose_tip": [0, 0, 0], "eye_inner_L": [18, 32, -38], "eye_inner_R": [-18, 32, -38],
+            "nose_saddle_L": [9, 29, -27], "nose_saddle_R": [-9, 29, -27]}
+    return {name: np.array(base[name], float) + rng.normal(0, 2, 3) for name in names}
+
+
+def test_thesis_affine_puts_the_four_landmarks_on_the_reference(rng):
+    reference, scan = _landmarks(rng), _landmarks(rng)
+    pose = np.eye(4)
+    pose[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0] * 1.3
+    pose[:3, 3] = [5, -40, 300]
+    moved = {name: apply(pose, p[None])[0] for name, p in scan.items()}
+    scan2face = normalisation(moved, reference, "affine")
+    for name in NORMALISATION_LANDMARKS:
+        np.testing.assert_allclose(apply(scan2face, moved[name][None])[0], reference[name] - reference["nose_tip"],
+                                   atol=1e-9)
+
+
+def test_rigid_normalisation_undoes_a_head_pose(rng):
+    reference = _landmarks(rng)
+    pose = np.eye(4)
+    pose[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    if np.linalg.det(pose[:3, :3]) < 0:
+        pose[:3, :3] *= -1
+    pose[:3, 3] = [100, 20, -30]
+    moved = {name: apply(pose, p[None])[0] for name, p in reference.items()}
+    expected = np.eye(4)
+    expected[:3, 3] = -reference["nose_tip"]  # the normalised nose tip is the origin
+    np.testing.assert_allclose(normalisation(moved, reference, "rigid") @ pose, expected, atol=1e-9)
+
+
+def _face_like(rng, n=30_000):
+    """The dome with a nose and a brow ridge: no rotation slides it onto itself."""
+    points = _dome(rng, n=n, radius=80.0)
+    x, y = points[:, 0], points[:, 1]
+    points[:, 2] += 25 * np.exp(-(x / 12) ** 2 - ((y + 10) / 25) ** 2) + 8 * np.exp(-((y - 35) / 8) ** 2)
+    return points
+
+
+def test_registration_ignores_the_part_that_moved(rng):
+    from livebridge.face.meshio import vertex_normals
+
+    grid = resample(_face_like(rng), *square_axes(85.0, (120, 120)))
+    face, normals = grid.vertices, vertex_normals(grid.vertices, grid.triangles)
+    expression = _face_like(rng)
+    lower = expression[:, 1] < -30
+    expression[lower, 2] += 6.0 * np.exp(-((expression[lower, 1] + 60) / 15) ** 2)  # a "jaw" bulge
+    pose = np.eye(4)
+    pose[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)) * 0.02 + np.eye(3))[0]
+    pose[:3, :3] *= np.sign(np.diag(pose[:3, :3]))  # a small rotation, not a reflection
+    pose[:3, 3] = [3, -2, 4]
+    landmarks = _landmarks(rng)
+    scan_landmarks = {name: apply(pose, p[None])[0] + rng.normal(0, 0.5, 3) for name, p in landmarks.items()}
+    found = register_rigid(apply(pose, expression), scan_landmarks, face, normals, landmarks, 90.0)
+    error = apply(found @ pose, face) - face
+    assert np.linalg.norm(error, axis=1).max() < 0.3
+
+
+def test_crop_sphere(rng):
+    points = rng.normal(0, 50, (1000, 3))
+    kept = crop_sphere(points, np.array([10.0, 0, 0]), 40.0)
+    np.testing.assert_array_equal(kept, np.linalg.norm(points - [10, 0, 0], axis=1) <= 40)
+
+
+# ------------------------------------------------------------------------------------------------ bases from scans
+@pytest.fixture(scope="module")
+def ict_scan_basis(ict):
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    return build_and_measure(ict, load_landmark_set("ict-22"), np.random.default_rng(7))
+
+
+def _share_where_ict_moves(element, true) -> float:
+    """The fraction of an element's squared motion on the vertices the ICT element moves (> 10% of its max)."""
+    size, true_size = np.linalg.norm(element, axis=1), np.linalg.norm(true, axis=1)
+    moved = true_size > 0.1 * true_size.max()
+    return float(np.sum(size[moved] ** 2) / np.sum(size ** 2))
+
+
+EYELIDS = ("orbicularis_oculi_L", "orbicularis_oculi_R")
+
+
+def test_scan_basis_moves_the_face_where_the_ict_elements_do(ict, ict_scan_basis):
+    built, truth, _, _ = ict_scan_basis
+    assert built.names == ict.names
+    assert np.isfinite(built.elements).all()
+    for name, element, true in zip(built.names, built.elements, truth):
+        if name not in EYELIDS:
+            assert _share_where_ict_moves(element, true) > 0.75, name  # measured 0.78-0.96
+
+
+@pytest.mark.xfail(strict=True, reason="open: the eyelids close over the eye openings, which are holes in the "
+                   "neutral grid (no vertices there): 3-4% of the built motion is where the ICT eyelids move")
+def test_scan_basis_eyelids(ict_scan_basis):
+    built, truth, _, _ = ict_scan_basis
+    for name in EYELIDS:
+        k = built.index(name)
+        assert _share_where_ict_moves(built.elements[k], truth[k]) > 0.75, name
+
+
+@pytest.mark.xfail(strict=True, reason="open: measured 0.30-1.47 relative RMS per element (jaw 0.30, risorius_L 1.47; "
+                   "`livebridge bench scans`): the scans fix the motion normal to the surface to ~0.4 mm, the motion "
+                   "along it only at the 22 landmarks")
+def test_scan_basis_reproduces_the_ict_elements_within_10_percent(ict_scan_basis):
+    built, _, errors, _ = ict_scan_basis
+    assert np.nanmax(errors) <= ERROR_LIMIT, dict(zip(built.names, np.round(errors, 3)))
+
+
+def test_retarget_scans_cli_writes_a_basis(tmp_path, ict):
+    from livebridge.cli import main
+    from livebridge.face.basis import Basis
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    landmarks = load_landmark_set("ict-22")
+    neutral, expressions = synthetic_scans(ict, landmarks, np.random.default_rng(3), n_points=20_000,
+                                           hole_muscle=None)
+
+    def write(name, scan, encoding):
+        write_ply(tmp_path / f"{name}.ply", scan.points, None, encoding)
+        rows = "".join(f"{k},{x:.4f},{y:.4f},{z:.4f}\n" for k, (x, y, z) in scan.landmarks.items())
+        (tmp_path / f"{name}.landmarks.csv").write_text("name,x,y,z\n" + rows)
+
+    write("neutral", neutral, "binary_little_endian")
+    write("jaw", expressions["jaw"], "ascii")
+    write("smile", expressions["zygomatic_major_L"], "binary_big_endian")
+    result = CliRunner().invoke(main, [
+        "retarget", "scans", "--neutral", str(tmp_path / "neutral.ply"), "--neutral-landmarks",
+        str(tmp_path / "neutral.landmarks.csv"), "--expression", f"jaw={tmp_path / 'jaw.ply'}",
+        "--expression", f"zygomatic_major_L={tmp_path / 'smile.ply'}:{tmp_path / 'smile.landmarks.csv'}",
+        "--grid", "80x90", "--out", str(tmp_path / "b.npz"), "--grid-obj", str(tmp_path / "grid.obj"),
+        "--landmarks-out", str(tmp_path / "lm.toml")])
+    assert result.exit_code == 0, result.output
+    basis = Basis.load(tmp_path / "b.npz")
+    assert basis.names == ("jaw", "zygomatic_major_L")
+    assert basis.muscles[1].side == "L" and basis.muscles[0].region == "lower"
+    chin = load_landmark_set(tmp_path / "lm.toml").positions(basis.neutral, basis.triangles)[-1]
+    jaw = basis.elements[0]
+    near_chin = np.linalg.norm(basis.neutral - chin, axis=1) < 10
+    assert np.linalg.norm(jaw[near_chin], axis=1).mean() > 15  # the ICT jaw opens ~20-40 mm at the chin
+    assert read_scan(tmp_path / "grid.obj").triangles.shape == basis.triangles.shape
