@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 
+import pytest
 from click.testing import CliRunner
 
 from livebridge.cli import main
@@ -26,3 +27,13 @@ def test_the_demo_drives_the_builtin_character_and_its_take_renders(tmp_path):
                                        "--out", str(tmp_path / "frames"), "--no-progress"])
     assert result.exit_code == 0, result.output
     assert len(list((tmp_path / "frames").glob("frame_*.png"))) == n_frames > 0
+
+
+@pytest.mark.slow
+def test_the_markerless_demo_drives_the_builtin_character():
+    """Trains a markerless model on a simulated take first (about a minute)."""
+    result = CliRunner().invoke(main, ["demo", "--markerless", "--character", "builtin", "--frames", "300",
+                                       "--unpaced", "--no-servo", "--port", "0"])
+    assert result.exit_code == 0, result.output
+    match = re.search(r"2D character 'builtin': (\d+) frames of region states", result.output)
+    assert match and int(match.group(1)) >= 300, result.output
