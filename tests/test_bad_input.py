@@ -511,6 +511,57 @@ LANDMARK_POINTS_CASES = _common_cases() + (
     Case("far off the surface", _text(_ON_FACE + "nose_tip,0,-7,160\n"), ("nose_tip", "mm from the mesh surface")),
 )
 
+# ------------------------------------------------------------------------------------------------ character folder
+def _write_character_parts(folder: Path) -> None:
+    """A character folder's images (the case writes its character.toml) and a contraction take."""
+    import cv2
+
+    (folder / "char").mkdir()
+    cv2.imwrite(str(folder / "char" / "neutral.png"), np.full((40, 50, 3), 128, np.uint8))
+    cv2.imwrite(str(folder / "char" / "s1.png"), np.full((10, 12, 3), 30, np.uint8))
+    mask = np.zeros((40, 50), np.uint8)
+    mask[5:30, 5:40] = 255
+    cv2.imwrite(str(folder / "char" / "mask.png"), mask)
+    cv2.imwrite(str(folder / "char" / "small_mask.png"), mask[:30])
+    (folder / "take.csv").write_text("t,jaw\n0,0.5\n0.1,0.7\n")
+
+
+def _character(region: str = "") -> Callable[[Path], None]:
+    head = 'format = "livebridge-character"\nversion = 1\nneutral = "neutral.png"\n'
+    body = region or ('[[regions]]\nname = "mouth"\nmuscles = ["jaw"]\nstates = [1]\nmask = "mask.png"\n'
+                      '[[regions.samples]]\nmuscle = "jaw"\nstate = 1\nimage = "s1.png"\nat = [10, 10]\n')
+    return _text(head + body)
+
+
+def _jaw_region(states: str = "[1]", at: str = "[10, 10]", mask: str = "mask.png", muscle: str = "jaw",
+                extra: str = "") -> str:
+    return (f'[[regions]]\nname = "mouth"\nmuscles = ["{muscle}"]\nstates = {states}\nmask = "{mask}"\n{extra}'
+            f'[[regions.samples]]\nmuscle = "{muscle}"\nstate = 1\nimage = "s1.png"\nat = {at}\n')
+
+
+CHARACTER_CASES = _toml_cases() + (
+    Case("not a character", _text('format = "livebridge-basis"\nversion = 1\n'), ("format", "not a character")),
+    Case("a later version", _text('format = "livebridge-character"\nversion = 9\nneutral = "neutral.png"\n'),
+         ("version", "9")),
+    Case("no neutral image", _text('format = "livebridge-character"\nversion = 1\nneutral = "none.png"\n'
+                                   'regions = []\n'), ("none.png", "file not found"), names_input=False),
+    Case("no regions", _text('format = "livebridge-character"\nversion = 1\nneutral = "neutral.png"\n'),
+         ("regions", "missing")),
+    Case("a state without a sample", _character(_jaw_region(states="[2]")),
+         ("regions[0].samples", "jaw state 2")),
+    Case("a sample outside the canvas", _character(_jaw_region(at="[45, 10]")),
+         ("s1.png", "jaw state 1", "outside the 50x40 canvas"), names_input=False),
+    Case("a sample outside its mask", _character(_jaw_region(at="[38, 30]")),
+         ("s1.png", "jaw state 1", "outside the region's mask"), names_input=False),
+    Case("a mask of another size", _character(_jaw_region(mask="small_mask.png")),
+         ("small_mask.png", "50x30", "50x40"), names_input=False),
+    Case("a face mask without a warp", _character(_jaw_region(extra='mask_space = "face"\n')),
+         ("mask_space", "[warp]")),
+    Case("a muscle the take lacks", _character(_jaw_region(muscle="smile")), ("regions", "'smile'")),
+    Case("placement not whole pixels", _character(_jaw_region(at="[10.5, 10]")), ("regions[0].samples[0].at",)),
+)
+
+
 # ------------------------------------------------------------------------------------------------ scans
 _PLY = "ply\nformat {} 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n{}end_header\n"
 _FACE_HEADER = "element face 1\nproperty list uchar int vertex_indices\n"
@@ -589,6 +640,10 @@ FORMATS = (
     Format("contractions", "contractions.csv",
            lambda path, folder: ["play", str(path), "--rig", str(folder / "head.toml"), "--no-render"],
            CONTRACTION_CASES, setup=_write_rig),
+    Format("character", "char/character.toml",
+           lambda path, folder: ["character", "render", str(folder / "take.csv"), "--character",
+                                 str(folder / "char"), "--out", str(folder / "frames"), "--no-progress"],
+           CHARACTER_CASES, setup=_write_character_parts),
     Format("scan ply", "neutral.ply", _scans, PLY_CASES, setup=_write_scan_landmarks),
     Format("scan xyz", "neutral.xyz", _scans, XYZ_CASES, setup=_write_scan_landmarks),
 )
@@ -703,6 +758,8 @@ def _held_port() -> tuple[object, int]:
 _DEMO = ("demo", "--frames", "1", "--no-servo", "--unpaced", "--size", "160x100", "--port", "0")
 _RIG = ("--cameras", "{dir}/calibration.toml")
 _CONVERT = ("take", "convert", "{dir}/take.npz", "{dir}/out.csv")
+_CHARACTER_RENDER = ("character", "render", "{dir}/contractions.csv", "--character", "builtin", "--out",
+                     "{dir}/out.mp4")
 _RETARGET = ("--source", "builtin", "--source-landmarks", "builtin-22", "--target", "builtin", "--target-landmarks",
              "builtin-22")
 _QUALITY = ("--basis", "{dir}/basis.npz", "--markers", "{dir}/markers.toml", "--take", "{dir}/take.npz")
@@ -990,6 +1047,26 @@ COMMANDS = (
         Bad("OUT of an unknown type", (*_CONVERT[:3], "{dir}/out.xyz"), ("OUT", "'.xyz'", ".trc"), True),
         Bad("IN missing", ("take", "convert", "{dir}/nothing.trc", "{dir}/out.csv"), ("IN", "nothing.trc",
                                                                                     "file not found"), True),
+    )),
+    Command("character render", _CHARACTER_RENDER, (
+        *_numbers("--fps", _NOT_FINITE + ("0", "-5", "1001")),
+        *_output_cases(),
+        Bad("--character missing", ("--character", "{dir}/nothing"), ("--character", "folder not found")),
+        Bad("--character a file", ("--character", "{dir}/session.toml"), ("--character", "not a folder")),
+        Bad("--basis missing", ("--basis", "{dir}/nothing.npz"), ("--basis", "file not found")),
+        Bad("TAKE missing", ("character", "render", "{dir}/nothing.csv", "--character", "builtin", "--out",
+                             "{dir}/out.mp4"), ("TAKE", "nothing.csv", "not found"), True),
+    )),
+    Command("character from-training", ("character", "from-training", "{dir}/take.npz", "--out", "{dir}/char"), (
+        *_numbers("--feather", _NOT_FINITE + ("-1", "101")),
+        Bad("--out exists", ("--out", "{dir}/checked"), ("--out", "already exists")),
+        Bad("--out in a missing folder", ("--out", f"{_MISSING}/char"), ("--out", "does not exist")),
+        Bad("MODEL missing", ("character", "from-training", "{dir}/nothing.npz", "--out", "{dir}/char"),
+            ("MODEL", "nothing.npz", "file not found"), True),
+    )),
+    Command("character template", ("character", "template", "{dir}/take.npz", "--out", "{dir}/sheets"), (
+        Bad("--out exists", ("--out", "{dir}/checked"), ("--out", "already exists")),
+        Bad("--out in a missing folder", ("--out", f"{_MISSING}/sheets"), ("--out", "does not exist")),
     )),
 )
 OPTION_CASES = [pytest.param(command, case, id=f"{command.name}: {case.name}")

@@ -45,6 +45,8 @@ _COMMANDS = (
     ("livebridge.cli.play", "play"),
     ("livebridge.cli.solve", "solve"),
     ("livebridge.cli.process", "process"),
+    ("livebridge.cli.markerless", "markerless"),
+    ("livebridge.cli.character", "character"),
 )
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a command stopped by Ctrl-C
 

@@ -45,13 +45,21 @@ def _print_summary(summary, score=None, pipeline=None) -> None:
     click.echo(f"latency (frame set complete -> servo bytes written): p50 {summary.latency_p50_ms:.2f} ms, "
                f"p99 {summary.latency_p99_ms:.2f} ms; render message sent: p50 "
                f"{summary.render_latency_p50_ms:.2f} ms, p99 {summary.render_latency_p99_ms:.2f} ms")
-    click.echo(f"labelled markers {100 * summary.labelled_fraction:.2f}%, marker error upper "
-               f"{summary.error_upper_mm:.3f} mm, lower {summary.error_lower_mm:.3f} mm; "
-               f"cameras alive {summary.cameras_alive}/{summary.cameras}")
+    if summary.labelled_fraction == summary.labelled_fraction:  # a marker front (NaN elsewhere)
+        click.echo(f"labelled markers {100 * summary.labelled_fraction:.2f}%, marker error upper "
+                   f"{summary.error_upper_mm:.3f} mm, lower {summary.error_lower_mm:.3f} mm; "
+                   f"cameras alive {summary.cameras_alive}/{summary.cameras}")
+    elif summary.quality:
+        figures = ", ".join(f"{name} {value:.3f}" for name, value in summary.quality)
+        click.echo(f"quality (mean of the last frames): {figures}; cameras alive {summary.cameras_alive}/"
+                   f"{summary.cameras}")
     if summary.frames_skipped:
         per_camera = ", ".join(f"{name} {count}" for name, count in summary.frames_skipped)
         click.echo(f"frames skipped (damaged or missing images): {summary.frames_skipped_total} ({per_camera})")
-    if score is not None:
+    if score is not None and hasattr(score, "mae"):
+        click.echo(f"contraction MAE vs ground truth: {score.mae:.4f} over {score.frames} frames "
+                   f"(worst {score.worst_abs:.3f})")
+    elif score is not None:
         click.echo(f"contraction RMSE vs ground truth: {score.rmse:.4f} (worst {score.worst_abs:.3f}), "
                    f"label swaps: {score.swaps}")
 
@@ -151,10 +159,18 @@ RIG_ONLY = ("cameras", "fps", "size", "unpaced", "record", "record_frames")
 @click.option("--record", type=NewFolder(), default=None, help="Record the take to this new folder.")
 @click.option("--record-frames", is_flag=True,
               help="With --record: also record the raw camera frames (replay them with replay://FOLDER).")
+@click.option("--markerless", is_flag=True,
+              help="One camera films a bare face with the LED head rig (light drifting, head turning), analysed "
+                   "by co-articulation regions instead of markers.")
+@click.option("--markerless-model", type=InputPath(), default=None,
+              help="With --markerless: the model (.npz) to use; default: train one on a simulated training take.")
+@click.option("--character", "character_spec", type=InputPath(kind="folder", builtins=("builtin",)), default=None,
+              help="Also drive a 2D character in the render page: a character folder or 'builtin'.")
 @click.pass_context
 def demo(ctx, source, frames, cameras, seed, fps, size, host, allow_remote, port, unpaced, no_servo, no_render, vmc,
-         record, record_frames) -> None:
-    """The whole pipeline on simulators: performer, 4-camera rig (or an iPhone), servo bus, render client.
+         record, record_frames, markerless, markerless_model, character_spec) -> None:
+    """The whole pipeline on simulators: performer, 4-camera rig (or one camera with --markerless, or an
+    iPhone with --source livelinkface), servo bus, render client.
 
     Prints the URL of the render page; Ctrl-C (or --frames N) ends it with a summary.
     """
@@ -172,13 +188,31 @@ def demo(ctx, source, frames, cameras, seed, fps, size, host, allow_remote, port
     clash = None if no_render else render_bind_problem(host, port)
     if clash is not None:  # before the long set-up; the server's own bind still reports a port taken meanwhile
         raise click.BadParameter(clash[1], param_hint=f"--{clash[0]}")
+    if markerless_model is not None and not markerless:
+        raise click.BadParameter("needs --markerless", param_hint="--markerless-model")
+    outputs = []  # filled once the pipeline (and its render server) exists
+
+    def to_outputs(frame):
+        for output in outputs:
+            output.send(frame)
+
+    if markerless and source == "livelinkface":
+        raise click.BadParameter("the phone sends ARKit weights, not images", param_hint="--markerless")
     if source == "livelinkface":
         parts = build_livelink_demo(seed=seed, servo=not no_servo, render=not no_render, host=host, port=port,
-                                    vmc=vmc, log=_log)
+                                    vmc=vmc, log=_log, on_frame=to_outputs)
+    elif markerless:
+        from livebridge.runtime.demo import build_markerless_demo
+
+        parts = build_markerless_demo(seed=seed, fps=fps, realtime=not unpaced, servo=not no_servo,
+                                      render=not no_render, host=host, port=port, model=markerless_model, log=_log,
+                                      on_frame=to_outputs)
     else:
         parts = build_demo(cameras=cameras, seed=seed, fps=fps, size=size, realtime=not unpaced,
                            servo=not no_servo, render=not no_render, host=host, port=port, vmc=vmc, record=record,
-                           record_frames=record_frames, log=_log)
+                           record_frames=record_frames, log=_log, on_frame=to_outputs)
+    if character_spec is not None:
+        outputs.append(_character_output(character_spec, parts))
 
     def started(p):
         if p.render is not None:
@@ -198,4 +232,18 @@ def demo(ctx, source, frames, cameras, seed, fps, size, host, allow_remote, port
         if parts.phone is not None:
             parts.phone.stop()
     _print_summary(summary, parts.score, parts.pipeline)
+    for output in outputs:
+        click.echo(f"2D character {output.character.name!r}: {output.frames} frames of region states "
+                   f"({'shown in the render page' if output.server is not None else 'no render page'})")
+        output.close()
     _exit_on_camera_errors(summary)
+
+
+def _character_output(spec, parts):
+    """A :class:`~livebridge.character.live.CharacterOutput` for the demo's muscles, shown in its render page."""
+    from livebridge.character.live import CharacterOutput
+    from livebridge.cli.character import load_character_spec
+    from livebridge.cli.markers import load_basis
+
+    muscle_names = load_basis(parts.session.basis).names
+    return CharacterOutput(load_character_spec(spec), muscle_names, parts.pipeline.render)

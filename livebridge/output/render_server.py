@@ -30,6 +30,10 @@ model -> world pose (NaN: unknown; the page turns the face by its rotation
 and keeps it centred). And now and then a text JSON
 ``{"type": "status", ...}`` with the runtime's live status line.
 
+A 2D character (:meth:`RenderServer.show_character`) adds its own init text and samples message after the
+mesh, and per frame a states message (:meth:`RenderServer.publish_character`, newest wins); their layout is
+in :mod:`livebridge.character.live`. The server passes them through as they are.
+
 Only the page itself may connect (cross-site WebSocket hijacking, DNS
 rebinding): every request's ``Host`` must name the bound address (for a
 loopback bind, any of ``127.0.0.1``, ``localhost``, ``[::1]``; for a
@@ -196,12 +200,13 @@ def decode_frame(data: bytes) -> FrameMessage:
 class _Client:
     """One connected page: its socket and a one-slot newest-wins buffer per message kind."""
 
-    __slots__ = ("connection", "frame", "status", "wake")
+    __slots__ = ("connection", "frame", "status", "character", "wake")
 
     def __init__(self, connection):
         self.connection = connection
         self.frame: tuple[int, float, bytes] | None = None
         self.status: str | None = None
+        self.character: bytes | None = None
         self.wake = asyncio.Event()
 
 
@@ -261,6 +266,8 @@ class RenderServer:
         self._startup_error: BaseException | None = None
         self._pending_frame: RenderFrame | None = None
         self._pending_status: str | None = None
+        self._pending_character: bytes | None = None
+        self._character_init: tuple[str, bytes] | None = None
         self._wake_scheduled = False
         self._lock = threading.Lock()
         self._latencies = deque(maxlen=100_000)
@@ -331,6 +338,20 @@ class RenderServer:
         text = json.dumps({"type": "status", **status}, default=float)
         with self._lock:
             self._pending_status = text
+            schedule = not self._wake_scheduled
+            self._wake_scheduled = True
+        if schedule:
+            self._call_soon(self._distribute)
+
+    def show_character(self, init_text: str, samples: bytes) -> None:
+        """Show a 2D character in the page: its init text and samples message go to every client that
+        connects from now on (call before :meth:`start`, or earlier clients see it after a reload)."""
+        self._character_init = (init_text, samples)
+
+    def publish_character(self, states: bytes) -> None:
+        """Hand the newest character states message to every client; never blocks (as :meth:`publish`)."""
+        with self._lock:
+            self._pending_character = states
             schedule = not self._wake_scheduled
             self._wake_scheduled = True
         if schedule:
@@ -458,8 +479,8 @@ class RenderServer:
 
     def _distribute(self) -> None:
         with self._lock:
-            frame, status = self._pending_frame, self._pending_status
-            self._pending_frame = self._pending_status = None
+            frame, status, character = self._pending_frame, self._pending_status, self._pending_character
+            self._pending_frame = self._pending_status = self._pending_character = None
             self._wake_scheduled = False
         if not self._clients:
             return
@@ -473,6 +494,10 @@ class RenderServer:
             for client in self._clients:
                 client.status = status
                 client.wake.set()
+        if character is not None:
+            for client in self._clients:
+                client.character = character
+                client.wake.set()
 
     async def _handler(self, connection) -> None:
         from websockets.exceptions import ConnectionClosed
@@ -484,6 +509,9 @@ class RenderServer:
         try:
             await connection.send(self._init_text)
             await connection.send(self._mesh)
+            if self._character_init is not None:
+                for message in self._character_init:
+                    await connection.send(message)
             self._clients.add(client)
             sender = asyncio.create_task(self._sender(client))
             async for _message in connection:  # the page sends nothing we need; this notices the close
@@ -528,8 +556,8 @@ class RenderServer:
         while not (stop is not None and stop.done()):
             await client.wake.wait()
             client.wake.clear()
-            frame, status = client.frame, client.status
-            client.frame = client.status = None
+            frame, status, character = client.frame, client.status, client.character
+            client.frame = client.status = client.character = None
             if frame is not None:
                 seq, t_ref, data = frame
                 await connection.send(data)
@@ -541,6 +569,8 @@ class RenderServer:
                         self._sent.notify_all()
             if status is not None:
                 await connection.send(status)
+            if character is not None:
+                await connection.send(character)
 
 
 def _static_files(folder: Path) -> dict[str, Path]:

@@ -157,16 +157,21 @@ def build_pipeline(session: Session, log=print, on_frame=None):
     from livebridge.runtime.pipeline import Pipeline
 
     basis, markers = load_face(session)
-    check_markers(markers, basis, session)
-    cameras = None
+    model = _markerless_model(session, basis) if session.markerless is not None else None
+    if model is None:
+        check_markers(markers, basis, session)
+    sources, cameras, realtime, fps = [], None, True, 60.0
     if session.source.kind == "cameras":
         log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
-        sources, cameras, realtime = open_session_cameras(session)
-        check_cameras(cameras, session)
+        if model is None:
+            sources, cameras, realtime = open_session_cameras(session)
+            check_cameras(cameras, session)
+        else:
+            sources, cameras, realtime = _markerless_camera(session)
         fps = _fps(sources)
     opened = []
     try:
-        front = _livelink_front(session, basis, markers, opened, log) if cameras is None else None
+        front = _livelink_front(session, basis, markers, opened, log) if session.source.kind != "cameras" else None
         servo = None
         if session.servo_rig is not None:
             from livebridge.servo.output import ServoOutput
@@ -196,7 +201,11 @@ def build_pipeline(session: Session, log=print, on_frame=None):
             sources = recorder.wrap_sources(sources)
             log(f"recording to {directory}" + (" (with raw frames)" if session.recording.raw_frames else ""))
         log("set-up: warming up the per-frame kernels (compiled on their first use)")
-        if front is None:
+        if front is None and model is not None:
+            from livebridge.markerless.front import MarkerlessFront
+
+            front = MarkerlessFront(sources[0], model, 1.0 / fps, realtime, session.markerless.min_confidence)
+        elif front is None:
             from livebridge.runtime.markers_front import MarkerFront
 
             front = MarkerFront(sources, cameras, basis, markers, 1.0 / fps, session.reconstruct, session.solver,
@@ -271,6 +280,37 @@ def _livelink_front(session: Session, basis, markers, opened: list, log):
     opened.append(receiver.stop)
     log(f"set-up: listening for Live Link Face on {receiver.url}")
     return LiveLinkFront(receiver, solver)
+
+
+def _markerless_model(session: Session, basis):
+    """The session's markerless model, checked against the basis's muscles and ``[markerless] head_rig``."""
+    from livebridge.markerless.model import MarkerlessModel
+
+    model = MarkerlessModel.load(session.markerless.model)
+    if model.muscle_names != tuple(basis.names):
+        raise InputError(f"the markerless model's muscles ({', '.join(model.muscle_names)}) are not the basis's "
+                         f"({', '.join(basis.names)})", session.path, "markerless.model")
+    rig = "none" if model.normalisation.head_rig is None else "leds"
+    if session.markerless.head_rig not in (None, rig):
+        raise InputError(f"the model was trained with head_rig = {rig!r}", session.path, "markerless.head_rig")
+    return model
+
+
+def _markerless_camera(session: Session):
+    """The one camera of a markerless session: ``(sources, None, realtime)``."""
+    from livebridge.devices.registry import open_cameras
+
+    url = _session_url(session.camera_urls[0], session, 0) if not session.camera_urls[0].startswith("sim://") \
+        else session.camera_urls[0]
+    try:
+        sources = open_cameras(url)
+    except InputError as error:
+        inner = f"{error.field}: {error.message}" if error.field else error.message
+        raise InputError(f"{url}: {inner}", session.path, "cameras.urls[0]") from None
+    if len(sources) != 1:
+        raise InputError(f"markerless capture films with one camera, the URL opened {len(sources)}", session.path,
+                         "cameras.urls[0]")
+    return sources, None, bool(sources[0].realtime)
 
 
 def _fps(sources) -> float:

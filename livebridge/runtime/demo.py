@@ -158,3 +158,53 @@ def build_livelink_demo(seed: int = 1, script: str = "mixed", noise: float = PHO
     phone = SimulatedIPhone(pipeline.front.muscle_names, *receiver.bound, script=script, seed=seed, noise=noise)
     score = ContractionScore(phone.truth)
     return DemoParts(pipeline, score, session, phone)
+
+
+def build_markerless_demo(seed: int = 2, fps: float = 30.0, realtime: bool = True, servo: bool = True,
+                          render: bool = True, host: str = "127.0.0.1", port: int = 8765, model=None,
+                          log=print, on_frame=None) -> DemoParts:
+    """The markerless demo (not started): a face filmed by one simulated camera with the LED head rig, light
+    drifting +-20 % and the head turning +-10 degrees, analysed with ``model`` (a ``.npz``; default: trained
+    first on a simulated training take of the same performer, seed 0) and sent through the same pipeline
+    (simulated servo bus, render client) as ``livebridge run`` with a ``[markerless]`` session.
+
+    The returned score is a :class:`~livebridge.markerless.simulated.MarkerlessScore` (contraction MAE).
+    """
+    import tempfile
+    import time
+
+    from livebridge.face.builtin import builtin_basis
+    from livebridge.markerless.model import MarkerlessModel
+    from livebridge.markerless.simulated import MarkerlessScore, face_video, train_on_simulator
+    from livebridge.runtime.build import build_pipeline
+    from livebridge.runtime.session import MarkerlessOptions
+    from livebridge.servo.rig import demo_rig
+
+    basis = builtin_basis()
+    training = face_video(basis, script="gestures", fps=fps, seed=0)
+    if model is None:
+        log("markerless demo: training on a simulated training take (isolated and combined gestures)")
+        t0 = time.perf_counter()
+        result, training = train_on_simulator(basis, fps=fps, seed=0)
+        model = Path(tempfile.mkdtemp(prefix="livebridge-markerless-")) / "model.npz"
+        result.model.save(model)
+        log(f"markerless demo: trained {len(result.model.regions)} regions in {time.perf_counter() - t0:.1f} s "
+            f"-> {model}")
+    MarkerlessModel.load(model)  # a bad file fails here, before anything opens
+    query = urlencode({"script": "mixed", "seed": seed, "fps": repr(float(fps)), "light_drift": 0.2,
+                       "head_turn": 10, "realtime": int(realtime)})
+    session = Session(None, (f"sim://face?{query}",), basis="builtin", markers="builtin",
+                      servo_rig=demo_rig(DEMO_SERVO_URL) if servo else None, render=RenderOptions(render, host, port),
+                      markerless=MarkerlessOptions(Path(model), "leds"))
+    parts = {}
+
+    def both(frame):
+        parts["score"](frame)
+        if on_frame is not None:
+            on_frame(frame)
+
+    pipeline = build_pipeline(session, log=log, on_frame=both)
+    source = pipeline.front.source
+    source.video.skin = training.skin  # the same performer as the training take (the simulator seeds the skin)
+    parts["score"] = MarkerlessScore(source)
+    return DemoParts(pipeline, parts["score"], session)

@@ -71,6 +71,11 @@ puts them in that table)::
     raw_frames = false            # also the camera images: replay://takes/take-... runs the take again
     frame_format = "pgm"          # raw images: "pgm" (uncompressed, keeps up live) or "png" (smaller, slow)
 
+    [markerless]                  # optional: one camera films a bare face instead of markers
+    model = "model.npz"           # from `livebridge markerless train`
+    head_rig = "leds"             # "leds" or "none" (optional: checked against the model)
+    min_confidence = 0.3          # a region less sure than this holds its last state
+
     [runtime]
     status_interval = 1.0         # seconds between live status lines
     frames = 0                    # stop after this many frame sets (0: until Ctrl-C)
@@ -98,7 +103,7 @@ if TYPE_CHECKING:
 BUILTIN_NAMES = ("builtin",)
 LABELLING_TIMEOUT_S = 10.0  # default [runtime] labelling_timeout_s
 _TOP_KEYS = {"source", "cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording",
-             "runtime"}
+             "runtime", "markerless"}
 
 
 SOURCE_KINDS = ("cameras", "livelinkface")
@@ -122,6 +127,16 @@ class RenderOptions:
     host: str = "127.0.0.1"
     port: int = 8765
     allowed_origins: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class MarkerlessOptions:
+    """``[markerless]``: the camera films a bare face analysed with a trained model (``livebridge markerless
+    train``) instead of markers; ``head_rig`` ("leds" or "none"), when given, must be the model's."""
+
+    model: Path
+    head_rig: str | None = None
+    min_confidence: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -205,6 +220,10 @@ class Session:
     display_mode : str
         ``"instead"`` (the display face alone) or ``"beside"`` (the solving face and the display face side by
         side).
+    source : SourceOptions
+        What drives the face: cameras (``camera_urls``) or a phone (Live Link Face).
+    markerless : MarkerlessOptions or None
+        Markerless capture (one camera, a trained model) instead of markers.
     """
 
     path: Path | None
@@ -226,6 +245,7 @@ class Session:
     display: Path | None = None
     display_mode: str = "instead"
     source: SourceOptions = SourceOptions()
+    markerless: MarkerlessOptions | None = None
 
 
 DISPLAY_MODES = ("instead", "beside")
@@ -344,9 +364,14 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
                          "face.display_mode")
     face.check_known()
 
+    markerless = _markerless(top.table("markerless"), path) if "markerless" in data else None
     calibration = top.path_value("calibration")
-    if source.kind == "cameras" and calibration is None and not all(u.startswith(("sim://", "replay://"))
-                                                                    for u in urls):
+    if markerless is not None and source.kind != "cameras":
+        raise InputError(f"markerless capture films with a camera, not a {source.kind} source", path, "markerless")
+    if markerless is not None and len(urls) != 1:
+        raise InputError(f"markerless capture films with one camera, got {len(urls)} URLs", path, "cameras.urls")
+    if (source.kind == "cameras" and calibration is None and markerless is None
+            and not all(u.startswith(("sim://", "replay://")) for u in urls)):
         raise InputError("real cameras need a calibration file", path, "calibration")
 
     reconstruct_config = _reconstruct(top.table("reconstruct"), path)
@@ -400,7 +425,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     return Session(path, tuple(urls), sync_tolerance, basis, markers, calibration, reconstruct_config,
                    solver_config, servo_rig, render, vmc, recording, livelink=livelink,
                    status_interval=status_interval, frames=frames, labelling_timeout_s=labelling_timeout_s,
-                   display=display, display_mode=display_mode, source=source)
+                   display=display, display_mode=display_mode, source=source, markerless=markerless)
 
 
 def _source(table: _Table, path: Path | None) -> SourceOptions:
@@ -445,6 +470,18 @@ def _livelink(table: _Table, path: Path | None) -> LiveLinkOptions:
     if not 1 <= options.fps <= 1000:
         raise InputError(f"must be 1..1000 frames per second, got {options.fps}", path, "outputs.livelink.fps")
     return options
+
+
+def _markerless(table: _Table, path: Path | None) -> MarkerlessOptions:
+    model = table.path_value("model", required=True)
+    head_rig = table.get("head_rig", str)
+    if head_rig is not None and head_rig not in ("leds", "none"):
+        raise InputError(f"must be 'leds' or 'none', got {head_rig!r}", path, "markerless.head_rig")
+    min_confidence = table.get("min_confidence", float, 0.3)
+    if not 0.0 <= min_confidence <= 1.0:
+        raise InputError(f"must be in [0, 1], got {min_confidence}", path, "markerless.min_confidence")
+    table.check_known()
+    return MarkerlessOptions(model, head_rig, min_confidence)
 
 
 def _reconstruct(table: _Table, path: Path | None) -> ReconstructConfig:

@@ -359,11 +359,13 @@ function connect() {
         const message = JSON.parse(event.data);
         if (message.type === "init") { lb.init = message; setupMarkers(message); }
         else if (message.type === "status") { lb.status = message; showStatus(); }
+        else if (message.type === "character" && window.livebridgeCharacter) window.livebridgeCharacter.onInit(message);
         return;
       }
       const kind = new Uint32Array(event.data, 0, 1)[0];
       if (kind === 1) { loadMesh(event.data); lb.ready = true; requestDraw(); }
       else if (kind === 2 && mesh) onFrame(event.data);
+      else if (kind >= 3 && window.livebridgeCharacter) window.livebridgeCharacter.onBinary(kind, event.data);
     } catch (error) { lb.error = String(error); console.error(error); }
   };
 }

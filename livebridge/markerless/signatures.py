@@ -1,0 +1,113 @@
+"""Signature bases of a co-articulation region: ICA (the paper's) or PCA, and the back-substitution matrix.
+
+A CR's training samples ``S (n_pixels, n_samples)`` (one column per masked, scanned gesture frame) are
+modelled as ``S = B A`` with a basis ``B (n_pixels, k)`` of statistically independent images (spatial ICA,
+FastICA on the pixels as observations). A new sample ``x`` goes to signature space by least squares,
+``c = argmin |B c - x|``, computed as one matrix product with the SVD back-substitution matrix
+``M = V D^-1 U^T`` (``B = U D V^T``); its signature is ``sigma = c / |c|``. The PCA variant uses the leading
+left singular vectors of the samples (each less its mean over the pixels, as FastICA centres them) as ``B``
+and is otherwise identical.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+METHODS = ("ica", "pca")
+_RELATIVE_RANK_TOL = 1e-6
+
+
+def require_sklearn():
+    """scikit-learn's FastICA, or an ImportError naming the extra to install."""
+    try:
+        from sklearn.decomposition import FastICA
+    except ImportError as error:  # the optional extra is missing
+        raise ImportError("markerless training with ICA needs scikit-learn: "
+                          "pip install 'livebridge[markerless]'") from error
+    return FastICA
+
+
+def signature_basis(samples: np.ndarray, n_components: int, method: str = "ica", seed: int = 0) -> np.ndarray:
+    """A signature basis for one CR.
+
+    Parameters
+    ----------
+    samples : ndarray, shape (n_pixels, n_samples)
+        Training samples as columns.
+    n_components : int
+        Wanted basis size; capped at the samples' numerical rank.
+    method : {"ica", "pca"}
+    seed : int
+        FastICA's initial unmixing matrix.
+
+    Returns
+    -------
+    ndarray, shape (n_pixels, k), float64
+        Basis images as columns, ``k <= n_components``.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    samples = np.asarray(samples, dtype=np.float64)
+    # as FastICA does with pixels as observations: each sample loses its mean over the pixels (its DC); the
+    # mean image stays in the basis, so no trained appearance projects to c = 0
+    centred = samples - samples.mean(axis=0, keepdims=True)
+    u, s, _ = np.linalg.svd(centred, full_matrices=False)
+    rank = int(np.sum(s > _RELATIVE_RANK_TOL * max(s[0], 1e-300))) if len(s) else 0
+    k = max(1, min(int(n_components), rank))
+    if method == "pca":
+        return u[:, :k] * s[:k]
+    fast_ica = require_sklearn()
+    # pixels are the observations: the columns of B (images) are the independent, non-Gaussian sources
+    ica = fast_ica(n_components=k, whiten="unit-variance", whiten_solver="svd", max_iter=400, tol=1e-4,
+                   random_state=seed)
+    import warnings
+
+    from sklearn.exceptions import ConvergenceWarning
+    with warnings.catch_warnings():
+        # a basis from an unconverged run still spans the samples' leading subspace; analysis stays exact
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        return ica.fit_transform(samples)
+
+
+def back_substitution(basis: np.ndarray) -> np.ndarray:
+    """The least-squares back-substitution matrix ``M = V D^-1 U^T`` of ``B = U D V^T``.
+
+    Parameters
+    ----------
+    basis : ndarray, shape (n_pixels, k)
+
+    Returns
+    -------
+    ndarray, shape (k, n_pixels)
+        ``M @ x`` is the least-squares ``c`` of ``B c = x``; singular values below a relative tolerance are
+        dropped (their ``1/d`` is taken as 0), as in a pseudo-inverse.
+    """
+    u, d, vt = np.linalg.svd(np.asarray(basis, dtype=np.float64), full_matrices=False)
+    keep = d > _RELATIVE_RANK_TOL * max(d[0], 1e-300) if len(d) else d > 0
+    inverse = np.zeros_like(d)
+    inverse[keep] = 1.0 / d[keep]
+    return (vt.T * inverse) @ u.T
+
+
+def signatures(back: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """Unit signatures ``sigma = c / |c|`` of samples, ``c = M x``.
+
+    Parameters
+    ----------
+    back : ndarray, shape (k, n_pixels)
+        Back-substitution matrix.
+    samples : ndarray, shape (n_pixels, n_samples)
+
+    Returns
+    -------
+    ndarray, shape (n_samples, k)
+        One unit row per sample (a zero row for a sample with ``c = 0``).
+    """
+    coords = (back @ samples).T
+    return unit_rows(coords)
+
+
+def unit_rows(rows: np.ndarray) -> np.ndarray:
+    """Rows scaled to unit length, shape as given; zero rows stay zero."""
+    norm = np.linalg.norm(rows, axis=-1, keepdims=True)
+    return np.divide(rows, norm, out=np.zeros_like(rows), where=norm > 0)

@@ -1,0 +1,88 @@
+"""Markerless takes from the face-video simulator: training, held-out takes, scoring (demo, bench, tests).
+
+The simulator seeds the performer's skin with the take's seed; a held-out take of the *same* performer
+(another seed for expressions, head motion, light and noise) is given the training take's skin here.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from livebridge.markerless.normalise import HeadRig, Normalisation
+from livebridge.markerless.train import TrainConfig, TrainResult, combination_prompts, isolated_prompts, train
+
+
+def face_video(basis, same_performer_as=None, **config):
+    """A :class:`~livebridge.simulators.face_video.FaceVideo` of ``basis``; with ``same_performer_as`` (another
+    FaceVideo) it films that performer's skin."""
+    from livebridge.simulators.face_video import FaceVideo, FaceVideoConfig
+
+    video = FaceVideo(basis, FaceVideoConfig(**config))
+    if same_performer_as is not None:
+        video.skin = same_performer_as.skin
+    return video
+
+
+def training_prompts(video) -> tuple:
+    """The gesture list of a simulated ``gestures`` take: every muscle, then the combined gestures."""
+    from livebridge.simulators.performer import COMBINED_GESTURES
+
+    names = video.script.gesture_names
+    combined = {name: levels for name, levels in COMBINED_GESTURES.items() if name in names}
+    return isolated_prompts(video.basis.names) + combination_prompts(combined)
+
+
+def simulated_normalisation(video, head_rig: bool = True, **options) -> Normalisation:
+    """How the simulated camera's images are normalised (its intrinsics; the rig's LEDs, or a fixed crop)."""
+    camera = video.camera()
+    rig = HeadRig.from_leds(video.head_rig_geometry()) if head_rig else None
+    return Normalisation(camera.size, rig, camera.matrix, camera.distortions, **options)
+
+
+def train_on_simulator(basis, fps: float = 30.0, seed: int = 0, config: TrainConfig | None = None,
+                       images=None, use_mesh: bool = True, **options) -> tuple[TrainResult, object]:
+    """Render a ``gestures`` training take (or use ``images``) and train on it; returns (result, video)."""
+    video = face_video(basis, script="gestures", fps=fps, seed=seed)
+    if images is None:
+        images = training_images(video)
+    mesh = (basis.neutral, basis.triangles) if use_mesh else None
+    result = train(images, simulated_normalisation(video, **options), training_prompts(video), basis.names,
+                   config or TrainConfig(),
+                   mesh)
+    return result, video
+
+
+def training_images(video) -> np.ndarray:
+    """Every frame of the video's (gestures) take, shape (n, H, W) uint8."""
+    n_frames = int(round(video.script.duration * video.config.fps))
+    return np.array([video.frame(i).image for i in range(n_frames)])
+
+
+@dataclass
+class MarkerlessScore:
+    """Contraction error of solved frames against a face-video source's ground truth (thread-safe)."""
+
+    source: object
+    absolute: float = 0.0
+    count: int = 0
+    frames: int = 0
+    worst_abs: float = 0.0
+
+    def __post_init__(self):
+        self._lock = threading.Lock()
+
+    def __call__(self, frame) -> None:
+        truth = self.source.truth(frame.seq).contractions
+        error = np.abs(np.asarray(frame.contractions) - truth)
+        with self._lock:
+            self.frames += 1
+            self.absolute += float(error.sum())
+            self.count += error.size
+            self.worst_abs = max(self.worst_abs, float(error.max()))
+
+    @property
+    def mae(self) -> float:
+        return self.absolute / self.count if self.count else float("nan")

@@ -1,0 +1,265 @@
+"""Training a markerless model from a take of isolated gestures (and, optionally, combined ones).
+
+The performer makes the gestures of a *gesture list* in order, resting at neutral between them; each
+entry is a basis muscle (an isolated gesture) or a combination of muscles at given levels (a pseudo-muscle,
+the paper's answer to co-articulation). Training:
+
+1. normalises every frame (pose warp, crop); the canonical pose is the first frame's;
+2. finds the bounded gestures from each frame's distance to neutral (:mod:`gestures`), one per list entry;
+3. takes each gesture's region of influence from its peak frame (:mod:`regions`) and builds the CRs from
+   the isolated gestures' ROIs; a pseudo-muscle joins every CR holding two or more of its muscles;
+4. measures each gesture frame's actuation level as the dense optical flow from neutral projected on the
+   flow at the peak (the time index the paper uses is not linear in actuation when the performer
+   accelerates), and keeps ``n_states`` states at evenly spaced levels (the frame nearest each);
+5. per CR: the sample matrix of its gestures' state frames (Laplacian-filtered, masked), the signature basis
+   (FastICA or PCA), ``M = V D^-1 U^T`` and each (pseudo-)muscle's signature set ``Phi_i``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from livebridge.errors import InputError
+from livebridge.markerless.gestures import Gesture, GestureConfig, find_gestures
+from livebridge.markerless.model import MarkerlessModel, RegionModel
+from livebridge.markerless.normalise import Normalisation, PoseState, lighting_normalise, normalise
+from livebridge.markerless.regions import RegionConfig, co_articulation_regions, regions_of_influence
+from livebridge.markerless.signatures import back_substitution, signature_basis, signatures
+
+ACTIVITY_SIGMA = 2.0
+
+
+@dataclass(frozen=True)
+class GesturePrompt:
+    """One entry of a gesture list: a name and the basis contractions of its full actuation."""
+
+    name: str
+    actuation: dict[str, float]
+
+    @property
+    def isolated(self) -> bool:
+        return len(self.actuation) == 1
+
+
+def isolated_prompts(muscle_names: Sequence[str]) -> tuple[GesturePrompt, ...]:
+    """One full isolated gesture per muscle, in order (the simulated performer's training script)."""
+    return tuple(GesturePrompt(name, {name: 1.0}) for name in muscle_names)
+
+
+def combination_prompts(combinations: dict[str, dict[str, float]]) -> tuple[GesturePrompt, ...]:
+    """Pseudo-muscle gestures: name -> {muscle: level at full actuation}."""
+    return tuple(GesturePrompt(name, dict(levels)) for name, levels in combinations.items())
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training settings.
+
+    Attributes
+    ----------
+    method : {"ica", "pca"}
+    n_components : int
+        Signature-basis size per CR (capped by the samples' rank).
+    n_states : int
+        States per (pseudo-)muscle beside neutral.
+    seed : int
+    regions, gestures : RegionConfig, GestureConfig
+    """
+
+    method: str = "ica"
+    n_components: int = 24
+    n_states: int = 12
+    seed: int = 0
+    regions: RegionConfig = field(default_factory=RegionConfig)
+    gestures: GestureConfig = field(default_factory=GestureConfig)
+
+
+@dataclass(frozen=True, eq=False)
+class TrainResult:
+    """A trained model and what training found.
+
+    Attributes
+    ----------
+    model : MarkerlessModel
+    gestures : list of Gesture
+        The bounded gestures, one per prompt.
+    activity : ndarray, shape (n_frames,)
+        Distance to neutral per frame (NaN where the LEDs were lost).
+    rois : ndarray, shape (n_prompts, H, W), bool
+    """
+
+    model: MarkerlessModel
+    gestures: list[Gesture]
+    activity: np.ndarray
+    rois: np.ndarray
+
+
+def canonical_frames(images: Iterable[np.ndarray], norm: Normalisation, face_mesh: tuple | None = None
+                     ) -> tuple[Normalisation, np.ndarray, np.ndarray]:
+    """Every frame of a take in the canonical pose (the first frame's; the warp follows ``face_mesh``,
+    ``(vertices (n, 3), triangles (m, 3))`` in the rig's head frame, when given).
+
+    Returns
+    -------
+    (Normalisation with the canonical pose set, frames (n, h, w) uint8, lost (n,) bool)
+    """
+    frames, lost = [], []
+    state = PoseState()
+    for image in images:
+        if norm.head_rig is not None and norm.canonical_head2cam is None:
+            state, frame = normalise(image, norm, state)
+            if frame.head2cam is not None:
+                norm = norm.with_canonical(frame.head2cam, *(face_mesh or (None, None)))
+        state, frame = normalise(image, norm, state)
+        frames.append(np.clip(np.rint(frame.image), 0, 255).astype(np.uint8))
+        lost.append(frame.lost)
+    if not frames:
+        raise InputError("the take has no frames")
+    return norm, np.array(frames), np.array(lost)
+
+
+def activity_curve(frames: np.ndarray, lost: np.ndarray, top: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """(activity (n,), neutral reference (h, w) float32): per frame, the mean of the largest ``top`` fraction of
+    the blurred differences to the first frames (a weak muscle changes a small patch strongly; a mean over the
+    whole image would drown it in noise)."""
+    seen = np.flatnonzero(~lost)
+    if len(seen) == 0:
+        raise InputError("the head rig's LEDs were never found in the take")
+    reference = np.median([cv2.GaussianBlur(frames[i].astype(np.float32), (0, 0), ACTIVITY_SIGMA)
+                           for i in seen[:5]], axis=0)
+    count = max(1, int(top * reference.size))
+    activity = np.full(len(frames), np.nan)
+    for i in seen:
+        change = np.abs(cv2.GaussianBlur(frames[i].astype(np.float32), (0, 0), ACTIVITY_SIGMA) - reference).ravel()
+        activity[i] = float(np.partition(change, -count)[-count:].mean())
+    return activity, reference
+
+
+def _neutral_frames(n_frames: int, gestures: list[Gesture], lost: np.ndarray) -> np.ndarray:
+    neutral = ~lost.copy()
+    for g in gestures:
+        neutral[max(0, g.start - 3):g.end + 4] = False
+    return np.flatnonzero(neutral)
+
+
+def _flow_levels(frames: np.ndarray, neutral: np.ndarray, roi: np.ndarray) -> np.ndarray:
+    """Actuation level (0..1, non-decreasing) of each gesture frame from optical flow, shape (n,)."""
+    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    fields = np.array([flow.calc(neutral, frame, None)[roi] for frame in frames])  # (n, n_roi, 2)
+    full = fields[-1].ravel()
+    energy = float(full @ full)
+    if len(frames) < 2 or energy <= 1e-6 * max(1, roi.sum()):
+        return np.linspace(0.0, 1.0, len(frames)) if len(frames) > 1 else np.ones(1)
+    levels = fields.reshape(len(frames), -1) @ full / energy
+    return np.clip(np.maximum.accumulate(np.clip(levels, 0.0, None)) / max(levels.max(), 1e-9), 0.0, 1.0)
+
+
+def _state_frames(levels: np.ndarray, n_states: int) -> np.ndarray:
+    """Index of the gesture frame nearest each level k / n_states, k = 1..n_states, shape (n_states,)."""
+    targets = np.arange(1, n_states + 1) / n_states
+    return np.abs(levels[None, :] - targets[:, None]).argmin(axis=1)
+
+
+def _filtered(frame: np.ndarray, norm: Normalisation) -> np.ndarray:
+    image = frame.astype(np.float32)
+    return lighting_normalise(image, norm.blur_sigma, norm.log) if norm.laplacian else image
+
+
+def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[GesturePrompt],
+          muscle_names: Sequence[str], config: TrainConfig = TrainConfig(),
+          face_mesh: tuple[np.ndarray, np.ndarray] | None = None) -> TrainResult:
+    """Train a markerless model from a take (see the module docstring).
+
+    Parameters
+    ----------
+    images : iterable of ndarray, each shape (H, W) or (H, W, 3)
+        The take's frames, ``(W, H) == norm.input_size``.
+    norm : Normalisation
+        How to normalise (head rig or crop, Laplacian); its canonical pose is set here.
+    prompts : sequence of GesturePrompt
+        The gesture list, in the order performed.
+    muscle_names : sequence of str
+        Basis muscles (every prompt's muscles must be among them).
+    config : TrainConfig
+    face_mesh : (ndarray (n, 3), ndarray (m, 3)), optional
+        The performer's neutral face (vertices in mm in the head rig's frame, triangles), e.g. the basis's:
+        the pose warp follows its relief instead of a plane.
+
+    Returns
+    -------
+    TrainResult
+    """
+    muscle_names = tuple(muscle_names)
+    for prompt in prompts:
+        unknown = sorted(set(prompt.actuation) - set(muscle_names))
+        if unknown:
+            raise InputError(f"gesture {prompt.name!r} names muscles {unknown} not in the basis")
+    norm, frames, lost = canonical_frames(images, norm, face_mesh)
+    activity, reference = activity_curve(frames, lost)
+    gestures = find_gestures(activity, config.gestures)
+    if len(gestures) != len(prompts):
+        raise InputError(f"found {len(gestures)} gestures in the take, the gesture list has {len(prompts)} "
+                         "(each gesture must start and end at neutral)")
+    neutral_index = _neutral_frames(len(frames), gestures, lost)
+    if len(neutral_index) < 2:
+        raise InputError("the take has no neutral frames between its gestures")
+    neutral = frames[neutral_index].astype(np.float32).mean(axis=0)
+    rois = regions_of_influence(frames[[g.peak for g in gestures]], neutral,
+                                frames[neutral_index[len(neutral_index) // 2]], config.regions)
+    isolated = [p for p, prompt in enumerate(prompts) if prompt.isolated]
+    crs = co_articulation_regions(rois[isolated], config.regions)
+    neutral_u8 = np.clip(np.rint(neutral), 0, 255).astype(np.uint8)
+    states = {}
+    for p, gesture in enumerate(gestures):
+        levels = _flow_levels(frames[gesture.frames], neutral_u8, rois[p] if rois[p].any() else np.ones_like(rois[p]))
+        states[p] = gesture.frames[_state_frames(levels, config.n_states)]
+    neutral_filtered = np.mean([_filtered(frames[i], norm) for i in neutral_index[:: max(1, len(neutral_index) // 16)]],
+                               axis=0)
+    regions, members = [], []
+    for j, cr in enumerate(crs):
+        governed = {prompts[isolated[i]].name for i in cr.muscles}
+        chosen = [isolated[i] for i in cr.muscles]
+        chosen += [p for p, prompt in enumerate(prompts)
+                   if not prompt.isolated and len(governed & set(prompt.actuation)) >= 2]
+        weights = np.zeros(len(muscle_names))
+        for i in cr.muscles:
+            roi = rois[isolated[i]]
+            weights[muscle_names.index(prompts[isolated[i]].name)] = (roi & cr.mask).sum() / max(1, roi.sum())
+        regions.append(_region(f"cr{j + 1}", cr.mask, chosen, prompts, states, frames, neutral_filtered, norm,
+                               muscle_names, weights, config))
+        members.append(chosen)
+    gesture_frames = _gesture_crops(prompts, states, frames, crs, members)
+    model = MarkerlessModel(muscle_names, regions, norm, neutral, gesture_frames, config.method)
+    return TrainResult(model, gestures, activity, rois)
+
+
+def _region(name, mask, chosen, prompts, states, frames, neutral_filtered, norm, muscle_names, weights,
+            config: TrainConfig) -> RegionModel:
+    pixels = np.flatnonzero(mask)
+    columns = {p: np.array([_filtered(frames[i], norm).ravel()[pixels] for i in states[p]]).T for p in chosen}
+    neutral_column = neutral_filtered.ravel()[pixels][:, None]
+    samples = np.concatenate([neutral_column] + [columns[p] for p in chosen], axis=1)
+    basis = signature_basis(samples, config.n_components, config.method, config.seed)
+    back = back_substitution(basis)
+    phis = tuple(signatures(back, np.concatenate([neutral_column, columns[p]], axis=1)).astype(np.float32)
+                 for p in chosen)
+    actuations = np.array([[prompts[p].actuation.get(m, 0.0) for m in muscle_names] for p in chosen])
+    sample_norm = float(np.median(np.linalg.norm(samples, axis=0)))
+    return RegionModel(name, mask, tuple(prompts[p].name for p in chosen), tuple(len(phi) for phi in phis),
+                       back.astype(np.float32), phis, actuations, weights, sample_norm)
+
+
+def _gesture_crops(prompts, states, frames, crs, members) -> dict:
+    """Per (pseudo-)muscle in some CR: its state frames cropped to the box of its CRs."""
+    crops = {}
+    for p, prompt in enumerate(prompts):
+        masks = [cr.mask for cr, chosen in zip(crs, members) if p in chosen]
+        if not masks:
+            continue
+        x, y, w, h = cv2.boundingRect(np.any(masks, axis=0).astype(np.uint8))
+        crops[prompt.name] = (frames[states[p]][:, y:y + h, x:x + w].copy(), (x, y, w, h))
+    return crops
