@@ -32,6 +32,7 @@ from scipy.optimize import linear_sum_assignment
 from livebridge.errors import InputError
 
 N_LEDS = 4
+LOG_OFFSET = 16.0  # grey levels
 
 
 @dataclass(frozen=True, eq=False)
@@ -335,7 +336,7 @@ def lighting_normalise(image: np.ndarray, blur_sigma: float = 1.0, log: bool = T
         Grey levels (any real dtype).
     blur_sigma : float
     log : bool
-        Filter ``log(1 + image)`` rather than the image.
+        Filter ``log(LOG_OFFSET + image)`` rather than the image.
 
     Returns
     -------
@@ -343,7 +344,8 @@ def lighting_normalise(image: np.ndarray, blur_sigma: float = 1.0, log: bool = T
     """
     work = image.astype(np.float32)
     if log:
-        work = np.log1p(np.maximum(work, 0.0, out=work), out=work) * np.float32(64.0)
+        # log(I + LOG_OFFSET): dark pixels (lip line, nostrils) would otherwise turn sensor noise into signal
+        work = np.log(np.maximum(work, 0.0, out=work) + np.float32(LOG_OFFSET), out=work) * np.float32(64.0)
     if blur_sigma > 0:
         work = cv2.GaussianBlur(work, (0, 0), blur_sigma)
     return cv2.Laplacian(work, cv2.CV_32F, ksize=3)

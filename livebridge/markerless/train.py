@@ -149,7 +149,14 @@ def _neutral_frames(n_frames: int, gestures: list[Gesture], lost: np.ndarray) ->
 def _flow_levels(frames: np.ndarray, neutral: np.ndarray, roi: np.ndarray) -> np.ndarray:
     """Actuation level (0..1, non-decreasing) of each gesture frame from optical flow, shape (n,)."""
     flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    fields = np.array([flow.calc(neutral, frame, None)[roi] for frame in frames])  # (n, n_roi, 2)
+    x, y, w, h = cv2.boundingRect(roi.astype(np.uint8))
+    margin = 16  # the flow needs context around the region
+    x0, y0 = max(0, x - margin), max(0, y - margin)
+    x1, y1 = min(roi.shape[1], x + w + margin), min(roi.shape[0], y + h + margin)
+    inside = roi[y0:y1, x0:x1]
+    base = np.ascontiguousarray(neutral[y0:y1, x0:x1])
+    fields = np.array([flow.calc(base, np.ascontiguousarray(frame[y0:y1, x0:x1]), None)[inside]
+                       for frame in frames])  # (n, n_roi, 2)
     full = fields[-1].ravel()
     energy = float(full @ full)
     if len(frames) < 2 or energy <= 1e-6 * max(1, roi.sum()):
