@@ -567,8 +567,8 @@ class FaceVideoSource(SourceBase):
         return Capabilities(size=self.video.config.size, fps=self.video.config.fps, formats=("GREY",))
 
 
-_URL_KEYS = {"basis", "script", "seed", "skin_seed", "size", "fps", "light_drift", "head_turn", "head_rig", "noise", "exposure",
-             "frames", "realtime", "rig_file"}
+_URL_KEYS = {"basis", "script", "seed", "skin_seed", "size", "fps", "light_drift", "head_turn", "head_rig", "noise",
+             "exposure", "frames", "realtime", "rig_file"}
 
 
 def video_from_url(url: DeviceURL | str) -> FaceVideo:

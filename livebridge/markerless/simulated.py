@@ -14,7 +14,6 @@ import numpy as np
 from livebridge.markerless.normalise import HeadRig, Normalisation
 from livebridge.markerless.train import TrainConfig, TrainResult, combination_prompts, isolated_prompts, train
 
-
 PERFORMER = 0  # the skin seed of every simulated take here
 
 

@@ -90,12 +90,15 @@ class TrainResult:
     activity : ndarray, shape (n_frames,)
         Distance to neutral per frame (NaN where the LEDs were lost).
     rois : ndarray, shape (n_prompts, H, W), bool
+    state_frames : dict of str -> ndarray of int
+        Per prompt, the take's frame numbers of its states 1..n_states (level k / n_states).
     """
 
     model: MarkerlessModel
     gestures: list[Gesture]
     activity: np.ndarray
     rois: np.ndarray
+    state_frames: dict
 
 
 def canonical_frames(images: Iterable[np.ndarray], norm: Normalisation, face_mesh: tuple | None = None
@@ -241,7 +244,7 @@ def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[G
         members.append(chosen)
     gesture_frames = _gesture_crops(prompts, states, frames, crs, members)
     model = MarkerlessModel(muscle_names, regions, norm, neutral, gesture_frames, config.method)
-    return TrainResult(model, gestures, activity, rois)
+    return TrainResult(model, gestures, activity, rois, {prompts[p].name: states[p] for p in states})
 
 
 def _region(name, mask, chosen, prompts, states, frames, neutral_filtered, norm, muscle_names, weights,

@@ -142,8 +142,8 @@ def build_markerless_demo(seed: int = 2, fps: float = 30.0, realtime: bool = Tru
         log(f"markerless demo: trained {len(result.model.regions)} regions in {time.perf_counter() - t0:.1f} s "
             f"-> {model}")
     MarkerlessModel.load(model)  # a bad file fails here, before anything opens
-    query = urlencode({"script": "mixed", "seed": seed, "skin_seed": PERFORMER, "fps": repr(float(fps)), "light_drift": 0.2,
-                       "head_turn": 10, "realtime": int(realtime)})
+    query = urlencode({"script": "mixed", "seed": seed, "skin_seed": PERFORMER, "fps": repr(float(fps)),
+                       "light_drift": 0.2, "head_turn": 10, "realtime": int(realtime)})
     session = Session(None, (f"sim://face?{query}",), basis="builtin", markers="builtin",
                       servo_rig=demo_rig(DEMO_SERVO_URL) if servo else None, render=RenderOptions(render, host, port),
                       markerless=MarkerlessOptions(Path(model), "leds"))
