@@ -9,8 +9,9 @@ the paper's answer to co-articulation). Training:
 3. takes each gesture's region of influence from its peak frame (:mod:`regions`) and builds the CRs from
    the isolated gestures' ROIs; a pseudo-muscle joins every CR holding two or more of its muscles;
 4. measures each gesture frame's actuation level as the dense optical flow from neutral projected on the
-   flow at the peak (the time index the paper uses is not linear in actuation when the performer
-   accelerates), and keeps ``n_states`` states at evenly spaced levels (the frame nearest each);
+   flow of the frame that moves most (the time index the paper uses is not linear in actuation when the
+   performer accelerates), moves the gesture's peak to the first frame of maximum flow, and keeps
+   ``n_states`` states at evenly spaced levels (the frame nearest each);
 5. per CR: the sample matrix of its gestures' state frames (Laplacian-filtered, masked), the signature basis
    (FastICA or PCA), ``M = V D^-1 U^T`` and each (pseudo-)muscle's signature set ``Phi_i``.
 """
@@ -18,7 +19,7 @@ the paper's answer to co-articulation). Training:
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -31,6 +32,7 @@ from livebridge.markerless.regions import RegionConfig, co_articulation_regions,
 from livebridge.markerless.signatures import back_substitution, signature_basis, signatures
 
 ACTIVITY_SIGMA = 2.0
+CLIP_DEVIATIONS = 4.0  # the filtered image's clip, in robust deviations of the neutral face's
 
 
 @dataclass(frozen=True)
@@ -149,8 +151,18 @@ def _neutral_frames(n_frames: int, gestures: list[Gesture], lost: np.ndarray) ->
     return np.flatnonzero(neutral)
 
 
-def _flow_levels(frames: np.ndarray, neutral: np.ndarray, roi: np.ndarray) -> np.ndarray:
-    """Actuation level (0..1, non-decreasing) of each gesture frame from optical flow, shape (n,)."""
+def _flow_levels(frames: np.ndarray, neutral: np.ndarray, roi: np.ndarray,
+                 peak_tolerance: float = 0.01) -> tuple[np.ndarray, int]:
+    """Actuation levels of a gesture's frames from optical flow, and its first frame of maximum actuation.
+
+    The dense flow from neutral to each frame (inside ``roi``, on its box) is projected on the flow of the
+    frame that moves most; the peak is the first frame within ``peak_tolerance`` of it (image differences
+    saturate before the skin stops moving; flow does not).
+
+    Returns
+    -------
+    (levels (peak + 1,) non-decreasing from ~0 to 1, peak index into ``frames``)
+    """
     flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     x, y, w, h = cv2.boundingRect(roi.astype(np.uint8))
     margin = 16  # the flow needs context around the region
@@ -158,14 +170,16 @@ def _flow_levels(frames: np.ndarray, neutral: np.ndarray, roi: np.ndarray) -> np
     x1, y1 = min(roi.shape[1], x + w + margin), min(roi.shape[0], y + h + margin)
     inside = roi[y0:y1, x0:x1]
     base = np.ascontiguousarray(neutral[y0:y1, x0:x1])
-    fields = np.array([flow.calc(base, np.ascontiguousarray(frame[y0:y1, x0:x1]), None)[inside]
-                       for frame in frames])  # (n, n_roi, 2)
-    full = fields[-1].ravel()
-    energy = float(full @ full)
-    if len(frames) < 2 or energy <= 1e-6 * max(1, roi.sum()):
-        return np.linspace(0.0, 1.0, len(frames)) if len(frames) > 1 else np.ones(1)
-    levels = fields.reshape(len(frames), -1) @ full / energy
-    return np.clip(np.maximum.accumulate(np.clip(levels, 0.0, None)) / max(levels.max(), 1e-9), 0.0, 1.0)
+    fields = np.array([flow.calc(base, np.ascontiguousarray(frame[y0:y1, x0:x1]), None)[inside].ravel()
+                       for frame in frames])  # (n, 2 n_roi)
+    energy = np.einsum("ij,ij->i", fields, fields)
+    top = fields[int(np.argmax(energy))]
+    if len(frames) < 2 or energy.max() <= 1e-6 * max(1, inside.sum()):
+        return np.linspace(0.0, 1.0, len(frames)), len(frames) - 1
+    levels = fields @ top / float(top @ top)
+    peak = int(np.argmax(levels >= (1.0 - peak_tolerance) * levels.max()))
+    levels = np.maximum.accumulate(np.clip(levels[:peak + 1], 0.0, None))
+    return np.clip(levels / max(levels[-1], 1e-9), 0.0, 1.0), peak
 
 
 def _state_frames(levels: np.ndarray, n_states: int) -> np.ndarray:
@@ -176,7 +190,7 @@ def _state_frames(levels: np.ndarray, n_states: int) -> np.ndarray:
 
 def _filtered(frame: np.ndarray, norm: Normalisation) -> np.ndarray:
     image = frame.astype(np.float32)
-    return lighting_normalise(image, norm.blur_sigma, norm.log) if norm.laplacian else image
+    return lighting_normalise(image, norm.blur_sigma, norm.log, norm.clip) if norm.laplacian else image
 
 
 def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[GesturePrompt],
@@ -223,10 +237,15 @@ def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[G
     isolated = [p for p, prompt in enumerate(prompts) if prompt.isolated]
     crs = co_articulation_regions(rois[isolated], config.regions)
     neutral_u8 = np.clip(np.rint(neutral), 0, 255).astype(np.uint8)
+    if norm.laplacian and CLIP_DEVIATIONS is not None:
+        plain = lighting_normalise(frames[neutral_index[0]].astype(np.float32), norm.blur_sigma, norm.log)
+        norm = replace(norm, clip=float(CLIP_DEVIATIONS * 1.4826 * np.median(np.abs(plain))))
     states = {}
     for p, gesture in enumerate(gestures):
-        levels = _flow_levels(frames[gesture.frames], neutral_u8, rois[p] if rois[p].any() else np.ones_like(rois[p]))
-        states[p] = gesture.frames[_state_frames(levels, config.n_states)]
+        roi = rois[p] if rois[p].any() else np.ones_like(rois[p])
+        levels, peak = _flow_levels(frames[gesture.start:gesture.end + 1], neutral_u8, roi)
+        gestures[p] = replace(gesture, peak=gesture.start + peak)
+        states[p] = gestures[p].frames[_state_frames(levels, config.n_states)]
     neutral_filtered = np.mean([_filtered(frames[i], norm) for i in neutral_index[:: max(1, len(neutral_index) // 16)]],
                                axis=0)
     regions, members = [], []
