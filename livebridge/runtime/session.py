@@ -49,10 +49,10 @@ keys such as ``calibration`` must come before the first ``[table]``, or TOML put
     raw_frames = false            # also the camera images: replay://takes/take-... runs the take again
     frame_format = "pgm"          # raw images: "pgm" (uncompressed, keeps up live) or "png" (smaller, slow)
 
-    [markerless]                  # optional: one camera films a bare face instead of markers
-    model = "model.npz"           # from `livebridge markerless train`
-    head_rig = "leds"             # "leds" or "none" (optional: checked against the model)
-    min_confidence = 0.3          # a region less sure than this holds its last state
+    # [markerless]                # instead of markers: one camera URL filming a bare face
+    # model = "model.npz"         # from `livebridge markerless train`
+    # head_rig = "leds"           # "leds" or "none" (optional: checked against the model)
+    # min_confidence = 0.3        # a region less sure than this holds its last state
 
     [runtime]
     status_interval = 1.0         # seconds between live status lines
