@@ -8,10 +8,9 @@ the paper's answer to co-articulation). Training:
 2. finds the bounded gestures from each frame's distance to neutral (:mod:`gestures`), one per list entry;
 3. takes each gesture's region of influence from its peak frame (:mod:`regions`) and builds the CRs from
    the isolated gestures' ROIs; a pseudo-muscle joins every CR holding two or more of its muscles;
-4. measures each gesture frame's actuation level as the dense optical flow from neutral projected on the
-   flow of the frame that moves most (the time index the paper uses is not linear in actuation when the
-   performer accelerates), moves the gesture's peak to the first frame of maximum flow, and keeps
-   ``n_states`` states at evenly spaced levels (the frame nearest each);
+4. measures each bounded gesture frame's actuation level as the dense optical flow from neutral projected
+   on the flow of the frame that moves most (the time index the paper uses is not linear in actuation when
+   the performer accelerates), and keeps ``n_states`` states at evenly spaced levels (the frame nearest each);
 5. per CR: the sample matrix of its gestures' state frames (Laplacian-filtered, masked), the signature basis
    (FastICA or PCA), ``M = V D^-1 U^T`` and each (pseudo-)muscle's signature set ``Phi_i``.
 """
@@ -155,17 +154,11 @@ def _neutral_frames(n_frames: int, gestures: list[Gesture], lost: np.ndarray) ->
     return np.flatnonzero(neutral)
 
 
-def _flow_levels(frames: np.ndarray, neutral: np.ndarray, roi: np.ndarray,
-                 peak_tolerance: float = 0.01) -> tuple[np.ndarray, int]:
-    """Actuation levels of a gesture's frames from optical flow, and its first frame of maximum actuation.
+def _flow_levels(frames: np.ndarray, neutral: np.ndarray, roi: np.ndarray) -> np.ndarray:
+    """Actuation levels (0..1, non-decreasing) of a bounded gesture's frames from optical flow, shape (n,).
 
-    The dense flow from neutral to each frame (inside ``roi``, on its box) is projected on the flow of the
-    frame that moves most; the peak is the first frame within ``peak_tolerance`` of it (image differences
-    saturate before the skin stops moving; flow does not).
-
-    Returns
-    -------
-    (levels (peak + 1,) non-decreasing from ~0 to 1, peak index into ``frames``)
+    The dense flow from neutral to each frame (inside ``roi``, on its box) is projected on the flow at the
+    gesture's last frame (its maximum actuation).
     """
     flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     x, y, w, h = cv2.boundingRect(roi.astype(np.uint8))
@@ -176,14 +169,12 @@ def _flow_levels(frames: np.ndarray, neutral: np.ndarray, roi: np.ndarray,
     base = np.ascontiguousarray(neutral[y0:y1, x0:x1])
     fields = np.array([flow.calc(base, np.ascontiguousarray(frame[y0:y1, x0:x1]), None)[inside].ravel()
                        for frame in frames])  # (n, 2 n_roi)
-    energy = np.einsum("ij,ij->i", fields, fields)
-    top = fields[int(np.argmax(energy))]
-    if len(frames) < 2 or energy.max() <= 1e-6 * max(1, inside.sum()):
-        return np.linspace(0.0, 1.0, len(frames)), len(frames) - 1
-    levels = fields @ top / float(top @ top)
-    peak = int(np.argmax(levels >= (1.0 - peak_tolerance) * levels.max()))
-    levels = np.maximum.accumulate(np.clip(levels[:peak + 1], 0.0, None))
-    return np.clip(levels / max(levels[-1], 1e-9), 0.0, 1.0), peak
+    full = fields[-1]
+    energy = float(full @ full)
+    if len(frames) < 2 or energy <= 1e-6 * max(1, inside.sum()):
+        return np.linspace(0.0, 1.0, len(frames)) if len(frames) > 1 else np.ones(1)
+    levels = np.maximum.accumulate(np.clip(fields @ full / energy, 0.0, None))
+    return np.clip(levels / max(levels.max(), 1e-9), 0.0, 1.0)
 
 
 def _state_frames(levels: np.ndarray, n_states: int) -> np.ndarray:
@@ -247,9 +238,8 @@ def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[G
     states = {}
     for p, gesture in enumerate(gestures):
         roi = rois[p] if rois[p].any() else np.ones_like(rois[p])
-        levels, peak = _flow_levels(frames[gesture.start:gesture.end + 1], neutral_u8, roi)
-        gestures[p] = replace(gesture, peak=gesture.start + peak)
-        states[p] = gestures[p].frames[_state_frames(levels, config.n_states)]
+        levels = _flow_levels(frames[gesture.frames], neutral_u8, roi)
+        states[p] = gesture.frames[_state_frames(levels, config.n_states)]
     neutral_filtered = np.mean([_filtered(frames[i], norm) for i in neutral_index[:: max(1, len(neutral_index) // 16)]],
                                axis=0)
     regions, members = [], []
