@@ -76,6 +76,8 @@ class FaceVideoConfig:
     fps : float
     seed : int
         Seeds the skin, the performer's everyday expressions, head motion, light drift and noise.
+    skin_seed : int or None
+        Seeds the skin instead of ``seed`` (the same performer in takes of other seeds); None: ``seed``.
     noise : float
         Standard deviation of sensor noise, grey levels.
     exposure : float
@@ -109,6 +111,7 @@ class FaceVideoConfig:
     height: int = 240
     fps: float = 60.0
     seed: int = 0
+    skin_seed: int | None = None
     noise: float = 2.0
     exposure: float = 1.0
     light_drift: float = 0.0
@@ -231,7 +234,8 @@ class FaceVideo:
         self.basis = basis
         self.config = config = config or FaceVideoConfig()
         self.features = shipped_features(basis) if features is None else features
-        self.skin = _skin_for(basis.neutral, config.seed, self.features)
+        skin_seed = config.seed if config.skin_seed is None else config.skin_seed
+        self.skin = _skin_for(basis.neutral, skin_seed, self.features)
         self.head_rig = head_rig or default_head_rig(basis.neutral, self.features)
         self._frame_points = frame_polyline(self.head_rig)
         self._camera, self._target = _frontal_camera(basis.neutral, self.features, config)
@@ -563,8 +567,8 @@ class FaceVideoSource(SourceBase):
         return Capabilities(size=self.video.config.size, fps=self.video.config.fps, formats=("GREY",))
 
 
-_URL_KEYS = {"basis", "script", "seed", "size", "fps", "light_drift", "head_turn", "head_rig", "noise", "exposure",
-             "frames", "realtime", "rig_file"}
+_URL_KEYS = {"basis", "script", "seed", "skin_seed", "size", "fps", "light_drift", "head_turn", "head_rig", "noise",
+             "exposure", "frames", "realtime", "rig_file"}
 
 
 def video_from_url(url: DeviceURL | str) -> FaceVideo:
@@ -578,7 +582,8 @@ def video_from_url(url: DeviceURL | str) -> FaceVideo:
         raise InputError(f"unknown simulator {url.netloc!r}; known: rig, face", url.url)
     url.check_known(_URL_KEYS)
     changes = {}
-    for key, name, kind in (("seed", "seed", int), ("fps", "fps", float), ("light_drift", "light_drift", float),
+    for key, name, kind in (("seed", "seed", int), ("skin_seed", "skin_seed", int), ("fps", "fps", float),
+                            ("light_drift", "light_drift", float),
                             ("head_turn", "head_turn_deg", float), ("noise", "noise", float),
                             ("exposure", "exposure", float), ("head_rig", "head_rig", str),
                             ("script", "script", str)):

@@ -619,6 +619,41 @@ def _scans(path: Path, folder: Path) -> list[str]:
     return [arg.format(dir=folder) for arg in _SCANS] + ["--neutral", str(path), "--out", str(folder / "b.npz")]
 
 
+# ------------------------------------------------------------------------------------------------ markerless
+def _markerless_take(folder: Path) -> None:
+    (folder / "frames").mkdir()
+    import cv2
+
+    cv2.imwrite(str(folder / "frames" / "0000.png"), np.zeros((24, 36), np.uint8))
+
+
+def _markerless_npz(**arrays) -> Callable[[Path], None]:
+    def write(path: Path) -> None:
+        with path.open("wb") as stream:
+            np.savez(stream, **arrays)
+    return write
+
+
+MARKERLESS_MODEL_CASES = _common_cases() + (
+    Case("not a zip", _text("model\n"), ("not a markerless model",)),
+    Case("a bare array", _npy, ("not a markerless model", "single array")),
+    Case("no manifest", _markerless_npz(a=np.zeros(3)), ("manifest", "not a markerless model")),
+    Case("manifest not JSON", _markerless_npz(manifest=np.array("{")), ("manifest", "not JSON")),
+    Case("another format", _markerless_npz(manifest=np.array('{"format": "livebridge-basis"}')),
+         ("manifest.format", "livebridge-markerless")),
+)
+GESTURE_LIST_CASES = _toml_cases() + (
+    Case("no gestures", _text("x = 1\n"), ("gesture", "[[gesture]]")),
+    Case("unnamed gesture", _text("[[gesture]]\nmuscles = { jaw = 1.0 }\n"), ("gesture[0].name",)),
+    Case("unknown muscle", _text("[[gesture]]\nname = 'g'\nmuscles = { smile = 1.0 }\n"),
+         ("gesture[0].muscles.smile", "unknown muscle")),
+    Case("level out of range", _text("[[gesture]]\nname = 'g'\nmuscles = { jaw = 1.5 }\n"),
+         ("gesture[0].muscles.jaw", "(0, 1]")),
+    Case("names repeat", _text("[[gesture]]\nname = 'g'\nmuscles = { jaw = 1.0 }\n[[gesture]]\nname = 'g'\n"
+                               "muscles = { jaw = 0.5 }\n"), ("repeat",)),
+)
+
+
 FORMATS = (
     Format("basis", "basis.npz", lambda path, folder: ["basis", "show", str(path), "--out", str(folder / "out.png")],
            BASIS_CASES),
@@ -646,6 +681,13 @@ FORMATS = (
            CHARACTER_CASES, setup=_write_character_parts),
     Format("scan ply", "neutral.ply", _scans, PLY_CASES, setup=_write_scan_landmarks),
     Format("scan xyz", "neutral.xyz", _scans, XYZ_CASES, setup=_write_scan_landmarks),
+    Format("markerless model", "model.npz", lambda path, folder: ["markerless", "analyse", str(folder / "frames"),
+                                                                  "--model", str(path)],
+           MARKERLESS_MODEL_CASES, setup=_markerless_take),
+    Format("gesture list", "gestures.toml", lambda path, folder: ["markerless", "train", str(folder / "frames"),
+                                                                  "--gestures", str(path), "--out",
+                                                                  str(folder / "model.npz")],
+           GESTURE_LIST_CASES, setup=_markerless_take),
 )
 CASES = [pytest.param(fmt, case, id=f"{fmt.name}: {case.name}") for fmt in FORMATS for case in fmt.cases]
 

@@ -165,7 +165,7 @@ def _to_arrays(model: MarkerlessModel) -> tuple[dict[str, np.ndarray], dict]:
                 "method": model.method, "regions": regions, "gestures": gestures,
                 "normalisation": {"input_size": list(norm.input_size), "crop": list(norm.crop),
                                   "pose_warp": norm.pose_warp, "laplacian": norm.laplacian, "log": norm.log,
-                                  "blur_sigma": norm.blur_sigma}}
+                                  "blur_sigma": norm.blur_sigma, "clip": norm.clip}}
     return arrays, manifest
 
 
@@ -196,6 +196,9 @@ def _from_arrays(path: str | Path) -> MarkerlessModel:
                              reader.array("canonical_head2cam", (4, 4)) if "canonical_head2cam" in arrays else None,
                              tuple(settings["crop"]), None, bool(settings["pose_warp"]), bool(settings["laplacian"]),
                              bool(settings["log"]), float(settings["blur_sigma"]))
+        clip = settings.get("clip")
+        if clip is not None:
+            norm = replace(norm, clip=float(clip))
         if "surface" in arrays:
             width, height = norm.input_size
             norm = replace(norm, surface=reader.array("surface", (height, width, 3)).astype(np.float32))

@@ -32,6 +32,7 @@ from scipy.optimize import linear_sum_assignment
 from livebridge.errors import InputError
 
 N_LEDS = 4
+LOG_OFFSET = 16.0  # grey levels
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,6 +124,10 @@ class Normalisation:
         Laplacian of the log image (see the module docstring).
     blur_sigma : float
         Gaussian blur before the Laplacian, pixels.
+    clip : float or None
+        The filtered image is clipped to ``[-clip, clip]`` (set by training from the neutral face: a few robust
+        deviations), so the rig's dark frame edges and bright LEDs, and specular highlights, cannot outweigh
+        the skin's texture in a region's signature.
     """
 
     input_size: tuple[int, int]
@@ -136,10 +141,13 @@ class Normalisation:
     laplacian: bool = True
     log: bool = True
     blur_sigma: float = 1.0
+    clip: float | None = None
 
     def __post_init__(self):
         width, height = (int(v) for v in self.input_size)
         object.__setattr__(self, "input_size", (width, height))
+        object.__setattr__(self, "camera_matrix", np.asarray(self.camera_matrix, dtype=np.float64))
+        object.__setattr__(self, "distortions", np.asarray(self.distortions, dtype=np.float64).ravel())
         crop = (0, 0, width, height) if self.crop is None else tuple(int(v) for v in self.crop)
         x, y, w, h = crop
         if w <= 0 or h <= 0 or x < 0 or y < 0 or x + w > width or y + h > height:
@@ -326,7 +334,8 @@ def warp_to_canonical(image: np.ndarray, norm: Normalisation, head2cam: np.ndarr
     return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
-def lighting_normalise(image: np.ndarray, blur_sigma: float = 1.0, log: bool = True) -> np.ndarray:
+def lighting_normalise(image: np.ndarray, blur_sigma: float = 1.0, log: bool = True,
+                       clip: float | None = None) -> np.ndarray:
     """Laplacian lighting normalisation.
 
     Parameters
@@ -335,7 +344,9 @@ def lighting_normalise(image: np.ndarray, blur_sigma: float = 1.0, log: bool = T
         Grey levels (any real dtype).
     blur_sigma : float
     log : bool
-        Filter ``log(1 + image)`` rather than the image.
+        Filter ``log(LOG_OFFSET + image)`` rather than the image.
+    clip : float, optional
+        Clip the result to ``[-clip, clip]``.
 
     Returns
     -------
@@ -343,10 +354,14 @@ def lighting_normalise(image: np.ndarray, blur_sigma: float = 1.0, log: bool = T
     """
     work = image.astype(np.float32)
     if log:
-        work = np.log1p(np.maximum(work, 0.0, out=work), out=work) * np.float32(64.0)
+        # log(I + LOG_OFFSET): dark pixels (lip line, nostrils) would otherwise turn sensor noise into signal
+        work = np.log(np.maximum(work, 0.0, out=work) + np.float32(LOG_OFFSET), out=work) * np.float32(64.0)
     if blur_sigma > 0:
         work = cv2.GaussianBlur(work, (0, 0), blur_sigma)
-    return cv2.Laplacian(work, cv2.CV_32F, ksize=3)
+    filtered = cv2.Laplacian(work, cv2.CV_32F, ksize=3)
+    if clip is not None:
+        np.clip(filtered, -clip, clip, out=filtered)
+    return filtered
 
 
 @dataclass(frozen=True, eq=False)
@@ -398,5 +413,5 @@ def normalise(image: np.ndarray, norm: Normalisation, state: PoseState = PoseSta
             gray = warp_to_canonical(gray, norm, head2cam)
     x, y, w, h = norm.crop
     canonical = gray[y:y + h, x:x + w].astype(np.float32)
-    filtered = lighting_normalise(canonical, norm.blur_sigma, norm.log) if norm.laplacian else canonical
+    filtered = lighting_normalise(canonical, norm.blur_sigma, norm.log, norm.clip) if norm.laplacian else canonical
     return state, NormalisedFrame(canonical, filtered, head2cam, lost)

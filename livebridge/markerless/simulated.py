@@ -1,7 +1,7 @@
 """Markerless takes from the face-video simulator: training, held-out takes, scoring (demo, bench, tests).
 
-The simulator seeds the performer's skin with the take's seed; a held-out take of the *same* performer
-(another seed for expressions, head motion, light and noise) is given the training take's skin here.
+Every take films the same performer (skin seed 0, :data:`PERFORMER`); a held-out take differs by its
+``seed`` (expressions, head motion, light drift, noise).
 """
 
 from __future__ import annotations
@@ -14,16 +14,14 @@ import numpy as np
 from livebridge.markerless.normalise import HeadRig, Normalisation
 from livebridge.markerless.train import TrainConfig, TrainResult, combination_prompts, isolated_prompts, train
 
+PERFORMER = 0  # the skin seed of every simulated take here
 
-def face_video(basis, same_performer_as=None, **config):
-    """A :class:`~livebridge.simulators.face_video.FaceVideo` of ``basis``; with ``same_performer_as`` (another
-    FaceVideo) it films that performer's skin."""
+
+def face_video(basis, **config):
+    """A :class:`~livebridge.simulators.face_video.FaceVideo` of ``basis`` filming :data:`PERFORMER`."""
     from livebridge.simulators.face_video import FaceVideo, FaceVideoConfig
 
-    video = FaceVideo(basis, FaceVideoConfig(**config))
-    if same_performer_as is not None:
-        video.skin = same_performer_as.skin
-    return video
+    return FaceVideo(basis, FaceVideoConfig(skin_seed=PERFORMER, **config))
 
 
 def training_prompts(video) -> tuple:

@@ -175,24 +175,23 @@ def build_markerless_demo(seed: int = 2, fps: float = 30.0, realtime: bool = Tru
 
     from livebridge.face.builtin import builtin_basis
     from livebridge.markerless.model import MarkerlessModel
-    from livebridge.markerless.simulated import MarkerlessScore, face_video, train_on_simulator
+    from livebridge.markerless.simulated import PERFORMER, MarkerlessScore, train_on_simulator
     from livebridge.runtime.build import build_pipeline
     from livebridge.runtime.session import MarkerlessOptions
     from livebridge.servo.rig import demo_rig
 
     basis = builtin_basis()
-    training = face_video(basis, script="gestures", fps=fps, seed=0)
     if model is None:
         log("markerless demo: training on a simulated training take (isolated and combined gestures)")
         t0 = time.perf_counter()
-        result, training = train_on_simulator(basis, fps=fps, seed=0)
+        result, _ = train_on_simulator(basis, fps=fps, seed=0)
         model = Path(tempfile.mkdtemp(prefix="livebridge-markerless-")) / "model.npz"
         result.model.save(model)
         log(f"markerless demo: trained {len(result.model.regions)} regions in {time.perf_counter() - t0:.1f} s "
             f"-> {model}")
     MarkerlessModel.load(model)  # a bad file fails here, before anything opens
-    query = urlencode({"script": "mixed", "seed": seed, "fps": repr(float(fps)), "light_drift": 0.2,
-                       "head_turn": 10, "realtime": int(realtime)})
+    query = urlencode({"script": "mixed", "seed": seed, "skin_seed": PERFORMER, "fps": repr(float(fps)),
+                       "light_drift": 0.2, "head_turn": 10, "realtime": int(realtime)})
     session = Session(None, (f"sim://face?{query}",), basis="builtin", markers="builtin",
                       servo_rig=demo_rig(DEMO_SERVO_URL) if servo else None, render=RenderOptions(render, host, port),
                       markerless=MarkerlessOptions(Path(model), "leds"))
@@ -204,7 +203,5 @@ def build_markerless_demo(seed: int = 2, fps: float = 30.0, realtime: bool = Tru
             on_frame(frame)
 
     pipeline = build_pipeline(session, log=log, on_frame=both)
-    source = pipeline.front.source
-    source.video.skin = training.skin  # the same performer as the training take (the simulator seeds the skin)
-    parts["score"] = MarkerlessScore(source)
+    parts["score"] = MarkerlessScore(pipeline.front.source)
     return DemoParts(pipeline, parts["score"], session)

@@ -71,7 +71,7 @@ puts them in that table)::
     raw_frames = false            # also the camera images: replay://takes/take-... runs the take again
     frame_format = "pgm"          # raw images: "pgm" (uncompressed, keeps up live) or "png" (smaller, slow)
 
-    # [markerless]                # optional: ONE camera films a bare face instead of markers (no calibration)
+    # [markerless]                # instead of markers: ONE camera URL filming a bare face (no calibration)
     # model = "model.npz"         # from `livebridge markerless train`
     # head_rig = "leds"           # "leds" or "none" (optional: checked against the model)
     # min_confidence = 0.3        # a region less sure than this holds its last state
