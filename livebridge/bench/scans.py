@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 SCAN_POINTS = 60_000
+DENSE_SCAN_POINTS = 150_000
+"""The bench also builds the basis from scans this dense (what a finer scanner buys)."""
 SCAN_NOISE_MM = 0.2
 LANDMARK_NOISE_MM = 0.5
 HOLE_RADIUS_MM = 8.0
@@ -238,16 +240,27 @@ def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[in
 
 def run(quick: bool, log) -> dict:
     from livebridge.bench.data import ict_basis
-    from livebridge.retarget.landmarks import load_landmark_set
 
     basis = ict_basis()
     if basis is None:
         log("scans: the ICT reference data (../shared/data) is not here; nothing to measure")
         return {"skipped": "no ICT reference data"}
     options = {"grid": (100, 100), "muscles": QUICK_MUSCLES} if quick else {}
-    figures = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), **options)
-    log(f"scans: {figures.n_vertices} grid vertices, {len(figures.names)} elements; built in "
-        f"{figures.build_s:.1f} s with skin tracking, {figures.build_without_colour_s:.1f} s from shape alone")
+    result = _measure_density(basis, SCAN_POINTS, options, log)
+    if not quick:
+        result[f"at_{DENSE_SCAN_POINTS}_points"] = _measure_density(basis, DENSE_SCAN_POINTS, options, log)
+    return result
+
+
+def _measure_density(basis, n_points: int, options: dict, log) -> dict:
+    """The figures of one bench run with scans of ``n_points`` points each, as the JSON result."""
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    figures = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), n_points=n_points,
+                                **options)
+    log(f"scans: {n_points} points a scan, {figures.n_vertices} grid vertices, {len(figures.names)} elements; "
+        f"built in {figures.build_s:.1f} s with skin tracking, {figures.build_without_colour_s:.1f} s from shape "
+        "alone")
     log(f"  {'element':24s} {'RMS mm':>7s} {'error':>7s} {'no colour':>9s} {'surface':>8s} {'no colour':>9s}")
     for k, name in enumerate(figures.names):
         size = np.linalg.norm(figures.truth[k], axis=1)
@@ -259,7 +272,7 @@ def run(quick: bool, log) -> dict:
     def per_element(values):
         return dict(zip(figures.names, (round(float(v), 4) for v in values)))
 
-    return {"n_vertices": figures.n_vertices, "limit": ERROR_LIMIT,
+    return {"scan_points": n_points, "n_vertices": figures.n_vertices, "limit": ERROR_LIMIT,
             "build_s": figures.build_s, "build_without_colour_s": figures.build_without_colour_s,
             "max_relative_error": float(np.nanmax(figures.errors)),
             "max_relative_error_without_colour": float(np.nanmax(figures.errors_without_colour)),

@@ -30,11 +30,19 @@ from livebridge.errors import InputError
 from livebridge.face.basis import CHOE_KO_BY_NAME, Basis, Muscle
 from livebridge.face.meshio import vertex_normals
 from livebridge.geometry.transforms import apply
-from livebridge.retarget.grid import GAP_SPACINGS, GRID_SHAPE, FaceGrid, crop_sphere, resample, square_axes
+from livebridge.retarget.grid import (
+    GAP_SPACINGS,
+    GRID_SHAPE,
+    FaceGrid,
+    crop_sphere,
+    point_spacing,
+    resample,
+    square_axes,
+)
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points, place_at_points
 from livebridge.retarget.normalise import normalisation, register_rigid, transform_landmarks
 from livebridge.retarget.scan import Scan
-from livebridge.retarget.skin_flow import fine_axes, skin_motion, still_skin_correction
+from livebridge.retarget.skin_flow import SMOOTH_SPACINGS, fine_axes, skin_motion, still_skin_correction
 from livebridge.retarget.tps import Kernel, fit_tps
 
 CROP_FACTOR = 1.2
@@ -47,6 +55,8 @@ CONTROL_SMOOTHING = 0.1
 """TPS smoothing of the control-point warp (the snapped points carry the scanner's noise)."""
 SKIN_MARGIN_MM = 10.0
 """The skin images of coloured scans reach this far beyond the grid (tracking is poor at an image's edge)."""
+TYPICAL_SPACING_MM = 0.35
+"""The point spacing assumed for a face scan whose own is not known (60k points over a face)."""
 LANDMARK_MAX_DISTANCE_MM = 5.0
 """A landmark farther than this from the resampled surface is an error (off the face, or in a hole)."""
 
@@ -66,6 +76,8 @@ class FaceScan:
         A coloured scan resampled on grid lines ``skin_factor`` times finer than ``grid``'s, reaching
         ``skin_margin`` grid cells beyond it on every side (an image of the skin), None without colour.
     skin_factor, skin_margin : int
+    point_spacing : float
+        The scan's median distance between neighbouring points in x-y, mm (NaN when not known).
     """
 
     grid: FaceGrid
@@ -74,6 +86,7 @@ class FaceScan:
     skin: FaceGrid | None = None
     skin_factor: int = 1
     skin_margin: int = 0
+    point_spacing: float = float("nan")
 
     @property
     def vertices(self) -> np.ndarray:
@@ -118,13 +131,14 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
     grid = resample(points[inside], x, y, source=source)
     if not scan.has_colour:
         return FaceScan(grid, landmarks, scan2face)
+    spacing = point_spacing(points[inside][:, :2])
     step = float(max(np.diff(x).max(), np.diff(y).max()))
     margin = int(np.ceil(SKIN_MARGIN_MM / step))  # the crop's edge is no skin edge: keep it off the grid
     fine_x, fine_y, factor = fine_axes(np.linspace(x[0] - margin * step, x[-1] + margin * step, len(x) + 2 * margin),
                                        np.linspace(y[0] - margin * step, y[-1] + margin * step, len(y) + 2 * margin))
     wider = crop_sphere(points, np.zeros(3), radius + SKIN_MARGIN_MM)
     skin = resample(points[wider], fine_x, fine_y, step * GAP_SPACINGS / 2, source, scan.colours[wider])
-    return FaceScan(grid, landmarks, scan2face, skin, factor, margin)
+    return FaceScan(grid, landmarks, scan2face, skin, factor, margin, spacing)
 
 
 def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: FaceScan, source=None) -> FaceScan:
@@ -144,8 +158,10 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
     the geometric warp, refined by skin tracking when both scans have colour (and ``colour``)."""
     element = geometric_element(neutral, expression, stride, kernel, source)
     if colour and neutral.skin is not None and expression.skin is not None:
+        spacing = np.nanmax([neutral.point_spacing, expression.point_spacing, 0.0])
+        smooth = SMOOTH_SPACINGS * (spacing if spacing > 0 else TYPICAL_SPACING_MM)
         element, trust = skin_motion(neutral.skin, expression.skin, neutral.grid, neutral.skin_factor,
-                                     neutral.skin_margin, element)
+                                     neutral.skin_margin, element, smooth)
         correction = still_skin_correction(neutral.vertices, element, trust)
         element = apply(correction, neutral.vertices + element) - neutral.vertices
     return element
