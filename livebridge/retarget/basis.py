@@ -37,6 +37,17 @@ LINEAR_MOVE = 0.03
 """Moves shorter than this fraction of the landmarks' extent are carried by the spline's Jacobian."""
 PAIR_SPACING = 0.01
 """Closest two control points of a surface-pinned spline, as a fraction of the landmarks' extent."""
+JACOBIAN_REACH = 0.11
+"""How far the spline's Jacobian is averaged over the target (:func:`smooth_jacobian`), a fraction of the
+landmarks' extent (15 mm on a face)."""
+MAX_DIFFUSION_STEPS = 2000
+JUMP_START, JUMP_FULL = 1.5, 3.0
+"""Two neighbouring target vertices whose source points lie this many times farther apart than the vertices
+themselves (carried into source space) start to be / are fully smoothed (:func:`smooth_jumps`)."""
+JUMP_SMOOTHING = 30
+"""Diffusion steps of :func:`smooth_jumps` (each reaches one more ring of neighbours)."""
+JUMP_SPREAD = 2
+"""Rings of neighbours around a jump that are smoothed with it."""
 
 
 @dataclass(frozen=True)
@@ -56,6 +67,8 @@ class Correspondence:
     triangle: np.ndarray
     barycentric: np.ndarray
     distance: np.ndarray
+    carried: np.ndarray | None = None
+    """(n_target_vertices, 3): the target vertices carried into source space, whose surface points these are."""
 
     def interpolate(self, values: np.ndarray, triangles: np.ndarray) -> np.ndarray:
         """Per-vertex ``values (..., n_source_vertices, 3)`` at the surface points, shape (..., n_target, 3)."""
@@ -90,7 +103,7 @@ def correspond(target_vertices: np.ndarray, target_triangles: np.ndarray, to_sou
     normals = vertex_normals(carried, target_triangles)
     triangle, barycentric, distance = closest_surface_points(carried, source_vertices, source_triangles,
                                                              near=CORRESPOND_NEAR, normals=normals)
-    return Correspondence(triangle, barycentric, distance)
+    return Correspondence(triangle, barycentric, distance, carried)
 
 
 def edge_counts(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -214,12 +227,14 @@ def spaced(source: np.ndarray, target: np.ndarray, spacing: float, first: int) -
 
 
 def transfer_elements(elements: np.ndarray, source: Basis, correspondence: Correspondence,
-                      to_target: ThinPlateSpline) -> np.ndarray:
+                      to_target: ThinPlateSpline, jacobian: np.ndarray | None = None) -> np.ndarray:
     """Source elements ``(k, n_source, 3)`` as target elements ``(k, n_target, 3)``: ``f(p + d) - f(p)``.
 
     Small moves (below :data:`LINEAR_MOVE` of the spline's extent, most of an element's reach) go through the
     spline's Jacobian, ``J(p) d``, which differs from the exact difference by the spline's curvature times
     ``|d|^2``; larger ones are carried exactly. An element that is zero at a surface point stays exactly zero.
+    ``jacobian`` (n_target, 3, 3): the spline's Jacobian at each target vertex's surface point, if already known
+    (:func:`smooth_jacobian`).
     """
     points = correspondence.interpolate(source.neutral, source.triangles)  # p, (n_target, 3)
     moves = correspondence.interpolate(elements, source.triangles)  # d, (k, n_target, 3)
@@ -227,7 +242,8 @@ def transfer_elements(elements: np.ndarray, source: Basis, correspondence: Corre
     out = np.zeros(moves.shape)
     if not moving.any():
         return out
-    jacobian = bounded_stretch(to_target.jacobian(points[moving]), to_target)
+    jacobian = to_target.jacobian(points[moving]) if jacobian is None else jacobian[moving]
+    jacobian = bounded_stretch(jacobian, to_target)
     out[:, moving] = np.einsum("noi,kni->kno", jacobian, moves[:, moving])
     limit = LINEAR_MOVE * float(np.ptp(to_target.centres, axis=0).max())
     element, vertex = np.nonzero(np.linalg.norm(moves, axis=2) > limit)
@@ -235,6 +251,26 @@ def transfer_elements(elements: np.ndarray, source: Basis, correspondence: Corre
         start = points[vertex]
         out[element, vertex] = to_target(start + moves[element, vertex]) - to_target(start)
     return out * uncovered_fade(correspondence.distance, limit / LINEAR_MOVE)[None, :, None]
+
+
+def smooth_jacobian(to_target: ThinPlateSpline, points: np.ndarray, target_mesh, reach: float) -> np.ndarray:
+    """``to_target``'s Jacobian at ``points`` (n_target, 3), the target vertices' source surface points, averaged
+    over the target mesh within about ``reach`` mm, shape (n_target, 3, 3).
+
+    A spline pinned to a surface bends at each of its surface control points (the ``r`` kernel's gradient is
+    discontinuous there), so its Jacobian, and every motion it carries, ripples between them: the carried
+    elements come out rougher than the source's. Diffusing it over the mesh (explicit steps, enough for a spread of
+    ``reach`` at the mesh's median edge length) keeps its slow variation, the face's changing proportions.
+    An affine spline (a self-transfer) has one Jacobian everywhere and is unchanged.
+    """
+    vertices, triangles = target_mesh
+    jacobian = to_target.jacobian(points).reshape(len(points), 9)
+    edges, _ = edge_counts(triangles)
+    edge = float(np.median(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1))) if len(edges) else 0
+    if edge <= 0 or reach <= 0:
+        return jacobian.reshape(-1, 3, 3)
+    steps = int(min(np.ceil(2.0 * (reach / edge) ** 2), MAX_DIFFUSION_STEPS))
+    return diffuse(jacobian, neighbour_mean(triangles, len(points)), steps, 0.5).reshape(-1, 3, 3)
 
 
 def bounded_stretch(jacobian: np.ndarray, spline: ThinPlateSpline) -> np.ndarray:
@@ -261,6 +297,71 @@ def uncovered_fade(distance: np.ndarray, extent: float) -> np.ndarray:
     """
     t = np.clip((distance / extent - COVERED) / (UNCOVERED - COVERED), 0.0, 1.0)
     return 1.0 - t * t * (3.0 - 2.0 * t)
+
+
+def correspondence_jumps(correspondence: Correspondence, source: Basis, target_triangles: np.ndarray) -> np.ndarray:
+    """Per target vertex, the most its source point moves apart from a neighbour's, shape (n_target_vertices,).
+
+    For each target edge, the distance between its two ends' source surface points over their distance carried
+    into source space; 1 where the correspondence is continuous (a self-transfer: 1 everywhere), large where
+    it tears (neighbours on either side of a nose wing, an eyelid, an ear fold land on different source parts).
+    The largest over a vertex's edges; vertices on no edge get 1.
+    """
+    points = correspondence.interpolate(source.neutral, source.triangles)
+    carried = correspondence.carried if correspondence.carried is not None else points
+    edges, _ = edge_counts(target_triangles)
+    a, b = edges.T
+    near = np.linalg.norm(carried[a] - carried[b], axis=1)
+    apart = np.linalg.norm(points[a] - points[b], axis=1)
+    ratio = np.divide(apart, near, out=np.ones_like(apart), where=near > 1e-9 * max(float(near.max()), 1e-300))
+    out = np.ones(len(points))
+    np.maximum.at(out, a, ratio)
+    np.maximum.at(out, b, ratio)
+    return out
+
+
+def smooth_jumps(elements: np.ndarray, triangles: np.ndarray, jumps: np.ndarray,
+                 steps: int = JUMP_SMOOTHING) -> np.ndarray:
+    """Target elements ``(k, n, 3)`` diffused over the mesh where the correspondence tears (``jumps (n,)`` from
+    :func:`correspondence_jumps`), unchanged where it is continuous.
+
+    Where neighbouring target vertices take their motion from far-apart source points, the transferred field
+    is as rough as the source's geometry there (nose wings, eye corners, the mouth, an ear): each step moves such
+    a vertex towards its neighbours' mean, by a weight from 0 at :data:`JUMP_START` to 1 at :data:`JUMP_FULL`,
+    spread :data:`JUMP_SPREAD` rings; the continuous surroundings hold the field, so the smoothed part blends
+    into them (a membrane). An element that is zero stays zero; a self-transfer is untouched.
+    """
+    t = np.clip((jumps - JUMP_START) / (JUMP_FULL - JUMP_START), 0.0, 1.0)
+    weight = t * t * (3.0 - 2.0 * t)
+    if not weight.any() or steps <= 0:
+        return elements
+    mean = neighbour_mean(triangles, len(jumps))
+    for _ in range(JUMP_SPREAD):
+        weight = np.maximum(weight, 0.5 * (mean @ weight))
+    weight[weight < 1e-3] = 0.0
+    field = diffuse(np.moveaxis(elements, 1, 0).reshape(len(jumps), -1), mean, steps, weight)
+    return np.moveaxis(field.reshape(len(jumps), elements.shape[0], 3), 0, 1)
+
+
+def neighbour_mean(triangles: np.ndarray, n: int):
+    """The sparse (n, n) operator averaging a per-vertex value over each vertex's mesh neighbours (a vertex on no
+    edge keeps 0)."""
+    from scipy.sparse import csr_matrix, diags
+
+    edges, _ = edge_counts(triangles)
+    adjacency = csr_matrix((np.ones(2 * len(edges)), (edges.ravel(), edges[:, ::-1].ravel())), shape=(n, n))
+    degree = np.asarray(adjacency.sum(axis=1)).ravel()
+    return (diags(1.0 / np.maximum(degree, 1.0)) @ adjacency).tocsr()
+
+
+def diffuse(values: np.ndarray, mean, steps: int, weight) -> np.ndarray:
+    """``values (n, m)`` after ``steps`` explicit steps ``v += weight (mean v - v)``; ``weight`` a scalar or
+    (n,) in [0, 1] (0 holds a vertex); vertices on no edge are held."""
+    held = np.asarray(mean.sum(axis=1)).ravel() == 0
+    weight = np.where(held, 0.0, np.broadcast_to(weight, held.shape))[:, None]
+    for _ in range(steps):
+        values = values + weight * (mean @ values - values)
+    return values
 
 
 def retarget_basis(source: Basis, source_landmarks: LandmarkSet, target_neutral: np.ndarray,
@@ -295,7 +396,11 @@ def retarget_basis(source: Basis, source_landmarks: LandmarkSet, target_neutral:
     to_target, to_source = surface_splines(source_points, target_points, (source.neutral, source.triangles),
                                            (target_neutral, target_triangles), kernel)
     correspondence = correspond(target_neutral, target_triangles, to_source, source.neutral, source.triangles)
-    elements = transfer_elements(source.elements, source, correspondence, to_target)
+    points = correspondence.interpolate(source.neutral, source.triangles)
+    reach = JACOBIAN_REACH * float(np.ptp(target_points, axis=0).max())
+    jacobian = smooth_jacobian(to_target, points, (target_neutral, target_triangles), reach)
+    elements = transfer_elements(source.elements, source, correspondence, to_target, jacobian)
+    elements = smooth_jumps(elements, target_triangles, correspondence_jumps(correspondence, source, target_triangles))
     return Basis(target_neutral, target_triangles, elements, source.muscles)
 
 
