@@ -15,7 +15,7 @@ FIT_COUNTS = (22, 500, 3000)
 
 
 LANDMARK_COUNTS = (22, 68)
-"""The thesis's 22 landmarks, and the 68 Multi-PIE/iBUG points (the pass figure: see the README)."""
+"""The thesis's 22 landmarks, and the 68 Multi-PIE/iBUG points; the pass figures are the worse of the two."""
 
 
 def bench_basis(landmarks: int = 22):
@@ -100,10 +100,10 @@ def transfer_figures(log) -> dict:
     return {
         "transfer_face": face,
         "transfer_landmarks": LANDMARK_COUNTS[-1],
-        "basis_transfer_s": max(best["seconds"].values()),
+        "basis_transfer_s": max(max(f["seconds"].values()) for f in figures.values()),
         "basis_transfer_s_by_kernel": best["seconds"],
         "basis_transfer_limit_s": TRANSFER_LIMIT_S,
-        "error_vs_naive": max(best["ratio"].values()),
+        "error_vs_naive": max(max(f["ratio"].values()) for f in figures.values()),
         "error_vs_naive_by_kernel": best["ratio"],
         "error_vs_naive_by_landmarks": {count: f["ratio"] for count, f in figures.items()},
         "known_warp_error": best["error"],

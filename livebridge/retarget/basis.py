@@ -23,8 +23,9 @@ from livebridge.retarget.tps import Kernel, ThinPlateSpline, fit_tps
 SURFACE_SAMPLES = 150
 """Points spread over each surface to pin the spline onto the other surface (:func:`surface_splines`)."""
 SURFACE_ROUNDS = 2
-SURFACE_SMOOTHING = 1.0
-"""Smoothing (:func:`~livebridge.retarget.tps.fit_tps`) of the surface-pinned splines, mm."""
+SURFACE_SMOOTHING = 8.0
+"""Smoothing (:func:`~livebridge.retarget.tps.fit_tps`) of the surface-pinned splines, mm for the ``r`` kernel
+(other kernels: :func:`smoothing`)."""
 BOUNDARY_STEP = 0.2
 """How far a boundary vertex looks into its own triangles for its point on the other face (:func:`inside_boundary`)."""
 CORRESPOND_NEAR = 5
@@ -37,6 +38,29 @@ LINEAR_MOVE = 0.03
 """Moves shorter than this fraction of the landmarks' extent are carried by the spline's Jacobian."""
 PAIR_SPACING = 0.01
 """Closest two control points of a surface-pinned spline, as a fraction of the landmarks' extent."""
+NORMAL_WEIGHT = 0.25
+"""Weight of a difference of unit normals against distance when a surface pin finds its partner on the other
+surface (:class:`SurfaceMatcher`), as a fraction of the landmarks' extent."""
+SLIDE_LIMIT = 0.04
+"""Farthest a surface pin slides along the surface from its closest point towards its like-facing match
+(:class:`SurfaceMatcher`), as a fraction of the landmarks' extent: a different face's cheek may bend like a
+far-off part of the source; a pin may slide to correct the landmark spline, not jump."""
+SMOOTHING_LENGTH = 0.1
+"""Length, as a fraction of the landmarks' extent, at which the smoothing of a surface-pinned spline is
+expressed in the kernel's units (:func:`smoothing`)."""
+SAMPLED_MOTION = 0.01
+"""Surface pins are spread over the vertices an element moves by more than this fraction of its largest move."""
+JACOBIAN_REACH = 0.11
+"""How far the spline's Jacobian is averaged over the target (:func:`smooth_jacobian`), a fraction of the
+landmarks' extent (15 mm on a face)."""
+MAX_DIFFUSION_STEPS = 2000
+JUMP_START, JUMP_FULL = 1.5, 3.0
+"""Two neighbouring target vertices whose source points lie this many times farther apart than the vertices
+themselves (carried into source space) start to be / are fully smoothed (:func:`smooth_jumps`)."""
+JUMP_SMOOTHING = 30
+"""Diffusion steps of :func:`smooth_jumps` (each reaches one more ring of neighbours)."""
+JUMP_SPREAD = 2
+"""Rings of neighbours around a jump that are smoothed with it."""
 
 
 @dataclass(frozen=True)
@@ -56,6 +80,8 @@ class Correspondence:
     triangle: np.ndarray
     barycentric: np.ndarray
     distance: np.ndarray
+    carried: np.ndarray | None = None
+    """(n_target_vertices, 3): the target vertices carried into source space, whose surface points these are."""
 
     def interpolate(self, values: np.ndarray, triangles: np.ndarray) -> np.ndarray:
         """Per-vertex ``values (..., n_source_vertices, 3)`` at the surface points, shape (..., n_target, 3)."""
@@ -90,7 +116,7 @@ def correspond(target_vertices: np.ndarray, target_triangles: np.ndarray, to_sou
     normals = vertex_normals(carried, target_triangles)
     triangle, barycentric, distance = closest_surface_points(carried, source_vertices, source_triangles,
                                                              near=CORRESPOND_NEAR, normals=normals)
-    return Correspondence(triangle, barycentric, distance)
+    return Correspondence(triangle, barycentric, distance, carried)
 
 
 def edge_counts(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -138,41 +164,78 @@ def inside_boundary(vertices: np.ndarray, triangles: np.ndarray, step: float = B
 
 def surface_splines(source_points: np.ndarray, target_points: np.ndarray, source_mesh, target_mesh,
                     kernel: Kernel | str = Kernel.BIHARMONIC, samples: int = SURFACE_SAMPLES,
-                    rounds: int = SURFACE_ROUNDS) -> tuple[ThinPlateSpline, ThinPlateSpline]:
+                    rounds: int = SURFACE_ROUNDS, source_region: np.ndarray | None = None,
+                    ) -> tuple[ThinPlateSpline, ThinPlateSpline]:
     """(``f``, ``g``) fitted through the landmarks and through surface pairs, so each maps surface onto surface.
 
     The landmark splines bend the space between the landmarks as little as they can, which leaves the source
-    surface floating above or sunk below the target's between them; the tangent planes, and with them the
-    direction of every carried displacement, tilt. Each round spreads ``samples`` points over each surface,
-    carries them with the current spline to the other surface (closest point facing the same way) and refits
-    through the landmarks and these pairs (smoothed: the pairs are approximate along the surface).
+    surface floating above or sunk below the target's between them, and slid sideways along it; the tangent
+    planes, and with them the direction of every carried displacement, tilt, and each target point takes its
+    motion from a source spot millimetres to the side. Each round spreads ``samples`` points over each surface
+    (over ``source_region`` and the part of the target it covers, when given), carries them with the current
+    spline to the other surface, where each finds the surface point nearest in place and in facing
+    (:class:`SurfaceMatcher`: the same bend of a cheek, a jaw line, a brow), and refits through the landmarks
+    and these pairs (smoothed: the pairs are approximate).
 
-    ``*_mesh`` are (vertices, triangles); the points are (n, 3) landmark positions matched row by row.
+    ``*_mesh`` are (vertices, triangles); the points are (n, 3) landmark positions matched row by row;
+    ``source_region`` (n_source_vertices,) bool: where the surfaces must match best (where the basis moves).
     """
     kernel = Kernel.parse(kernel)
     to_target, to_source = landmark_splines(source_points, target_points, kernel)
     if rounds <= 0 or samples <= 0:
         return to_target, to_source
-    spacing = PAIR_SPACING * float(np.ptp(target_points, axis=0).max())
-    source_samples, target_samples = (spread_surface_points(mesh, samples) for mesh in (source_mesh, target_mesh))
+    source_extent, extent = (float(np.ptp(points, axis=0).max()) for points in (source_points, target_points))
+    spacing = PAIR_SPACING * extent
+    target_region = None if source_region is None else covered_region(target_mesh, to_source, source_mesh,
+                                                                         source_region)
+    source_samples = spread_surface_points(source_mesh, samples, source_region)
+    target_samples = spread_surface_points(target_mesh, samples, target_region)
+    onto_source_surface = SurfaceMatcher(source_mesh, NORMAL_WEIGHT * source_extent)
+    onto_target_surface = SurfaceMatcher(target_mesh, NORMAL_WEIGHT * extent)
     for _ in range(rounds):
-        onto_target = snap_onto(*source_samples, to_target, target_mesh)
-        onto_source = snap_onto(*target_samples, to_source, source_mesh)
+        onto_target = onto_target_surface.carry(*source_samples, to_target)
+        onto_source = onto_source_surface.carry(*target_samples, to_source)
         pairs_source = np.vstack([source_points, source_samples[0], onto_source])
         pairs_target = np.vstack([target_points, onto_target, target_samples[0]])
         keep = spaced(pairs_source, pairs_target, spacing, first=len(source_points))
-        to_target = fit_tps(pairs_source[keep], pairs_target[keep], kernel, SURFACE_SMOOTHING)
-        to_source = fit_tps(pairs_target[keep], pairs_source[keep], kernel, SURFACE_SMOOTHING)
+        to_target = fit_tps(pairs_source[keep], pairs_target[keep], kernel, smoothing(kernel, extent))
+        to_source = fit_tps(pairs_target[keep], pairs_source[keep], kernel, smoothing(kernel, source_extent))
     return to_target, to_source
 
 
-def spread_surface_points(mesh, n: int) -> tuple[np.ndarray, np.ndarray]:
+def smoothing(kernel: Kernel, extent: float) -> float:
+    """The regularisation of a surface-pinned spline for ``kernel`` on landmarks ``extent`` mm across:
+    :data:`SURFACE_SMOOTHING` times ``U(l) / l`` at ``l`` = :data:`SMOOTHING_LENGTH` of the extent.
+
+    The regulariser adds to the kernel matrix, whose entries are mm for ``U = r`` but mm^2 (times a log) for
+    ``r^2 ln r^2``: the same number would smooth the second kernel hundreds of times less. Measured as a kernel
+    value per length, both smooth alike (``U = r``: exactly :data:`SURFACE_SMOOTHING`).
+    """
+    length = SMOOTHING_LENGTH * extent
+    value = float(kernel.matrix(np.zeros((1, 3)), np.array([[length, 0.0, 0.0]]))[0, 0])
+    return SURFACE_SMOOTHING * abs(value) / length if length > 0 else SURFACE_SMOOTHING
+
+
+def covered_region(target_mesh, to_source: ThinPlateSpline, source_mesh, source_region: np.ndarray) -> np.ndarray:
+    """Target vertices (n_target_vertices,) bool whose nearest source vertex, once carried by ``to_source``, is in
+    ``source_region`` (n_source_vertices,) bool."""
+    from scipy.spatial import cKDTree
+
+    used = np.unique(source_mesh[1])
+    _, nearest = cKDTree(source_mesh[0][used]).query(to_source(target_mesh[0]))
+    return np.asarray(source_region, dtype=bool)[used[nearest]]
+
+
+def spread_surface_points(mesh, n: int, region: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(points (k, 3), unit normals (k, 3)) at ``k <= n`` vertices of ``mesh`` spread by farthest-point sampling.
 
-    Only vertices of some triangle count; deterministic (starts at the lowest vertex).
+    Only vertices of some triangle count, and of ``region`` (n_vertices,) bool when it holds at least 4 of
+    them; deterministic (starts at the lowest vertex).
     """
     vertices, triangles = mesh
     used = np.unique(triangles)
+    if region is not None and np.count_nonzero(region[used]) >= 4:
+        used = used[region[used]]
     points = vertices[used]
     chosen = [int(np.argmin(points[:, 1]))]
     offsets = points - points[chosen[0]]
@@ -185,20 +248,62 @@ def spread_surface_points(mesh, n: int) -> tuple[np.ndarray, np.ndarray]:
     return points[chosen], normals[chosen]
 
 
-def snap_onto(points: np.ndarray, normals: np.ndarray, spline: ThinPlateSpline, mesh) -> np.ndarray:
-    """``spline(points)`` snapped onto ``mesh``'s surface where it faces the same way, shape (k, 3).
+class SurfaceMatcher:
+    """Finds, for points with normals, the surface point of a mesh nearest in place and in facing.
 
-    ``normals`` (k, 3) are the points' unit normals; the spline turns them by the inverse transpose of its
-    Jacobian (central differences).
+    The cost of a surface point ``x`` (normal ``n_x``) for a point ``p`` (normal ``n_p``) is
+    ``|p - x|^2 + (normal_scale |n_p - n_x|)^2``: a pure closest point only pulls a point onto the surface,
+    while the normal term also slides it along the surface to where the surface bends the same way. The surface
+    points searched are the vertices and the edge midpoints (normals interpolated), in a 6D k-d tree.
+
+    Parameters
+    ----------
+    mesh : (vertices (n, 3), triangles (m, 3))
+    normal_scale : float
+        mm per unit of normal difference.
     """
-    step = 1e-3 * float(np.ptp(points, axis=0).max())
-    columns = [spline(points + step * axis) - spline(points - step * axis) for axis in np.eye(3)]
-    jacobian = np.stack(columns, axis=2) / (2 * step)  # (k, 3 out, 3 in)
-    turned = np.linalg.solve(np.transpose(jacobian, (0, 2, 1)), normals[..., None])[..., 0]
-    turned /= np.maximum(np.linalg.norm(turned, axis=1, keepdims=True), np.finfo(float).tiny)
-    vertices, triangles = mesh
-    triangle, barycentric, _ = closest_surface_points(spline(points), vertices, triangles, normals=turned)
-    return np.einsum("nk,nkd->nd", barycentric, vertices[triangles[triangle]])
+
+    def __init__(self, mesh, normal_scale: float):
+        from scipy.spatial import cKDTree
+
+        vertices, triangles = mesh
+        normals = vertex_normals(vertices, triangles)
+        edges, _ = edge_counts(triangles)
+        used = np.unique(triangles)
+        self.points = np.vstack([vertices[used], vertices[edges].mean(axis=1)])
+        facing = np.vstack([normals[used], normals[edges].mean(axis=1)])
+        facing /= np.maximum(np.linalg.norm(facing, axis=1, keepdims=True), np.finfo(float).tiny)
+        self.normal_scale = float(normal_scale)
+        self.mesh = mesh
+        self.slide_limit = SLIDE_LIMIT * normal_scale / NORMAL_WEIGHT if NORMAL_WEIGHT > 0 else 0.0
+        self.tree = cKDTree(np.hstack([self.points, self.normal_scale * facing]), balanced_tree=False,
+                            compact_nodes=False)
+
+    def carry(self, points: np.ndarray, normals: np.ndarray, spline: ThinPlateSpline) -> np.ndarray:
+        """``spline(points)`` matched onto the surface, shape (k, 3).
+
+        ``normals`` (k, 3) are the points' unit normals; the spline turns them by the inverse transpose of its
+        Jacobian.
+        """
+        turned = np.linalg.solve(np.transpose(spline.jacobian(points), (0, 2, 1)), normals[..., None])[..., 0]
+        turned /= np.maximum(np.linalg.norm(turned, axis=1, keepdims=True), np.finfo(float).tiny)
+        carried = spline(points)
+        _, index = self.tree.query(np.hstack([carried, self.normal_scale * turned]))
+        matched = self.points[index]
+        if SLIDE_LIMIT <= 0:
+            return matched
+        vertices, triangles = self.mesh
+        triangle, barycentric, _ = closest_surface_points(carried, vertices, triangles, normals=turned)
+        closest = np.einsum("nk,nkd->nd", barycentric, vertices[triangles[triangle]])
+        slide = matched - closest
+        length = np.linalg.norm(slide, axis=1, keepdims=True)
+        far = length[:, 0] > self.slide_limit
+        if not far.any():
+            return matched
+        capped = closest[far] + slide[far] * (self.slide_limit / length[far])
+        triangle, barycentric, _ = closest_surface_points(capped, vertices, triangles, normals=turned[far])
+        matched[far] = np.einsum("nk,nkd->nd", barycentric, vertices[triangles[triangle]])
+        return matched
 
 
 def spaced(source: np.ndarray, target: np.ndarray, spacing: float, first: int) -> np.ndarray:
@@ -214,12 +319,14 @@ def spaced(source: np.ndarray, target: np.ndarray, spacing: float, first: int) -
 
 
 def transfer_elements(elements: np.ndarray, source: Basis, correspondence: Correspondence,
-                      to_target: ThinPlateSpline) -> np.ndarray:
+                      to_target: ThinPlateSpline, jacobian: np.ndarray | None = None) -> np.ndarray:
     """Source elements ``(k, n_source, 3)`` as target elements ``(k, n_target, 3)``: ``f(p + d) - f(p)``.
 
     Small moves (below :data:`LINEAR_MOVE` of the spline's extent, most of an element's reach) go through the
     spline's Jacobian, ``J(p) d``, which differs from the exact difference by the spline's curvature times
     ``|d|^2``; larger ones are carried exactly. An element that is zero at a surface point stays exactly zero.
+    ``jacobian`` (n_target, 3, 3): the spline's Jacobian at each target vertex's surface point, if already known
+    (:func:`smooth_jacobian`).
     """
     points = correspondence.interpolate(source.neutral, source.triangles)  # p, (n_target, 3)
     moves = correspondence.interpolate(elements, source.triangles)  # d, (k, n_target, 3)
@@ -227,7 +334,8 @@ def transfer_elements(elements: np.ndarray, source: Basis, correspondence: Corre
     out = np.zeros(moves.shape)
     if not moving.any():
         return out
-    jacobian = bounded_stretch(to_target.jacobian(points[moving]), to_target)
+    jacobian = to_target.jacobian(points[moving]) if jacobian is None else jacobian[moving]
+    jacobian = bounded_stretch(jacobian, to_target)
     out[:, moving] = np.einsum("noi,kni->kno", jacobian, moves[:, moving])
     limit = LINEAR_MOVE * float(np.ptp(to_target.centres, axis=0).max())
     element, vertex = np.nonzero(np.linalg.norm(moves, axis=2) > limit)
@@ -235,6 +343,26 @@ def transfer_elements(elements: np.ndarray, source: Basis, correspondence: Corre
         start = points[vertex]
         out[element, vertex] = to_target(start + moves[element, vertex]) - to_target(start)
     return out * uncovered_fade(correspondence.distance, limit / LINEAR_MOVE)[None, :, None]
+
+
+def smooth_jacobian(to_target: ThinPlateSpline, points: np.ndarray, target_mesh, reach: float) -> np.ndarray:
+    """``to_target``'s Jacobian at ``points`` (n_target, 3), the target vertices' source surface points, averaged
+    over the target mesh within about ``reach`` mm, shape (n_target, 3, 3).
+
+    A spline pinned to a surface bends at each of its surface control points (the ``r`` kernel's gradient is
+    discontinuous there), so its Jacobian, and every motion it carries, ripples between them: the carried
+    elements come out rougher than the source's. Diffusing it over the mesh (explicit steps, enough for a spread of
+    ``reach`` at the mesh's median edge length) keeps its slow variation, the face's changing proportions.
+    An affine spline (a self-transfer) has one Jacobian everywhere and is unchanged.
+    """
+    vertices, triangles = target_mesh
+    jacobian = to_target.jacobian(points).reshape(len(points), 9)
+    edges, _ = edge_counts(triangles)
+    edge = float(np.median(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1))) if len(edges) else 0
+    if edge <= 0 or reach <= 0:
+        return jacobian.reshape(-1, 3, 3)
+    steps = int(min(np.ceil(2.0 * (reach / edge) ** 2), MAX_DIFFUSION_STEPS))
+    return diffuse(jacobian, neighbour_mean(triangles, len(points)), steps, 0.5).reshape(-1, 3, 3)
 
 
 def bounded_stretch(jacobian: np.ndarray, spline: ThinPlateSpline) -> np.ndarray:
@@ -261,6 +389,83 @@ def uncovered_fade(distance: np.ndarray, extent: float) -> np.ndarray:
     """
     t = np.clip((distance / extent - COVERED) / (UNCOVERED - COVERED), 0.0, 1.0)
     return 1.0 - t * t * (3.0 - 2.0 * t)
+
+
+def correspondence_jumps(correspondence: Correspondence, source: Basis, target_triangles: np.ndarray) -> np.ndarray:
+    """Per target vertex, the most its source point moves apart from a neighbour's, shape (n_target_vertices,).
+
+    For each target edge, the distance between its two ends' source surface points over their distance carried
+    into source space; 1 where the correspondence is continuous (a self-transfer: 1 everywhere), large where
+    it tears (neighbours on either side of a nose wing, an eyelid, an ear fold land on different source parts).
+    The largest over a vertex's edges; vertices on no edge get 1.
+    """
+    points = correspondence.interpolate(source.neutral, source.triangles)
+    carried = correspondence.carried if correspondence.carried is not None else points
+    edges, _ = edge_counts(target_triangles)
+    a, b = edges.T
+    near = np.linalg.norm(carried[a] - carried[b], axis=1)
+    apart = np.linalg.norm(points[a] - points[b], axis=1)
+    ratio = np.divide(apart, near, out=np.ones_like(apart), where=near > 1e-9 * max(float(near.max()), 1e-300))
+    out = np.ones(len(points))
+    np.maximum.at(out, a, ratio)
+    np.maximum.at(out, b, ratio)
+    return out
+
+
+def smooth_jumps(elements: np.ndarray, triangles: np.ndarray, jumps: np.ndarray,
+                 steps: int = JUMP_SMOOTHING) -> np.ndarray:
+    """Target elements ``(k, n, 3)`` diffused over the mesh where the correspondence tears (``jumps (n,)`` from
+    :func:`correspondence_jumps`), unchanged where it is continuous.
+
+    Where neighbouring target vertices take their motion from far-apart source points, the transferred field
+    is as rough as the source's geometry there (nose wings, eye corners, the mouth, an ear): each step moves such
+    a vertex towards its neighbours' mean, by a weight from 0 at :data:`JUMP_START` to 1 at :data:`JUMP_FULL`,
+    spread :data:`JUMP_SPREAD` rings; the continuous surroundings hold the field, so the smoothed part blends
+    into them (a membrane). An element that is zero stays zero; a self-transfer is untouched.
+    """
+    t = np.clip((jumps - JUMP_START) / (JUMP_FULL - JUMP_START), 0.0, 1.0)
+    weight = t * t * (3.0 - 2.0 * t)
+    if not weight.any() or steps <= 0:
+        return elements
+    mean = neighbour_mean(triangles, len(jumps))
+    for _ in range(JUMP_SPREAD):
+        weight = np.maximum(weight, 0.5 * (mean @ weight))
+    weight[weight < 1e-3] = 0.0
+    field = diffuse(np.moveaxis(elements, 1, 0).reshape(len(jumps), -1), mean, steps, weight)
+    return np.moveaxis(field.reshape(len(jumps), elements.shape[0], 3), 0, 1)
+
+
+def neighbour_mean(triangles: np.ndarray, n: int):
+    """The sparse (n, n) operator averaging a per-vertex value over each vertex's mesh neighbours (a vertex on no
+    edge keeps 0)."""
+    from scipy.sparse import csr_matrix, diags
+
+    edges, _ = edge_counts(triangles)
+    adjacency = csr_matrix((np.ones(2 * len(edges)), (edges.ravel(), edges[:, ::-1].ravel())), shape=(n, n))
+    degree = np.asarray(adjacency.sum(axis=1)).ravel()
+    return (diags(1.0 / np.maximum(degree, 1.0)) @ adjacency).tocsr()
+
+
+def diffuse(values: np.ndarray, mean, steps: int, weight) -> np.ndarray:
+    """``values (n, m)`` after ``steps`` explicit steps ``v += weight (mean v - v)``; ``weight`` a scalar or
+    (n,) in [0, 1] (0 holds a vertex); vertices on no edge are held. Only the rows that move are computed."""
+    held = np.asarray(mean.sum(axis=1)).ravel() == 0
+    weight = np.where(held, 0.0, np.broadcast_to(weight, held.shape))
+    rows = np.flatnonzero(weight > 0)
+    if not len(rows):
+        return values
+    average, step = mean[rows], weight[rows, None]
+    values = np.array(values, dtype=np.float64)
+    for _ in range(steps):
+        values[rows] += step * (average @ values - values[rows])
+    return values
+
+
+def moved_vertices(elements: np.ndarray, fraction: float = SAMPLED_MOTION) -> np.ndarray:
+    """Vertices (n_vertices,) bool that some element ``(k, n_vertices, 3)`` moves by more than ``fraction`` of
+    its largest move."""
+    size = np.linalg.norm(elements, axis=2)
+    return np.any(size > fraction * size.max(axis=1, keepdims=True), axis=0) if len(size) else np.zeros(0, bool)
 
 
 def retarget_basis(source: Basis, source_landmarks: LandmarkSet, target_neutral: np.ndarray,
@@ -293,9 +498,14 @@ def retarget_basis(source: Basis, source_landmarks: LandmarkSet, target_neutral:
     source_points, target_points = landmark_pairs(source_landmarks, (source.neutral, source.triangles),
                                                   target_landmarks, (target_neutral, target_triangles))
     to_target, to_source = surface_splines(source_points, target_points, (source.neutral, source.triangles),
-                                           (target_neutral, target_triangles), kernel)
+                                           (target_neutral, target_triangles), kernel,
+                                           source_region=moved_vertices(source.elements))
     correspondence = correspond(target_neutral, target_triangles, to_source, source.neutral, source.triangles)
-    elements = transfer_elements(source.elements, source, correspondence, to_target)
+    points = correspondence.interpolate(source.neutral, source.triangles)
+    reach = JACOBIAN_REACH * float(np.ptp(target_points, axis=0).max())
+    jacobian = smooth_jacobian(to_target, points, (target_neutral, target_triangles), reach)
+    elements = transfer_elements(source.elements, source, correspondence, to_target, jacobian)
+    elements = smooth_jumps(elements, target_triangles, correspondence_jumps(correspondence, source, target_triangles))
     return Basis(target_neutral, target_triangles, elements, source.muscles)
 
 

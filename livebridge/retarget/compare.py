@@ -47,6 +47,29 @@ def _at(landmarks: LandmarkSet, field: np.ndarray, triangles: np.ndarray) -> np.
     return np.einsum("nk,nkd->nd", landmarks.barycentric, field[triangles[landmarks.triangles]])
 
 
+def roughness(elements: np.ndarray, vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Per element, how rough its displacement field is on its mesh, 1/mm^2, shape (k,).
+
+    The RMS over the vertices of the umbrella Laplacian of the field (each vertex's displacement minus its mesh
+    neighbours' mean) over the RMS displacement, divided by the squared mean edge length: a smooth field's
+    umbrella Laplacian grows with the squared spacing, so the figure is its curvature, comparable between meshes of
+    different resolution (a source basis and its retargeted copy). NaN for an element that moves nothing.
+
+    ``elements`` (k, n_vertices, 3); ``vertices`` (n_vertices, 3); ``triangles`` (m, 3).
+    """
+    from livebridge.retarget.basis import edge_counts, neighbour_mean
+
+    edges, _ = edge_counts(np.asarray(triangles))
+    spacing = float(np.mean(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)))
+    mean = neighbour_mean(np.asarray(triangles), len(vertices))
+    out = np.full(len(elements), np.nan)
+    for k, field in enumerate(np.asarray(elements, dtype=np.float64)):
+        size = float(np.sum(field ** 2))
+        if size > 0:
+            out[k] = np.sqrt(np.sum((field - mean @ field) ** 2) / size) / spacing ** 2
+    return out
+
+
 BESIDE_GAP = 0.15
 """Gap between two faces shown side by side, as a fraction of the first face's width."""
 
