@@ -92,11 +92,13 @@ def _until(condition, timeout: float = HANG_S, what: str = "") -> None:
         time.sleep(0.02)
 
 
-def _pipeline(sources, rig, realtime: bool, frames: list):
+def _pipeline(sources, rig, realtime: bool, frames: list, log=None):
+    from livebridge.runtime.markers_front import MarkerFront
     from livebridge.runtime.pipeline import Pipeline
 
-    return Pipeline(sources, rig.cameras, rig.basis, rig.markers, rig.period, realtime=realtime,
-                    on_frame=frames.append, log=lambda line: None, labelling_timeout_s=HANG_S)
+    front = MarkerFront(sources, rig.cameras, rig.basis, rig.markers, rig.period, realtime=realtime,
+                        labelling_timeout_s=HANG_S)
+    return Pipeline(front, on_frame=frames.append, log=log or (lambda line: None))
 
 
 # ---------------------------------------------------------------------------------------------- protocol
@@ -255,14 +257,14 @@ def test_a_node_killed_mid_take_is_reported_and_rejoins_without_a_host_restart(n
     with _pipeline(sources, rig_from_url(url), True, frames) as pipeline:
         _until(lambda: len(frames) >= 15, what="solving")
         served[2].kill()
-        _until(lambda: "cam4" in pipeline.capture.sync.dead, what="cam4 reported dead")
+        _until(lambda: "cam4" in pipeline.front.capture.sync.dead, what="cam4 reported dead")
         count = len(frames)
         _until(lambda: len(frames) >= count + 15, what="solving without cam4")
         assert all(f.n_cameras <= 4 for f in frames[count + 5:])
         assert any("lost" in event for event in sources[4].events) and sources[4].status_text().endswith("lost")
         served[2].start()  # the same port: the host reconnects by itself
         _until(lambda: frames[-1].n_cameras == 5, what="cam4 back")
-        _until(lambda: "cam4" not in pipeline.capture.sync.dead, what="cam4 alive")
+        _until(lambda: "cam4" not in pipeline.front.capture.sync.dead, what="cam4 alive")
     assert pipeline.error is None
 
 

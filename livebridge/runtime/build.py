@@ -106,7 +106,6 @@ def open_session_cameras(session: Session):
     know its own (:attr:`~livebridge.capture.sources.CameraSource.calibration`: a simulated rig's cameras,
     the calibration recorded with a take).
     """
-    from livebridge.calibration.cameras import CameraGroup
     from livebridge.devices.registry import open_cameras
 
     calibrated = _load_calibration(session.calibration) if session.calibration is not None else None
@@ -121,6 +120,20 @@ def open_session_cameras(session: Session):
             else:  # about a file the URL names (a calibration, a take)
                 inner = str(error)
             raise InputError(f"{url}: {inner}", session.path, f"cameras.urls[{k}]") from None
+    try:
+        cameras = _session_cameras(sources, calibrated, session)
+    except BaseException:
+        for source in sources:  # some (camera nodes) already talk to their device
+            source.stop()
+        raise
+    realtime = all(s.realtime for s in sources)
+    return sources, cameras, realtime
+
+
+def _session_cameras(sources, calibrated, session: Session):
+    """The calibrated cameras of ``sources``: from the session's calibration by name, else their own."""
+    from livebridge.calibration.cameras import CameraGroup
+
     if calibrated is not None:
         by_name = {c.name: c for c in calibrated.cameras}
         missing = [s.source_id for s in sources if s.source_id not in by_name]
@@ -129,13 +142,15 @@ def open_session_cameras(session: Session):
                              f"{', '.join(by_name)}", session.path, "calibration")
         cameras = CameraGroup([by_name[s.source_id] for s in sources])
         check_calibration_used(cameras, calibrated, session)
-    else:
-        own = [s.calibration for s in sources]
-        if any(camera is None for camera in own):
-            raise InputError("these cameras need a calibration file", session.path, "calibration")
-        cameras = CameraGroup(own)
-    realtime = all(s.realtime for s in sources)
-    return sources, cameras, realtime
+        return cameras
+    own = [s.calibration for s in sources]
+    unknown = [s.source_id for s, camera in zip(sources, own) if camera is None]
+    if unknown:
+        raise InputError(f"no calibration known for camera{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}: "
+                         "give a calibration file (a camera node knows its camera's calibration only when the "
+                         "node's own camera URL does, e.g. sim://rig, and once it answers)", session.path,
+                         "calibration")
+    return CameraGroup(own)
 
 
 def _servo_rig(session: Session, muscle_names):
@@ -160,11 +175,12 @@ def build_pipeline(session: Session, log=print, on_frame=None):
     check_markers(markers, basis, session)
     log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
     sources, cameras, realtime = open_session_cameras(session)
-    check_cameras(cameras, session)
-    fps = _fps(sources)
-    period = 1.0 / fps
-    opened = []
+    opened = [lambda: [source.stop() for source in sources]]
     try:
+        check_cameras(cameras, session)
+        fps = _fps(sources)
+        period = 1.0 / fps
+        _check_raw_frames(session, sources)
         servo = None
         if session.servo_rig is not None:
             from livebridge.servo.output import ServoOutput
@@ -213,6 +229,19 @@ def build_pipeline(session: Session, log=print, on_frame=None):
         for close in reversed(opened):
             close()
         raise
+
+
+def _check_raw_frames(session: Session, sources) -> None:
+    """Recording raw frames needs every camera's images: a camera node sends them only with ``images=full``."""
+    if not (session.recording.enabled and session.recording.raw_frames):
+        return
+    blind = [s.source_id for s in sources if not s.capabilities.images]
+    if blind:
+        verb = "sends" if len(blind) == 1 else "send"
+        raise InputError(f"raw frames are the cameras' images, but {', '.join(blind)} {verb}"
+                         " only their markers' centroids (camera nodes): add images=full to their node:// URLs "
+                         "(full frames over the network), or set raw_frames = false (the take still records the "
+                         "markers and contractions)", session.path, "recording.raw_frames")
 
 
 def _fps(sources) -> float:

@@ -4,12 +4,14 @@ Example (every table but ``[cameras]`` is optional; paths are relative to the se
 keys such as ``calibration`` must come before the first ``[table]``, or TOML puts them in that table)::
 
     calibration = "calibration.toml"  # written by `livebridge calibrate` (save_calibration); sim:// rigs
-                                      # film with these cameras; not needed by a sim rig of its own or by
-                                      # replay:// of a recorded take (its calibration.toml is used)
+                                      # film with these cameras; not needed by a sim rig of its own, by
+                                      # replay:// of a recorded take (its calibration.toml is used) or by
+                                      # node:// cameras whose node knows their calibration
 
     [cameras]
     urls = ["v4l2:///dev/video0?fps=60", "v4l2:///dev/video2?fps=60"]
-    # or ["sim://rig?cameras=4&seed=1"], or ["replay://takes/take-20250101-120000?realtime=0"]
+    # or ["sim://rig?cameras=4&seed=1"], or ["replay://takes/take-20250101-120000?realtime=0"], or camera
+    # nodes on other PCs: ["node://10.0.0.5:7000?camera=cam0", "node://10.0.0.6:7000?camera=cam1", ...]
     sync_tolerance = 0.5          # frame periods, for cameras in different sync domains
 
     [face]
@@ -75,6 +77,7 @@ if TYPE_CHECKING:
     from livebridge.solve.solver import SolverConfig
 
 BUILTIN_NAMES = ("builtin",)
+SELF_CALIBRATED = ("sim://", "replay://", "node://")  # cameras that may know their own calibration
 LABELLING_TIMEOUT_S = 10.0  # default [runtime] labelling_timeout_s
 _TOP_KEYS = {"cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording", "runtime"}
 
@@ -286,7 +289,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     face.check_known()
 
     calibration = top.path_value("calibration")
-    if calibration is None and not all(u.startswith(("sim://", "replay://")) for u in urls):
+    if calibration is None and not all(u.startswith(SELF_CALIBRATED) for u in urls):
         raise InputError("real cameras need a calibration file", path, "calibration")
 
     reconstruct_config = _reconstruct(top.table("reconstruct"), path)
