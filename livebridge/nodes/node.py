@@ -317,7 +317,10 @@ class CameraNode:
         cpu = time.thread_time()
         centroids = detect_blobs(frame.image, settings.detect or DetectConfig())
         self.cpu_detect_s += time.thread_time() - cpu
-        return FrameMessage(camera, frame.seq, self.clock.from_monotonic(frame.t_capture), centroids,
+        source = self.sources[camera]
+        # a paced camera's time is a clock reading (the host maps it to its own); an unpaced one's is its take's
+        t = self.clock.from_monotonic(frame.t_capture) if source.realtime else frame.t_capture
+        return FrameMessage(camera, frame.seq, t, centroids,
                             frame.exposure_us, frame.gain, frame.sync_domain, index, self.clock.now(),
                             _image(frame.image, settings))
 

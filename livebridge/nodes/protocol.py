@@ -17,7 +17,8 @@ type           direction       fields
                                and pose), ``fps`` (the camera's frame rate, NaN when unknown)
 ``grab``       host -> node    ``camera``, ``index``: unpaced cameras send frame ``index`` on request only
                                (asked again for the same index, the node sends the same frame again)
-``frame``      node -> host    ``camera``, ``seq``, ``t`` (node clock, mid-exposure), ``exposure_us``, ``gain``,
+``frame``      node -> host    ``camera``, ``seq``, ``t`` (node clock, mid-exposure; an unpaced camera's own
+                               frame time, e.g. a replayed take's, which the host keeps), ``exposure_us``, ``gain``,
                                ``sync_domain``, ``centroids`` (float64 little-endian bytes, (n, 2) distorted
                                pixels), ``index`` (-1 for paced cameras), ``t_sent`` (node clock),
                                ``image`` (None or ``[width, height, bytes]``: a thumbnail or the full frame)

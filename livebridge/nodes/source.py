@@ -2,9 +2,10 @@
 
 A :class:`NodeSource` connects to a node (:mod:`livebridge.nodes.node`), subscribes to one camera and
 delivers its frames with their centroids already detected (``Frame.centroids``; no pixels unless asked),
-stamped in host time by the node's clock estimate (:mod:`livebridge.nodes.clock`). It is an ordinary
-:class:`~livebridge.capture.sources.CameraSource`, so synchronisation, reconstruction, solve and outputs do
-not know the camera is remote, and remote and local cameras mix in one session.
+stamped in host time by the node's clock estimate (:mod:`livebridge.nodes.clock`; an unpaced camera's frames
+keep their own take time). It is an ordinary :class:`~livebridge.capture.sources.CameraSource`, so
+synchronisation, reconstruction, solve and outputs do not know the camera is remote, and remote and local
+cameras mix in one session.
 
 One I/O thread owns the two sockets: a SUB (``CONFLATE``: only the newest frame is kept) and a DEALER that
 pings the node every ``ping_ms`` (heartbeat, clock exchange, and the settings: images wanted, detection
@@ -323,7 +324,9 @@ class NodeSource(SourceBase):
             self.transport_s.append(t4 - estimate.to_host(message.t_sent))
             del self.transport_s[:-4096]
         image = _NO_PIXELS if message.image is None else message.image
-        frame = Frame(image, estimate.to_host(message.t), message.seq, self.camera, message.exposure_us,
+        # an unpaced camera's times are its take's (a replay, a simulated take), not a clock's: kept as they are
+        t = message.t if self._realtime is False else estimate.to_host(message.t)
+        frame = Frame(image, t, message.seq, self.camera, message.exposure_us,
                       message.gain, message.sync_domain or self.camera, centroids=message.centroids)
         if self._realtime is False:
             with self._index_lock:
