@@ -70,9 +70,9 @@ def _load_calibration(path: Path):
 
 
 def _session_url(url: str, session: Session, k: int) -> str:
-    """A camera URL as the session means it: a relative ``replay://`` path is relative to the session file,
-    and a simulated rig films the session's face (``[face]`` files) with the session's calibrated cameras
-    (unless its URL names a calibration)."""
+    """A camera URL as the session means it: a relative ``replay://`` path or node ``key`` file is relative to
+    the session file, and a simulated rig films the session's face (``[face]`` files) with the session's
+    calibrated cameras (unless its URL names a calibration)."""
     from urllib.parse import parse_qs, quote, urlsplit
 
     parts = urlsplit(url)
@@ -82,6 +82,8 @@ def _session_url(url: str, session: Session, k: int) -> str:
         if path and not Path(path).is_absolute():
             resolved = (session.path.parent / path).resolve()
             return f"replay://{resolved}" + (f"?{parts.query}" if parts.query else "")
+    if scheme == "node" and session.path is not None:
+        return _relative_key(url, parts, session.path.parent)
     if scheme != "sim":
         return url
     query = parse_qs(parts.query)
@@ -97,6 +99,19 @@ def _session_url(url: str, session: Session, k: int) -> str:
         return url
     joiner = "&" if parts.query else "?"
     return url + joiner + "&".join(f"{key}={quote(str(value), safe='/')}" for key, value in options)
+
+
+def _relative_key(url: str, parts, folder: Path) -> str:
+    """A node URL's ``key`` file, when relative, relative to the session file's folder."""
+    from urllib.parse import parse_qsl, quote, urlencode
+
+    query = parse_qsl(parts.query, keep_blank_values=True)
+    keys = [value for name, value in query if name == "key"]
+    if len(keys) != 1 or not keys[0] or Path(keys[0]).is_absolute():
+        return url  # none, or several (the URL parser names that error)
+    resolved = str((folder / keys[0]).resolve())
+    query = [(name, resolved if name == "key" else value) for name, value in query]
+    return parts._replace(query=urlencode(query, quote_via=quote, safe="/")).geturl()
 
 
 def open_session_cameras(session: Session):
