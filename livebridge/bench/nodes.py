@@ -192,7 +192,7 @@ def _render_detect_ms(url: str) -> float:
     from livebridge.reconstruct.detect import detect_blobs
     from livebridge.simulators.rig import rig_from_url
 
-    rig = rig_from_url(url.rpartition("&t0=")[0])
+    rig = rig_from_url(url.partition("&t0=")[0])
     rig.start()
     times = []
     for seq in range(20):
