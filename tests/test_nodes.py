@@ -368,21 +368,26 @@ def _session(folder: Path, urls, markers: str, extra: str = "") -> Path:
     return path
 
 
+@pytest.mark.parametrize("layout, local", [([[0, 1], [2]], [3]),
+                                           pytest.param([[c] for c in range(8)], [], marks=pytest.mark.slow)],
+                         ids=["2 nodes and a local camera", "8 nodes"])
 def test_a_session_mixing_node_and_local_cameras_records_the_take_of_the_same_rig_in_one_process(nodes, rig_url,
-                                                                                                 tmp_path):
-    """``livebridge run`` with two node processes and a local camera (unpaced, no calibration file: each
-    camera's own): the take recorded equals the one of the same rig in one process, number for number."""
+                                                                                                 tmp_path, layout,
+                                                                                                 local):
+    """``livebridge run`` with node processes (``layout``: camera indices per node) and local cameras
+    (unpaced, no calibration file: each camera's own): the take recorded equals the one of the same rig in one
+    process, number for number."""
     from click.testing import CliRunner
 
     from livebridge.cli import main
     from livebridge.take.directory import load_take_dir
 
     markers = rig_url.partition("markers=")[2]
-    rig = f"{rig_url.partition('&markers=')[0]}&lead_in_s=0.5&cameras=4&realtime=0&frames=40&t0=1000"
-    node_ab, node_c = nodes(([f"{rig}&camera=0&markers={markers}", f"{rig}&camera=1&markers={markers}"], {}),
-                            ([f"{rig}&camera=2&markers={markers}"], {}))
-    remote = [f"node://127.0.0.1:{node.port}?camera=cam{c}" for node, c in ((node_ab, 0), (node_ab, 1), (node_c, 2))]
-    layouts = {"process": [rig], "nodes": [*remote, f"{rig}&camera=3"]}
+    n_cameras = sum(map(len, layout)) + len(local)
+    rig = f"{rig_url.partition('&markers=')[0]}&lead_in_s=0.5&cameras={n_cameras}&realtime=0&frames=40&t0=1000"
+    served = nodes(*[([f"{rig}&camera={c}&markers={markers}" for c in cameras], {}) for cameras in layout])
+    remote = [f"node://127.0.0.1:{node.port}?camera=cam{c}" for node, cameras in zip(served, layout) for c in cameras]
+    layouts = {"process": [rig], "nodes": [*remote, *[f"{rig}&camera={c}" for c in local]]}
     takes = {}
     for kind, urls in layouts.items():
         folder = tmp_path / kind
