@@ -300,6 +300,16 @@ def test_the_status_line_shows_each_node_and_a_node_killed_mid_take_is_reported_
     assert pipeline.error is None
 
 
+def test_a_node_camera_is_read_as_paced_as_it_is_and_a_url_saying_otherwise_is_reported(paced):
+    (adopted,) = _node_sources([paced.node_url("cam2")])
+    (contrary,) = _node_sources([paced.node_url("cam3", "&realtime=0")])
+    with adopted, contrary:
+        assert adopted.realtime and adopted.capabilities.fps == 30.0 and not adopted.capabilities.images
+        assert adopted.read(timeout=HANG_S) is not None
+        _until(lambda: contrary.read(timeout=0.1) is None and contrary.ended, what="the contrary URL reported")
+    assert "cam3 on node" in contrary.error and "is paced but its URL says realtime=0" in contrary.error
+
+
 def test_malformed_truncated_oversized_messages_and_a_flood_are_counted_and_dropped(paced):
     relay = _HostileRelay(paced.a.port)
     sources = _node_sources([f"node://127.0.0.1:{relay.port}?camera=cam0", paced.node_url("cam1"),

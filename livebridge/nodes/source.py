@@ -281,9 +281,6 @@ class NodeSource(SourceBase):
         self.estimator.trusted = pong.time_source != "ntp"
         self.estimator.add(pong.t1, pong.t2, pong.t3, t4)
         self._last_reply = t4
-        if not self._alive:
-            self._alive = True
-            self._event(f"node {pong.node} ({self.address}) camera {self.camera}: connected")
         if pong.calibration is not None and self._calibration is None:
             self._calibration = self._camera(pong.calibration)
         self._fps = pong.fps
@@ -298,6 +295,9 @@ class NodeSource(SourceBase):
             self._ended_on_node = pong.ended
             if pong.ended:
                 self._event(f"node {pong.node} ({self.address}) camera {self.camera}: {pong.ended}")
+        if not self._alive:  # last: whoever waits for the node's answer reads what it told from here on
+            self._alive = True
+            self._event(f"node {pong.node} ({self.address}) camera {self.camera}: connected")
 
     def _camera(self, fields: dict):
         from livebridge.calibration.cameras import Camera
