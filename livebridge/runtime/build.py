@@ -190,12 +190,12 @@ def build_pipeline(session: Session, log=print, on_frame=None):
     check_markers(markers, basis, session)
     log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
     sources, cameras, realtime = open_session_cameras(session)
-    opened = [lambda: [source.stop() for source in sources]]
+    check_cameras(cameras, session)
+    fps = _fps(sources)
+    period = 1.0 / fps
+    _check_raw_frames(session, sources)
+    opened = []
     try:
-        check_cameras(cameras, session)
-        fps = _fps(sources)
-        period = 1.0 / fps
-        _check_raw_frames(session, sources)
         servo = None
         if session.servo_rig is not None:
             from livebridge.servo.output import ServoOutput
