@@ -20,7 +20,7 @@ import numpy as np
 from livebridge.calibration.boards import Board, parse_board
 from livebridge.calibration.cameras import Camera, CameraGroup, undistort_normalised
 from livebridge.capture.frame import Frame
-from livebridge.capture.sources import SourceBase
+from livebridge.capture.sources import Capabilities, SourceBase
 from livebridge.devices.url import DeviceURL
 from livebridge.errors import InputError
 from livebridge.geometry.transforms import apply, look_at
@@ -235,6 +235,10 @@ class BoardSource(SourceBase):
     def calibration(self) -> Camera:
         """The simulated camera (ground truth)."""
         return self.group.cameras[self.camera]
+
+    @property
+    def capabilities(self) -> Capabilities:
+        return Capabilities(size=self.calibration.size)
 
     def read(self, timeout: float | None = None) -> Frame | None:
         if not self._running:

@@ -1021,10 +1021,12 @@ def rig_from_url(url: DeviceURL | str) -> SimRig:
     if "basis" in url.query:
         basis = Basis.load(url.query["basis"])
         markers = load_marker_set(url.query["markers"]) if "markers" in url.query else generate_markers(basis)
+    elif "markers" in url.query:  # the built-in face with these markers: no layout to design (seconds)
+        from livebridge.face.builtin import builtin_basis
+
+        basis, markers = builtin_basis(), load_marker_set(url.query["markers"])
     else:
         basis, markers = default_face()
-        if "markers" in url.query:
-            markers = load_marker_set(url.query["markers"])
     cameras = None
     if "calibration" in url.query:
         from livebridge.calibration.calibfile import load_calibration

@@ -16,7 +16,8 @@ def main(argv: list[str]) -> None:
     port, offset, drift, t_ref, *urls = argv
     sources = [source for url in urls for source in open_cameras(url)]
     clock = SkewedClock(float(offset), float(drift), float(t_ref))
-    with CameraNode(sources, f"tcp://127.0.0.1:{port}", clock=clock, name=f"node-{port}") as node:
+    with CameraNode(sources, f"tcp://127.0.0.1:{port}", clock=clock) as node:
+        node.name = f"node-{node.port}"  # as the host's status line names it
         print(node.port, flush=True)
         sys.stdin.read()  # until the test closes our stdin (or dies: then EOF too)
 

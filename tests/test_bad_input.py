@@ -464,6 +464,22 @@ SESSION_CASES = _toml_cases() + (
     Case("a marker set with an empty list", _session_with_bad("m.toml", _text(_HEADER + "marker = []\n"),
                                                               _SIM + '[face]\nmarkers = "m.toml"\n'),
          ("m.toml", "marker"), names_input=False),
+    *[Case(f"node URL {name}", _text(f'[cameras]\nurls = ["node://{url}"]\n'), ("cameras.urls[0]", *words))
+      for name, url, words in (
+          ("without a camera", "127.0.0.1:7000", ("camera=ID",)),
+          ("port 65535", "127.0.0.1:65535?camera=cam0", ("1..65534",)),
+          ("without a port", "127.0.0.1?camera=cam0", ("HOST:PORT",)),
+          ("images unknown", "127.0.0.1:7000?camera=cam0&images=jpeg", ("images", "jpeg")),
+          ("unknown parameter", "127.0.0.1:7000?camera=cam0&fps=30", ("fps",)),
+          ("dead_after_s zero", "127.0.0.1:7000?camera=cam0&dead_after_s=0", ("dead_after_s",)),
+          ("realtime text", "127.0.0.1:7000?camera=cam0&realtime=maybe", ("realtime",)),
+          ("key file missing", "127.0.0.1:7000?camera=cam0&key=nowhere.key", ("nowhere.key", "cannot read")))],
+    Case("node URL key file too short", _session_with_bad(
+        "short.key", _bytes(b"x" * 8), '[cameras]\nurls = ["node://127.0.0.1:7000?camera=cam0&key=short.key"]\n'),
+         ("cameras.urls[0]", "short.key", "at least 32 bytes")),
+    Case("a node that does not answer, no calibration file",
+         _text('[cameras]\nurls = ["node://127.0.0.1:9?camera=cam0&dead_after_s=0.05"]\n'),
+         ("calibration", "no calibration known for camera cam0")),
     Case("a calibration with 1e308", _session_with_bad("rig.toml", _calibration(rotation="[1e308, 0, 0]"),
                                                        'calibration = "rig.toml"\n' + _SIM),
          ("rig.toml", "cam_0.rotation"), names_input=False),
@@ -837,6 +853,18 @@ COMMANDS = (
         Bad("--source unknown", ("--source", "iphone"), ("--source", "iphone")),
         Bad("--source livelinkface with a rig option", ("--source", "livelinkface"), ("--size", "simulated rig")),
     )),
+    Command("node", ("node", "--cameras", "sim://rig?cameras=1&size=160x100"), (
+        Bad("--host not tcp", ("--host", "udp://127.0.0.1:7000"), ("--host", "tcp://HOST:PORT")),
+        Bad("--host without a port", ("--host", "tcp://127.0.0.1"), ("--host", "tcp://HOST:PORT")),
+        *_numbers("--host", ("tcp://127.0.0.1:65535", "tcp://127.0.0.1:-1", "tcp://127.0.0.1:x")),
+        Bad("--host not local", ("--host", "tcp://0.0.0.0:7000"), ("--host", "--allow-remote")),
+        Bad("--host port in use", ("--host", "tcp://127.0.0.1:{port}"), ("--host", "cannot serve", "in use")),
+        *_input_cases("--key"),
+        Bad("--key too short", ("--key", "{dir}/short.key"), ("short.key", "at least 32 bytes")),
+        Bad("--cameras unknown scheme", ("--cameras", "webcam://0"), ("--cameras", "webcam")),
+        Bad("--cameras sharing an id", ("--cameras", "sim://rig?cameras=1&size=160x100"),
+            ("--cameras", "share an id")),
+    )),
     Command("basis import", ("basis", "import", "{dir}/manifest.toml", "--out", "{dir}/new.npz"), (
         *_output_cases(suffix=".npz"),
         Bad("--shapes missing", ("--shapes", "{dir}/nothing"), ("--shapes", "nothing", "file not found")),
@@ -1130,6 +1158,7 @@ def _option_work(folder: Path) -> None:
     (folder / "ids.toml").write_text("chin = 3\n")
     _write_rig(folder)
     (folder / "manifest.toml").write_text("x = 1\n")
+    (folder / "short.key").write_bytes(b"too short")
     (folder / "take.npz").write_bytes(b"not read: the options are refused first")
     for name in ("existing.png", "existing.npz", "existing.toml"):
         (folder / name).write_bytes(b"keep me")
@@ -1169,7 +1198,7 @@ def test_a_malformed_option_is_one_error_line(tmp_path, crash_dir, command, case
     work = tmp_path / "work"
     work.mkdir()
     _option_work(work)
-    held, port = _held_port() if "{port}" in case.args else (None, 0)
+    held, port = _held_port() if any("{port}" in arg for arg in case.args) else (None, 0)
     fill = {"dir": str(work), "port": str(port)}
     try:
         before = _snapshot(work)

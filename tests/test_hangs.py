@@ -310,6 +310,9 @@ class _BlankCamera:
         return Frame(np.full((height, width), 20, np.uint8), self.n * self.period, self.n, self.source_id,
                      sync_domain="hw")
 
+    def status_text(self):
+        return None
+
 
 def _give_up(sources, cameras, clock, **options):
     from livebridge.simulators.rig import default_face

@@ -6,12 +6,17 @@ node (a separate process, detection there, msgpack over loopback TCP) minus the 
 (``DetectingSource`` on the host); goals 0.3 and 1.0 ms. ``framesets_per_s``: 8 cameras at 120 fps over 4
 node processes (2 cameras each) into one synchroniser, complete frame sets per second; what limits it on this
 machine is reported beside it (``render_detect_ms_per_frame``: simulated rendering plus detection of one camera
-frame, times 960 frames/s, against ``os.cpu_count()`` cores). ``clock_offset_error_ms``: a node clock skewed
-+37 ms and drifting 50 ppm, estimated over the same connection.
+frame, times 960 frames/s, against ``os.cpu_count()`` cores). ``framesets_per_s_prerendered``: the same,
+but each node replays frames of its cameras rendered before the run (:class:`PrerenderedSource`, a loop of
+:data:`PRERENDERED_FRAMES` per camera, paced at 120 fps; detection still runs on the nodes), so the figure
+measures the nodes' detection, the transport and the host's synchroniser, not the simulator's renderer.
+``clock_offset_error_ms``: a node clock skewed +37 ms and drifting 50 ppm, estimated over the same
+connection.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import select
 import subprocess
@@ -20,7 +25,11 @@ import time
 
 import numpy as np
 
+from livebridge.capture.frame import Frame
+from livebridge.capture.sources import Capabilities, SourceBase
+
 FPS = 120.0
+PRERENDERED_FRAMES = 60
 GOALS_MS = {"added_latency_p50_ms": 0.3, "added_latency_p99_ms": 1.0}
 
 
@@ -50,10 +59,13 @@ def _scratch() -> str:
 class _NodeProcess:
     """``livebridge node`` in its own process, on a free loopback port pair."""
 
-    def __init__(self, urls):
-        args = [sys.executable, "-m", "livebridge", "node", "--host", "tcp://127.0.0.1:0"]
-        for url in urls:
-            args += ["--cameras", url]
+    def __init__(self, urls, prerendered: bool = False):
+        if prerendered:
+            args = [sys.executable, "-m", "livebridge.bench.nodes", *urls]
+        else:
+            args = [sys.executable, "-m", "livebridge", "node", "--host", "tcp://127.0.0.1:0"]
+            for url in urls:
+                args += ["--cameras", url]
         self.process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         ready, _, _ = select.select([self.process.stdout], [], [], 120)
         if not ready:
@@ -120,13 +132,38 @@ def _latency(rig: str, seconds: float, log) -> dict:
 
 
 def _framesets(rig: str, seconds: float, log) -> dict:
+    live = _framesets_over_nodes(rig, seconds, prerendered=False)
+    replayed = _framesets_over_nodes(rig, seconds, prerendered=True)
+    cost_ms = _render_detect_ms(f"{rig}&fps={FPS:g}&cameras=8")
+    cores_needed = cost_ms * 8 * FPS / 1e3
+    camera_share = live["camera_frames_per_s"] / FPS
+    limit = (f"the simulated cameras: they delivered {100 * camera_share:.0f}% of their frames (rendering and "
+             f"detection need {cores_needed:.1f} of {os.cpu_count()} cores, shared with everything else running; "
+             "a camera that falls behind skips frames the others keep, so frame sets are incomplete)"
+             if camera_share < 0.95 else "transport and the host's synchroniser")
+    log(f"8 cameras x {FPS:g} fps over 4 nodes: {live['framesets_per_s']:.1f} complete frame sets/s "
+        f"({live['framesets_any_per_s']:.1f} in all); rendering + detecting one frame costs {cost_ms:.2f} ms: "
+        f"limited by {limit}")
+    log(f"the same, the nodes replaying pre-rendered frames (detection on the nodes, no rendering): "
+        f"{replayed['framesets_per_s']:.1f} complete frame sets/s ({replayed['framesets_any_per_s']:.1f} in all), "
+        f"cameras delivered {100 * replayed['camera_frames_per_s'] / FPS:.0f}% of their frames")
+    return {"framesets_per_s": live["framesets_per_s"], "framesets_any_per_s": live["framesets_any_per_s"],
+            "camera_frames_per_s": live["camera_frames_per_s"], "render_detect_ms_per_frame": cost_ms,
+            "cores_needed": cores_needed, "cores": os.cpu_count(), "framesets_limited_by": limit,
+            "framesets_per_s_prerendered": replayed["framesets_per_s"],
+            "framesets_any_per_s_prerendered": replayed["framesets_any_per_s"],
+            "camera_frames_per_s_prerendered": replayed["camera_frames_per_s"],
+            "load_average_1min": os.getloadavg()[0]}
+
+
+def _framesets_over_nodes(rig: str, seconds: float, prerendered: bool) -> dict:
+    """Complete (and any) frame sets per second and frames per second per camera, 8 cameras over 4 nodes."""
     from livebridge.capture.sync import SyncedCapture
     from livebridge.devices.registry import open_cameras
 
-    t0 = time.monotonic() + 3.0
+    t0 = time.monotonic() + (20.0 if prerendered else 3.0)  # pre-rendering takes a while on a busy machine
     url = f"{rig}&fps={FPS:g}&cameras=8&t0={t0}"
-    cost_ms = _render_detect_ms(url)
-    nodes = [_NodeProcess([f"{url}&camera={2 * k}", f"{url}&camera={2 * k + 1}"]) for k in range(4)]
+    nodes = [_NodeProcess([f"{url}&camera={2 * k}", f"{url}&camera={2 * k + 1}"], prerendered) for k in range(4)]
     try:
         sources = [s for k, node in enumerate(nodes) for c in (2 * k, 2 * k + 1)
                    for s in open_cameras(f"node://127.0.0.1:{node.port}?camera=cam{c}")]
@@ -146,17 +183,8 @@ def _framesets(rig: str, seconds: float, log) -> dict:
     finally:
         for node in nodes:
             node.close()
-    cores_needed = cost_ms * 8 * FPS / 1e3
-    camera_share = float(np.mean(delivered)) / FPS
-    limit = (f"the simulated cameras: they delivered {100 * camera_share:.0f}% of their frames (rendering and "
-             f"detection need {cores_needed:.1f} of {os.cpu_count()} cores, shared with everything else running; "
-             "a camera that falls behind skips frames the others keep, so frame sets are incomplete)"
-             if camera_share < 0.95 else "transport and the host's synchroniser")
-    log(f"8 cameras x {FPS:g} fps over 4 nodes: {complete / elapsed:.1f} complete frame sets/s ({total / elapsed:.1f} "
-        f"in all); rendering + detecting one frame costs {cost_ms:.2f} ms: limited by {limit}")
     return {"framesets_per_s": complete / elapsed, "framesets_any_per_s": total / elapsed,
-            "camera_frames_per_s": float(np.mean(delivered)), "render_detect_ms_per_frame": cost_ms,
-            "cores_needed": cores_needed, "cores": os.cpu_count(), "framesets_limited_by": limit}
+            "camera_frames_per_s": float(np.mean(delivered))}
 
 
 def _render_detect_ms(url: str) -> float:
@@ -164,7 +192,7 @@ def _render_detect_ms(url: str) -> float:
     from livebridge.reconstruct.detect import detect_blobs
     from livebridge.simulators.rig import rig_from_url
 
-    rig = rig_from_url(url.rpartition("&t0=")[0])
+    rig = rig_from_url(url.partition("&t0=")[0])
     rig.start()
     times = []
     for seq in range(20):
@@ -191,3 +219,80 @@ def _clock(rig: str, seconds: float, log) -> dict:
             status = source.status_text()
     log(f"clock: {status}; true offset {clock.offset_at(now) * 1e3:+.3f} ms, error {error * 1e3:+.4f} ms")
     return {"clock_offset_error_ms": float(abs(error) * 1e3)}
+
+
+class PrerenderedSource(SourceBase):
+    """One camera of a simulated rig replaying frames rendered before it starts: frame ``seq`` shows rendered
+    frame ``seq % n`` and is delivered at ``t0 + seq / fps`` (paced, ``time.monotonic``), as the rig would
+    deliver it, so node processes sharing ``t0`` deliver frame sets together; a read that comes late skips
+    the frames whose time has passed, as a camera does. For the benchmark only: it takes the simulator's
+    rendering out of the measurement.
+
+    Parameters
+    ----------
+    url : str
+        A ``sim://rig?...&camera=K&t0=T`` URL (one camera).
+    n_frames : int
+        Frames rendered up front and looped.
+    """
+
+    def __init__(self, url: str, n_frames: int = PRERENDERED_FRAMES):
+        from livebridge.devices.url import DeviceURL
+        from livebridge.simulators.rig import rig_from_url
+
+        parsed = DeviceURL.parse(url)
+        camera, self.t0 = int(parsed.query["camera"]), float(parsed.query["t0"])
+        rig = rig_from_url(parsed)
+        rig.start(0.0)
+        frames = [rig.camera_frame(seq, camera) for seq in range(n_frames)]
+        self.images = [None if frame is None else frame.image for frame in frames]
+        first = next(frame for frame in frames if frame is not None)
+        self.source_id, self.sync_domain = first.source_id, first.sync_domain
+        self.camera, self.fps = rig.cameras.cameras[camera], rig.config.fps
+        self._seq = 0
+
+    @property
+    def calibration(self):
+        return self.camera
+
+    @property
+    def capabilities(self) -> Capabilities:
+        return Capabilities(size=self.camera.size, fps=self.fps)
+
+    def start(self) -> None:
+        self._seq = max(0, math.ceil((time.monotonic() - self.t0) * self.fps))
+
+    def stop(self) -> None:
+        self._end(None)
+
+    def read(self, timeout: float | None = None) -> Frame | None:
+        seq = self._seq
+        t = self.t0 + seq / self.fps
+        wait = t - time.monotonic()
+        if timeout is not None and wait > timeout:
+            time.sleep(timeout)
+            return None
+        time.sleep(max(0.0, wait))
+        self._seq = max(seq + 1, math.floor((time.monotonic() - self.t0) * self.fps))
+        image = self.images[seq % len(self.images)]
+        return None if image is None else Frame(image, t, seq, self.source_id, sync_domain=self.sync_domain)
+
+
+def _serve_prerendered(urls: list[str]) -> None:
+    """A camera node serving :class:`PrerenderedSource` cameras on a free loopback port (printed as
+    ``tcp://127.0.0.1:PORT``) until SIGTERM."""
+    import signal
+    import threading
+
+    from livebridge.nodes.node import CameraNode
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    sources = [PrerenderedSource(url) for url in urls]
+    with CameraNode(sources, "tcp://127.0.0.1:0", name="prerendered") as node:
+        print(f"tcp://127.0.0.1:{node.port}", flush=True)
+        stop.wait()
+
+
+if __name__ == "__main__":
+    _serve_prerendered(sys.argv[1:])

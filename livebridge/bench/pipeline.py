@@ -191,6 +191,9 @@ class _ProcessRigSource:
             return None
         return self.rig.take(self.camera, timeout)
 
+    def status_text(self) -> None:
+        return None
+
 
 def cpu_split() -> tuple[set[int], set[int]] | None:
     """``(pipeline CPUs, rig CPUs)``: the last CPU for the simulated cameras, the others for the pipeline;

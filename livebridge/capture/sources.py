@@ -17,9 +17,6 @@ from livebridge.capture.frame import Frame
 if TYPE_CHECKING:
     from livebridge.calibration.cameras import Camera
 
-if TYPE_CHECKING:
-    from livebridge.calibration.cameras import Camera
-
 
 @dataclass(frozen=True)
 class Capabilities:
@@ -41,6 +38,9 @@ class Capabilities:
         True when frames of the source's ``sync_domain`` are triggered together.
     formats : tuple of str
         Pixel formats or other modes the device offers (informational).
+    images : bool
+        True when frames carry the camera's full images; False when they carry the markers' centroids
+        detected at the camera and no pixels, or a thumbnail (a camera node without ``images=full``).
     """
 
     size: tuple[int, int]
@@ -50,6 +50,7 @@ class Capabilities:
     gain_range: tuple[float, float] = (math.nan, math.nan)
     hardware_sync: bool = False
     formats: tuple[str, ...] = field(default_factory=tuple)
+    images: bool = True
 
 
 @dataclass(frozen=True)
@@ -110,6 +111,10 @@ class CameraSource(Protocol):
         """This camera as the source knows it (simulated, recorded with a take, factory-calibrated);
         None when unknown."""
 
+    def status_text(self) -> str | None:
+        """What the source adds to the live status line (a camera node: its clock offset and jitter, or
+        ``lost``), or None for nothing."""
+
 
 class SourceWrapper:
     """A camera source that wraps another and adds to ``read``; everything else is the inner source's.
@@ -141,6 +146,9 @@ class SourceWrapper:
     def read(self, timeout: float | None = None):
         return self.source.read(timeout)
 
+    def status_text(self) -> str | None:
+        return self.source.status_text()
+
 
 class SourceBase:
     """Context-manager plumbing shared by the implementations (subclasses define start/stop)."""
@@ -168,6 +176,10 @@ class SourceBase:
     @property
     def calibration(self) -> Camera | None:
         """None: a source that knows its camera's calibration overrides this."""
+        return None
+
+    def status_text(self) -> str | None:
+        """None: a source with something to say in the status line overrides this."""
         return None
 
     def _end(self, error: str | None) -> None:

@@ -70,7 +70,8 @@ def board_command(board, out: Path, force: bool, dpi: int) -> None:
 @click.option("--videos", multiple=True, type=Named(InputPath(), "FILE"),
               help="A camera's video file; repeat per camera.")
 @click.option("--sources", multiple=True, type=Named(CameraURL(), "URL"),
-              help="A live camera source URL (e.g. v4l2:///dev/video0); repeat per camera. Hold the board still.")
+              help="A live camera source URL (e.g. v4l2:///dev/video0, or a camera node's "
+                   "node://HOST:PORT?camera=ID&images=full); repeat per camera. Hold the board still.")
 @click.option("--board", "board", required=True, type=BoardSpec(),
               help="Board spec, e.g. 'charuco:7x5:40:30:DICT_4X4_50'.")
 @click.option("--out", "out", required=True, type=OutputFile(), help="Calibration file to write (TOML).")
@@ -143,21 +144,37 @@ def _source_frames(named: dict[str, str], n_frames: int):
     opened = [open_camera(url) for url in named.values()]
     started = []
     try:
-        for source in opened:
+        for (name, url), source in zip(named.items(), opened):
             source.start()
             started.append(source)
+            if not source.capabilities.images:
+                raise InputError("this camera sends its markers' centroids, not its images (a camera node): add "
+                                 "images=full to its URL for calibration", url, f"--sources {name}")
         for _ in range(n_frames):
             frame_set = []
             for name, source in zip(named, opened):
-                frame = source.read(timeout=2.0)
-                if frame is None and source.ended:
-                    raise InputError(f"camera stopped delivering frames ({source.error or 'ended'})",
-                                     named[name], f"--sources {name}")
+                frame = _next_frame(source, named[name], name)
                 frame_set.append(None if frame is None else frame.image)
             yield frame_set
     finally:
         for source in started:
             source.stop()
+
+
+UNPACED_WAIT_S = 60.0
+
+
+def _next_frame(source, url: str, name: str):
+    """The source's next frame; None when a live camera gave none within 2 s. An unpaced source (a replay, a
+    simulated board, a camera node serving one) delivers every frame however long it takes, so its frame sets
+    stay paired: it is waited for (up to :data:`UNPACED_WAIT_S`)."""
+    from livebridge.errors import InputError
+
+    frame = source.read(timeout=2.0 if source.realtime else UNPACED_WAIT_S)
+    if frame is None and (source.ended or not source.realtime):
+        why = source.error or "ended" if source.ended else f"no frame for {UNPACED_WAIT_S:g} s"
+        raise InputError(f"camera stopped delivering frames ({why})", url, f"--sources {name}")
+    return frame
 
 
 @calibrate.command("show")

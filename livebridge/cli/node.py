@@ -60,10 +60,18 @@ def node(camera_urls: tuple[str, ...], address: str, key, name: str | None, allo
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     log = lambda line: click.echo(line, err=True)  # noqa: E731
-    with CameraNode(sources, address, shared, name=name or address, log=log) as served:
+    served = CameraNode(sources, address, shared, name=name or address, log=log)
+    try:
+        served.start()
+    except served.zmq.ZMQError as error:  # the port is taken, the address is not this machine's
+        served.stop()
+        raise InputError(f"cannot serve on {address} (control on port + 1): {error}", field="--host") from None
+    try:
         click.echo(f"tcp://{address.partition('://')[2].rpartition(':')[0]}:{served.port}")
         sys.stdout.flush()
         while not stop.wait(0.5):
             if served.ended and len(served.ended) == len(sources) and all(served.ended.values()):
                 click.echo("every camera failed", err=True)
                 break
+    finally:
+        served.stop()

@@ -29,11 +29,19 @@ class SharedKey:
     def load(cls, path: str | Path) -> SharedKey:
         """The key pair of key file ``path`` (:class:`InputError` when it is missing or shorter than 32 bytes)."""
         zmq, _ = require()
-        data = Path(path).read_bytes()
+        try:
+            data = Path(path).read_bytes()
+        except OSError as error:
+            raise InputError(f"cannot read the key file: {error.strerror or error}", str(path)) from None
         if len(data) < MIN_KEY_BYTES:
             raise InputError(f"a key file holds at least {MIN_KEY_BYTES} bytes of secret, this one {len(data)} "
                              "(make one with: head -c 32 /dev/urandom > rig.key)", str(path))
-        secret = zmq.utils.z85.encode(hashlib.sha256(data).digest())
+        if not zmq.has("curve"):
+            raise InputError("this pyzmq's libzmq has no CURVE security: install a pyzmq wheel (it bundles one "
+                             "with CURVE) to use a shared key", str(path))
+        from zmq.utils import z85
+
+        secret = z85.encode(hashlib.sha256(data).digest())
         return cls(zmq.curve_public(secret), secret)
 
     def serve(self, socket) -> None:

@@ -140,6 +140,9 @@ class CameraNode:
         self._running.set()
         for source in self.sources.values():
             source.start()
+        # what every pong tells about each camera (asked once: a driver may query its device for it)
+        self._described = {camera: (_camera_fields(source), float(source.capabilities.fps))
+                           for camera, source in self.sources.items()}
         self._spawn(self._serve, "node control")
         for camera, source in self.sources.items():
             self._spawn(self._stream if source.realtime else self._on_request, f"node {camera}", camera)
@@ -212,12 +215,13 @@ class CameraNode:
         source = self.sources.get(ping.camera)
         if source is None:
             ended = f"no camera {ping.camera!r} on node {self.name} (it has: {', '.join(self.sources)})"
-            realtime, calibration = True, None
+            realtime, calibration, fps = True, None, math.nan
         else:
             self._renew(ping)
-            ended, realtime, calibration = self.ended.get(ping.camera), source.realtime, _camera_fields(source)
+            calibration, fps = self._described[ping.camera]
+            ended, realtime = self.ended.get(ping.camera), source.realtime
         pong = Pong(ping.camera, ping.t1, t2, self.clock.now(), self.name, self.clock.time_source, ended, realtime,
-                    calibration)
+                    calibration, fps)
         self._send_router(identity, protocol.encode(pong))
 
     def _renew(self, ping: Ping) -> None:
@@ -313,7 +317,10 @@ class CameraNode:
         cpu = time.thread_time()
         centroids = detect_blobs(frame.image, settings.detect or DetectConfig())
         self.cpu_detect_s += time.thread_time() - cpu
-        return FrameMessage(camera, frame.seq, self.clock.from_monotonic(frame.t_capture), centroids,
+        source = self.sources[camera]
+        # a paced camera's time is a clock reading (the host maps it to its own); an unpaced one's is its take's
+        t = self.clock.from_monotonic(frame.t_capture) if source.realtime else frame.t_capture
+        return FrameMessage(camera, frame.seq, t, centroids,
                             frame.exposure_us, frame.gain, frame.sync_domain, index, self.clock.now(),
                             _image(frame.image, settings))
 

@@ -14,10 +14,11 @@ type           direction       fields
                                ``time_source`` (``ntp``: estimate the offset; ``ptp``/``hardware``: trust it),
                                ``camera``, ``ended`` (None while it runs, else why it ended: ``""`` for a
                                finished take), ``realtime``, ``calibration`` (None or the camera's intrinsics
-                               and pose)
+                               and pose), ``fps`` (the camera's frame rate, NaN when unknown)
 ``grab``       host -> node    ``camera``, ``index``: unpaced cameras send frame ``index`` on request only
                                (asked again for the same index, the node sends the same frame again)
-``frame``      node -> host    ``camera``, ``seq``, ``t`` (node clock, mid-exposure), ``exposure_us``, ``gain``,
+``frame``      node -> host    ``camera``, ``seq``, ``t`` (node clock, mid-exposure; an unpaced camera's own
+                               frame time, e.g. a replayed take's, which the host keeps), ``exposure_us``, ``gain``,
                                ``sync_domain``, ``centroids`` (float64 little-endian bytes, (n, 2) distorted
                                pixels), ``index`` (-1 for paced cameras), ``t_sent`` (node clock),
                                ``image`` (None or ``[width, height, bytes]``: a thumbnail or the full frame)
@@ -93,6 +94,7 @@ class Pong:
     ended: str | None = None
     realtime: bool = True
     calibration: dict | None = None
+    fps: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -256,7 +258,14 @@ def _read_pong(f: _Fields) -> Pong:
     calibration = f.get("calibration", (dict, type(None)), None)
     return Pong(f.text("camera"), f.time("t1"), f.time("t2"), f.time("t3"), f.text("node"),
                 f.choice("time_source", TIME_SOURCES, "ntp"), f.get("ended", (str, type(None)), None),
-                f.get("realtime", (bool,), True), calibration)
+                f.get("realtime", (bool,), True), calibration, _fps(f))
+
+
+def _fps(f: _Fields) -> float:
+    fps = f.number("fps")
+    if not (math.isnan(fps) or 0 < fps <= 100_000):
+        raise ProtocolError("field", f"pong.fps: {fps}")
+    return fps
 
 
 def _read_grab(f: _Fields) -> Grab:

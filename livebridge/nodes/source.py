@@ -2,9 +2,10 @@
 
 A :class:`NodeSource` connects to a node (:mod:`livebridge.nodes.node`), subscribes to one camera and
 delivers its frames with their centroids already detected (``Frame.centroids``; no pixels unless asked),
-stamped in host time by the node's clock estimate (:mod:`livebridge.nodes.clock`). It is an ordinary
-:class:`~livebridge.capture.sources.CameraSource`, so synchronisation, reconstruction, solve and outputs do
-not know the camera is remote, and remote and local cameras mix in one session.
+stamped in host time by the node's clock estimate (:mod:`livebridge.nodes.clock`; an unpaced camera's frames
+keep their own take time). It is an ordinary :class:`~livebridge.capture.sources.CameraSource`, so
+synchronisation, reconstruction, solve and outputs do not know the camera is remote, and remote and local
+cameras mix in one session.
 
 One I/O thread owns the two sockets: a SUB (``CONFLATE``: only the newest frame is kept) and a DEALER that
 pings the node every ``ping_ms`` (heartbeat, clock exchange, and the settings: images wanted, detection
@@ -14,8 +15,9 @@ dead and the rest of the rig goes on; when the node comes back (restarted or rea
 reconnects and its frames flow again, without restarting the host. Messages that are malformed,
 truncated, oversized or forged are counted by reason (:attr:`NodeSource.drops`) and dropped.
 
-URL parameters: ``camera`` (required: the camera's id on the node), ``realtime`` (default 1; 0 for a
-node's unpaced camera, e.g. ``sim://rig?realtime=0``: frames are then fetched one by one, none is lost),
+URL parameters: ``camera`` (required: the camera's id on the node), ``realtime`` (default: as the node's
+camera is; 0 for a node's unpaced camera, e.g. ``sim://rig?realtime=0``: frames are then fetched one by one,
+none is lost; a URL that says otherwise than the node is reported and delivers nothing),
 ``images`` (``none``, ``thumbnail``, ``full``: pixels sent along, e.g. ``full`` for calibration),
 ``key`` (a shared key file: CURVE), ``dead_after_s``, ``ping_ms``.
 """
@@ -54,8 +56,9 @@ class NodeSource(SourceBase):
         Its frame port (control on ``port + 1``).
     camera : str
         The camera's id on the node; also this source's ``source_id``.
-    realtime : bool
-        False for an unpaced camera on the node: every frame is fetched on request.
+    realtime : bool or None
+        False for an unpaced camera on the node: every frame is fetched on request. None: as the node's
+        camera is (asked when first needed, waiting up to ``dead_after_s`` for the node).
     images : {"none", "thumbnail", "full"}
     key : SharedKey, optional
     dead_after_s : float
@@ -66,12 +69,13 @@ class NodeSource(SourceBase):
         The host's monotonic seconds.
     """
 
-    def __init__(self, host: str, port: int, camera: str, realtime: bool = True, images: str = "none", key=None,
+    def __init__(self, host: str, port: int, camera: str, realtime: bool | None = None, images: str = "none", key=None,
                  dead_after_s: float = 1.0, ping_ms: float = 100.0, clock=time.monotonic):
         self.zmq, _ = require()
         self.host, self.port, self.camera = host, int(port), camera
         self.source_id = camera
-        self.realtime, self.images, self.key = bool(realtime), images, key
+        self._realtime = None if realtime is None else bool(realtime)
+        self.images, self.key = images, key
         self.dead_after_s, self.ping_s = float(dead_after_s), float(ping_ms) / 1000
         self.clock = clock
         self.estimator = ClockEstimator()
@@ -83,11 +87,14 @@ class NodeSource(SourceBase):
         self._queue: NewestQueue[Frame] = NewestQueue(1)
         self._running = threading.Event()
         self._thread: threading.Thread | None = None
+        self._stopped = False
         self._last_reply = -math.inf
         self._alive = False
         self._node_name = ""
         self._time_source = "ntp"
         self._calibration = None
+        self._node_realtime: bool | None = None
+        self._fps = math.nan
         self._ended_on_node: str | None = None
         self._want_index = -1
         self._asked_at = -math.inf
@@ -106,6 +113,7 @@ class NodeSource(SourceBase):
         self._thread.start()
 
     def stop(self) -> None:
+        self._stopped = True
         self._running.clear()
         if self._thread is not None:
             self._thread.join(timeout=5)
@@ -134,20 +142,37 @@ class NodeSource(SourceBase):
         return ExposureSetting(False)  # set on the node's own cameras (their URLs)
 
     @property
+    def realtime(self) -> bool:
+        """Paced (frames as the node's camera takes them) or unpaced (fetched one by one); fixed on first use:
+        the URL's ``realtime``, else the node's camera's (waits up to ``dead_after_s`` for the node), else
+        paced."""
+        if self._realtime is None:
+            self._await_node()
+            self._realtime = self._node_realtime if self._node_realtime is not None else True
+        return self._realtime
+
+    @property
     def capabilities(self) -> Capabilities:
+        """The node camera's image size and frame rate (NaN until the node answered); ``images`` only with
+        ``images=full`` (otherwise frames carry centroids, and no pixels or a thumbnail)."""
         camera = self.calibration
-        return Capabilities(size=camera.size if camera is not None else (0, 0))
+        return Capabilities(size=camera.size if camera is not None else (0, 0), fps=self._fps,
+                            images=self.images == "full")
 
     @property
     def calibration(self):
         """The camera as the node knows it (a simulated rig's, a factory calibration), once the node answered
         (waits up to ``dead_after_s`` for it); None when unknown."""
-        if self._calibration is None and self._thread is None:
+        self._await_node()
+        return self._calibration
+
+    def _await_node(self) -> None:
+        """Start (if not yet) and wait up to ``dead_after_s`` for the node's first answer."""
+        if self._thread is None and not self._stopped:
             self.start()
         deadline = time.monotonic() + self.dead_after_s
-        while self._calibration is None and not self._alive and time.monotonic() < deadline:
+        while not self._alive and time.monotonic() < deadline:
             time.sleep(0.01)
-        return self._calibration
 
     # ------------------------------------------------------------------------------------ reporting
     @property
@@ -156,9 +181,11 @@ class NodeSource(SourceBase):
         return self._alive
 
     def status_text(self) -> str:
-        """``node NAME (HOST:PORT) offset +37.012 ms jitter 0.021 ms rtt 0.15 ms`` (or ``lost``)."""
+        """``node NAME offset +37.012 ms jitter 0.021 ms rtt 0.15 ms`` (``NAME``: the node's ``--name``, by
+        default its address; ``HOST:PORT`` before it answered), ``... ptp time, trusted ...`` for a node
+        whose clock is synchronised, ``node NAME lost`` while it does not answer."""
         estimate = self.estimator.estimate
-        name = f"node {self._node_name + ' ' if self._node_name else ''}({self.address})"
+        name = f"node {self._node_name or self.address}"
         if not self._alive:
             return f"{name} lost"
         if estimate.trusted:
@@ -200,7 +227,7 @@ class NodeSource(SourceBase):
                     self._send(dealer, Ping(self.camera, self.clock(), self.images, self._detect))
                     next_ping = now + self.ping_s
                 self._check_alive(now)
-                if not self.realtime:
+                if self._realtime is False:
                     self._ask(dealer, now)
                 timeout = max(0.0, min(next_ping - self.clock(), 0.02))
                 for socket, _ in poller.poll(timeout * 1000):
@@ -254,15 +281,23 @@ class NodeSource(SourceBase):
         self.estimator.trusted = pong.time_source != "ntp"
         self.estimator.add(pong.t1, pong.t2, pong.t3, t4)
         self._last_reply = t4
-        if not self._alive:
-            self._alive = True
-            self._event(f"node {pong.node} ({self.address}) camera {self.camera}: connected")
         if pong.calibration is not None and self._calibration is None:
             self._calibration = self._camera(pong.calibration)
+        self._fps = pong.fps
+        if self._node_realtime is None:
+            self._node_realtime = pong.realtime
+        if self._realtime is not None and pong.realtime != self._realtime and self._ended_on_node is None:
+            pacing = "paced" if pong.realtime else "unpaced"
+            self._ended_on_node = (f"camera {self.camera} on node {pong.node} is {pacing} but its URL says "
+                                   f"realtime={int(self._realtime)}: leave realtime out of the URL")
+            self._event(self._ended_on_node)
         if pong.ended is not None and self._ended_on_node is None:
             self._ended_on_node = pong.ended
             if pong.ended:
                 self._event(f"node {pong.node} ({self.address}) camera {self.camera}: {pong.ended}")
+        if not self._alive:  # last: whoever waits for the node's answer reads what it told from here on
+            self._alive = True
+            self._event(f"node {pong.node} ({self.address}) camera {self.camera}: connected")
 
     def _camera(self, fields: dict):
         from livebridge.calibration.cameras import Camera
@@ -283,15 +318,17 @@ class NodeSource(SourceBase):
         if not (estimate.trusted or math.isfinite(estimate.offset)):
             self.drops.add("unsynchronised")  # no clock exchange yet: its time would be meaningless here
             return
-        if not self.realtime and message.index != self._want_index:
+        if self._realtime is False and message.index != self._want_index:
             return  # an answer to an earlier request, already delivered
         if math.isfinite(message.t_sent):
             self.transport_s.append(t4 - estimate.to_host(message.t_sent))
             del self.transport_s[:-4096]
         image = _NO_PIXELS if message.image is None else message.image
-        frame = Frame(image, estimate.to_host(message.t), message.seq, self.camera, message.exposure_us,
+        # an unpaced camera's times are its take's (a replay, a simulated take), not a clock's: kept as they are
+        t = message.t if self._realtime is False else estimate.to_host(message.t)
+        frame = Frame(image, t, message.seq, self.camera, message.exposure_us,
                       message.gain, message.sync_domain or self.camera, centroids=message.centroids)
-        if not self.realtime:
+        if self._realtime is False:
             with self._index_lock:
                 self._want_index = -1
         self._queue.put(frame)
@@ -308,7 +345,7 @@ class NodeSource(SourceBase):
 
 
 def open_url(url: DeviceURL) -> list[NodeSource]:
-    """The registry hook: ``node://HOST:PORT?camera=ID&realtime=1&images=none&key=FILE&dead_after_s=1&ping_ms=100``."""
+    """The registry hook: ``node://HOST:PORT?camera=ID&realtime=&images=none&key=FILE&dead_after_s=1&ping_ms=100``."""
     require()
     url.check_known(_URL_KEYS)
     if not url.netloc or url.path not in ("", "/"):
@@ -327,6 +364,6 @@ def open_url(url: DeviceURL) -> list[NodeSource]:
         from livebridge.nodes.keys import SharedKey
 
         key = SharedKey.load(url.query["key"])
-    return [NodeSource(host.strip("[]"), int(port_text), camera, url.take("realtime", bool, True), images, key,
+    return [NodeSource(host.strip("[]"), int(port_text), camera, url.take("realtime", bool, None), images, key,
                        url.take("dead_after_s", float, 1.0, within=(0.05, 60.0)),
                        url.take("ping_ms", float, 100.0, within=(5.0, 5000.0)))]

@@ -70,9 +70,9 @@ def _load_calibration(path: Path):
 
 
 def _session_url(url: str, session: Session, k: int) -> str:
-    """A camera URL as the session means it: a relative ``replay://`` path is relative to the session file,
-    and a simulated rig films the session's face (``[face]`` files) with the session's calibrated cameras
-    (unless its URL names a calibration)."""
+    """A camera URL as the session means it: a relative ``replay://`` path or node ``key`` file is relative to
+    the session file, and a simulated rig films the session's face (``[face]`` files) with the session's
+    calibrated cameras (unless its URL names a calibration)."""
     from urllib.parse import parse_qs, quote, urlsplit
 
     parts = urlsplit(url)
@@ -82,6 +82,8 @@ def _session_url(url: str, session: Session, k: int) -> str:
         if path and not Path(path).is_absolute():
             resolved = (session.path.parent / path).resolve()
             return f"replay://{resolved}" + (f"?{parts.query}" if parts.query else "")
+    if scheme == "node" and session.path is not None:
+        return _relative_key(url, parts, session.path.parent)
     if scheme != "sim":
         return url
     query = parse_qs(parts.query)
@@ -99,6 +101,19 @@ def _session_url(url: str, session: Session, k: int) -> str:
     return url + joiner + "&".join(f"{key}={quote(str(value), safe='/')}" for key, value in options)
 
 
+def _relative_key(url: str, parts, folder: Path) -> str:
+    """A node URL's ``key`` file, when relative, relative to the session file's folder."""
+    from urllib.parse import parse_qsl, quote, urlencode
+
+    query = parse_qsl(parts.query, keep_blank_values=True)
+    keys = [value for name, value in query if name == "key"]
+    if len(keys) != 1 or not keys[0] or Path(keys[0]).is_absolute():
+        return url  # none, or several (the URL parser names that error)
+    resolved = str((folder / keys[0]).resolve())
+    query = [(name, resolved if name == "key" else value) for name, value in query]
+    return parts._replace(query=urlencode(query, quote_via=quote, safe="/")).geturl()
+
+
 def open_session_cameras(session: Session):
     """Open every camera URL; returns ``(sources, cameras (CameraGroup), realtime)``.
 
@@ -106,7 +121,6 @@ def open_session_cameras(session: Session):
     know its own (:attr:`~livebridge.capture.sources.CameraSource.calibration`: a simulated rig's cameras,
     the calibration recorded with a take).
     """
-    from livebridge.calibration.cameras import CameraGroup
     from livebridge.devices.registry import open_cameras
 
     calibrated = _load_calibration(session.calibration) if session.calibration is not None else None
@@ -121,6 +135,20 @@ def open_session_cameras(session: Session):
             else:  # about a file the URL names (a calibration, a take)
                 inner = str(error)
             raise InputError(f"{url}: {inner}", session.path, f"cameras.urls[{k}]") from None
+    try:
+        cameras = _session_cameras(sources, calibrated, session)
+    except BaseException:
+        for source in sources:  # some (camera nodes) already talk to their device
+            source.stop()
+        raise
+    realtime = all(s.realtime for s in sources)
+    return sources, cameras, realtime
+
+
+def _session_cameras(sources, calibrated, session: Session):
+    """The calibrated cameras of ``sources``: from the session's calibration by name, else their own."""
+    from livebridge.calibration.cameras import CameraGroup
+
     if calibrated is not None:
         by_name = {c.name: c for c in calibrated.cameras}
         missing = [s.source_id for s in sources if s.source_id not in by_name]
@@ -129,13 +157,15 @@ def open_session_cameras(session: Session):
                              f"{', '.join(by_name)}", session.path, "calibration")
         cameras = CameraGroup([by_name[s.source_id] for s in sources])
         check_calibration_used(cameras, calibrated, session)
-    else:
-        own = [s.calibration for s in sources]
-        if any(camera is None for camera in own):
-            raise InputError("these cameras need a calibration file", session.path, "calibration")
-        cameras = CameraGroup(own)
-    realtime = all(s.realtime for s in sources)
-    return sources, cameras, realtime
+        return cameras
+    own = [s.calibration for s in sources]
+    unknown = [s.source_id for s, camera in zip(sources, own) if camera is None]
+    if unknown:
+        raise InputError(f"no calibration known for camera{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}: "
+                         "give a calibration file (a camera node knows its camera's calibration only when the "
+                         "node's own camera URL does, e.g. sim://rig, and once it answers)", session.path,
+                         "calibration")
+    return CameraGroup(own)
 
 
 def _servo_rig(session: Session, muscle_names):
@@ -169,6 +199,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
         else:
             sources, cameras, realtime = _markerless_camera(session)
         fps = _fps(sources)
+        _check_raw_frames(session, sources)
     opened = []
     try:
         front = _livelink_front(session, basis, markers, opened, log) if session.source.kind != "cameras" else None
@@ -311,6 +342,19 @@ def _markerless_camera(session: Session):
         raise InputError(f"markerless capture films with one camera, the URL opened {len(sources)}", session.path,
                          "cameras.urls[0]")
     return sources, None, bool(sources[0].realtime)
+
+
+def _check_raw_frames(session: Session, sources) -> None:
+    """Recording raw frames needs every camera's images: a camera node sends them only with ``images=full``."""
+    if not (session.recording.enabled and session.recording.raw_frames):
+        return
+    blind = [s.source_id for s in sources if not s.capabilities.images]
+    if blind:
+        verb = "sends" if len(blind) == 1 else "send"
+        raise InputError(f"raw frames are the cameras' images, but {', '.join(blind)} {verb}"
+                         " only their markers' centroids (camera nodes): add images=full to their node:// URLs "
+                         "(full frames over the network), or set raw_frames = false (the take still records the "
+                         "markers and contractions)", session.path, "recording.raw_frames")
 
 
 def _fps(sources) -> float:

@@ -254,6 +254,9 @@ class MarkerFront:
         skipped = sum(n for _, n in stats.frames_skipped)
         if skipped:
             part += f" | frames skipped {skipped}"
+        reports = [f"{source.source_id} {text}" for source in self.sources if (text := source.status_text())]
+        if reports:
+            part += " | " + "; ".join(reports)
         return part
 
     def stats(self) -> FrontStats:

@@ -5,8 +5,9 @@ the session file; top-level keys such as ``calibration`` must come before the fi
 puts them in that table)::
 
     calibration = "calibration.toml"  # written by `livebridge calibrate` (save_calibration); sim:// rigs
-                                      # film with these cameras; not needed by a sim rig of its own or by
-                                      # replay:// of a recorded take (its calibration.toml is used)
+                                      # film with these cameras; not needed by a sim rig of its own, by
+                                      # replay:// of a recorded take (its calibration.toml is used) or by
+                                      # node:// cameras whose node knows their calibration
 
     [source]                      # optional; what the pipeline reads
     kind = "cameras"              # default: the [cameras] below; or "livelinkface": an iPhone running Live
@@ -21,7 +22,8 @@ puts them in that table)::
 
     [cameras]
     urls = ["v4l2:///dev/video0?fps=60", "v4l2:///dev/video2?fps=60"]
-    # or ["sim://rig?cameras=4&seed=1"], or ["replay://takes/take-20250101-120000?realtime=0"]
+    # or ["sim://rig?cameras=4&seed=1"], or ["replay://takes/take-20250101-120000?realtime=0"], or camera
+    # nodes on other PCs: ["node://10.0.0.5:7000?camera=cam0", "node://10.0.0.6:7000?camera=cam1", ...]
     sync_tolerance = 0.5          # frame periods, for cameras in different sync domains
 
     [face]
@@ -101,6 +103,7 @@ if TYPE_CHECKING:
     from livebridge.solve.solver import SolverConfig
 
 BUILTIN_NAMES = ("builtin",)
+SELF_CALIBRATED = ("sim://", "replay://", "node://")  # cameras that may know their own calibration
 LABELLING_TIMEOUT_S = 10.0  # default [runtime] labelling_timeout_s
 _TOP_KEYS = {"source", "cameras", "face", "calibration", "reconstruct", "solver", "servo", "outputs", "recording",
              "runtime", "markerless"}
@@ -371,7 +374,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
     if markerless is not None and len(urls) != 1:
         raise InputError(f"markerless capture films with one camera, got {len(urls)} URLs", path, "cameras.urls")
     if (source.kind == "cameras" and calibration is None and markerless is None
-            and not all(u.startswith(("sim://", "replay://")) for u in urls)):
+            and not all(u.startswith(SELF_CALIBRATED) for u in urls)):
         raise InputError("real cameras need a calibration file", path, "calibration")
 
     reconstruct_config = _reconstruct(top.table("reconstruct"), path)
