@@ -69,11 +69,11 @@ class LiveLinkFront:
 
     def start(self) -> None:
         self._started = self.clock()
-        self.receiver.start()
+        self.receiver.open()  # read on the front thread (receive): no reader thread
 
     def read(self, timeout: float) -> SolvedFrame | None:
         """The next solved frame from the newest packet, or None when none came within ``timeout`` s."""
-        arrival = self.receiver.get(timeout)
+        arrival = self.receiver.receive(timeout)
         if arrival is None:
             return None
         t0 = time.thread_time()

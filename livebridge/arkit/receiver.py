@@ -19,6 +19,7 @@ latency measured from arrival; elsewhere, the moment the reader thread took it.
 
 from __future__ import annotations
 
+import select
 import socket
 import struct
 import threading
@@ -39,6 +40,7 @@ RESTART_S = 2.0  # a frame number this far behind the last one is a restarted ph
 _RECV_BYTES = 2048
 _TIMESPEC = struct.Struct("@qq")  # struct timespec on 64-bit Linux
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", None)
+_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size) if _SO_TIMESTAMPNS is not None else 0
 
 
 @dataclass(frozen=True)
@@ -128,7 +130,9 @@ class LiveLinkReceiver:
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> tuple[str, int]:
-        """Bind the socket (the port is taken now); returns the bound ``(host, port)``."""
+        """Bind the socket (the port is taken now; once); returns the bound ``(host, port)``."""
+        if self._socket is not None:
+            return self.bound
         family = socket.AF_INET6 if ":" in self.address.host else socket.AF_INET
         sock = socket.socket(family, socket.SOCK_DGRAM)
         try:
@@ -169,15 +173,39 @@ class LiveLinkReceiver:
 
     def _run(self) -> None:
         sock = self._socket
-        ancillary = socket.CMSG_SPACE(_TIMESPEC.size) if _SO_TIMESTAMPNS is not None else 0
         while not self._stop.is_set():
             try:
-                data, cmsgs, _, _ = sock.recvmsg(_RECV_BYTES, ancillary)
+                data, cmsgs, _, _ = sock.recvmsg(_RECV_BYTES, _ANCILLARY)
             except TimeoutError:
                 continue
             except OSError:  # closed under us by stop()
                 return
             self.ingest(data, self._arrival_time(cmsgs))
+
+    def receive(self, timeout: float) -> Arrival | None:
+        """Pull mode, instead of :meth:`start`'s reader thread (after :meth:`open`): on the caller's thread,
+        wait up to ``timeout`` s for the socket, take every datagram waiting there, and return the newest valid
+        packet (None: none; also once :meth:`stop` closed the socket).
+
+        The live front reads this way: a packet goes from the socket to the solver without a thread hand-over
+        (each cost up to a switch interval of the interpreter's lock under load).
+        """
+        sock = self._socket
+        if sock is None:  # stopped
+            return None
+        try:
+            if sock.gettimeout() != 0.0:
+                sock.setblocking(False)
+            if select.select([sock], [], [], max(timeout, 0.0))[0]:
+                while True:
+                    try:
+                        data, cmsgs, _, _ = sock.recvmsg(_RECV_BYTES, _ANCILLARY)
+                    except BlockingIOError:
+                        break
+                    self.ingest(data, self._arrival_time(cmsgs))
+        except (OSError, ValueError):  # closed under us by stop() (select on a closed socket: ValueError)
+            return None
+        return self._queue.get(0.0)
 
     def _arrival_time(self, cmsgs) -> float:
         """The datagram's kernel receive time on :attr:`clock` (now, less how long it waited in the socket)."""
