@@ -59,6 +59,23 @@ class Detections:
         return self.seen().sum(axis=2)
 
 
+@dataclass(frozen=True, eq=False)
+class FoundCorners:
+    """One camera's board corners detected where its frame was taken (a camera node ran :func:`detect_board`),
+    in place of the image in a frame set of :func:`detect_frames`.
+
+    Attributes
+    ----------
+    corners : ndarray, shape (n_corners, 2)
+        Pixel positions, NaN where not found.
+    size : tuple of (int, int)
+        The camera's image ``(width, height)``.
+    """
+
+    corners: np.ndarray
+    size: tuple[int, int]
+
+
 def detect_board(board: Board, image: np.ndarray) -> np.ndarray:
     """Board corners in one image.
 
@@ -243,7 +260,8 @@ def detect_images(board: Board, cameras: dict[str, str | Path], progress: bool =
     return Detections(tuple(names), tuple(sizes), corners, tuple(view_names))
 
 
-def detect_frames(board: Board, names: Sequence[str], frames: Iterable[Sequence[np.ndarray | None]],
+def detect_frames(board: Board, names: Sequence[str],
+                  frames: Iterable[Sequence[np.ndarray | FoundCorners | None]],
                   progress: bool = True, total: int | None = None, every: int = 1) -> Detections:
     """Detect the board in synchronised frame sets (videos, live sources).
 
@@ -252,7 +270,8 @@ def detect_frames(board: Board, names: Sequence[str], frames: Iterable[Sequence[
     names : sequence of str
         Camera names.
     frames : iterable of sequences
-        One image (or None when missing) per camera, per instant.
+        One image (or None when missing, or the corners already found in it: :class:`FoundCorners`) per
+        camera, per instant.
     every : int
         Use every ``every``-th frame set.
     """
@@ -264,6 +283,13 @@ def detect_frames(board: Board, names: Sequence[str], frames: Iterable[Sequence[
         row = np.full((len(names), board.n_corners, 2), np.nan)
         for c, image in enumerate(frame_set):
             if image is None:
+                continue
+            if isinstance(image, FoundCorners):
+                if image.corners.shape != row[c].shape:
+                    raise InputError(f"{image.corners.shape[0]} board corners found, the board has "
+                                     f"{board.n_corners}", field=names[c])
+                sizes[c] = sizes[c] or tuple(image.size)
+                row[c] = image.corners
                 continue
             sizes[c] = sizes[c] or (image.shape[1], image.shape[0])
             row[c] = detect_board(board, image)

@@ -189,15 +189,25 @@ def test_every_message_survives_encoding_exactly():
     frame = protocol.decode(protocol.encode(_frame_message(image=image), "cam0"))
     assert (frame.camera, frame.seq, frame.t, frame.sync_domain, frame.t_sent) == ("cam0", 7, 12.5, "rig", 12.6)
     assert np.array_equal(frame.centroids, [[1.25, 2.5], [300.125, 4.0]]) and np.array_equal(frame.image, image)
-    for message in (Ping("cam1", 3.25, "thumbnail", {"threshold": None, "min_area": 4}),
-                    Pong("cam1", 1.0, 2.0, 3.0, "n", "ptp", "", False, {"name": "cam1"}, 120.0), Grab("cam1", 41)):
+    for message in (Ping("cam1", 3.25, "thumbnail", {"threshold": None, "min_area": 4}, "chessboard:7x7:55"),
+                    Pong("cam1", 1.0, 2.0, 3.0, "n", "ptp", "", False, {"name": "cam1"}, 120.0, (640, 480)),
+                    Grab("cam1", 41)):
         assert protocol.decode(protocol.encode(message)) == message
+    corners = protocol.decode(protocol.encode(_frame_message(centroids=None, board_ids=np.array([0, 5, 48]),
+                                                             board_points=[[1.5, 2.0], [3.0, 4.25], [5.0, 6.0]])))
+    assert corners.centroids is None and np.array_equal(corners.board_ids, [0, 5, 48])
+    assert np.array_equal(corners.board_points, [[1.5, 2.0], [3.0, 4.25], [5.0, 6.0]])
 
 
 def _bad_messages() -> dict[str, list[bytes]]:
     good = protocol.encode(_frame_message(), "cam0")
     body = msgpack.unpackb(good[5:])
     packed = lambda **changes: b"\0" + msgpack.packb({**body, **changes})  # noqa: E731
+    ids = lambda *values: np.array(values, "<i4").tobytes()  # noqa: E731
+    points = lambda n: np.arange(2.0 * n).tobytes()  # noqa: E731
+    ping = lambda **changes: b"\0" + msgpack.packb({"v": 1, "type": "ping", "camera": "c", "t1": 1.0, **changes})  # noqa: E731
+    pong = lambda **changes: b"\0" + msgpack.packb({"v": 1, "type": "pong", "camera": "c", "t1": 1.0, "t2": 1.0,  # noqa: E731
+                                                    "t3": 1.0, "node": "n", **changes})
     return {
         "oversized": [b"\0" + bytes(protocol.MAX_MESSAGE_BYTES),
                       b"\0" + msgpack.packb({"v": 1, "type": "ping", "camera": "c", "t1": 1.0, "pad": bytes(70000)})],
@@ -206,8 +216,12 @@ def _bad_messages() -> dict[str, list[bytes]]:
         "type": [packed(type="hello"), packed(type=5)],
         "field": [packed(centroids=np.array([[np.nan, 1.0]]).tobytes()), packed(centroids=b"\0" * 15),
                   packed(seq="7"), packed(t=math.inf), packed(image=[4, 4, b"\0" * 15]), packed(camera=None),
-                  b"cam9" + good[4:], b"\0" + msgpack.packb({"v": 1, "type": "ping", "camera": "c", "t1": 1.0,
-                                                              "detect": {"min_area": "3"}})],
+                  b"cam9" + good[4:], ping(detect={"min_area": "3"}),
+                  # board corners: ids and points that do not pair, repeat, or lie out of range; a spec not text
+                  packed(board=[ids(0, 1), points(3)]), packed(board=[ids(2, 2), points(2)]),
+                  packed(board=[ids(-1), points(1)]), packed(board=[ids(protocol.MAX_BOARD_CORNERS), points(1)]),
+                  packed(board=[ids(0)[:3], points(1)]), packed(board=[ids(0), np.array([[np.nan, 1.0]]).tobytes()]),
+                  packed(board=ids(0)), ping(board=7), pong(size=[640]), pong(size=[-1, 480]), pong(size="640x480")],
     }
 
 
@@ -429,33 +443,64 @@ def test_recording_raw_frames_from_a_centroid_only_node_is_refused_before_anythi
         in result.output and "images=full" in result.output
 
 
-def test_calibrate_run_with_node_sources_sending_full_frames_finds_the_rig(nodes, tmp_path):
+BOARD = "chessboard:7x7:55"
+BOARD_RIG = f"sim://rig?board={BOARD}&cameras=2&seed=4&views=8&size=640x480"
+
+
+def test_a_node_asked_for_a_board_sends_the_corners_the_host_would_find_and_no_image_nor_centroids():
+    from livebridge.calibration.boards import parse_board
+    from livebridge.calibration.detect import detect_board
+    from livebridge.devices.registry import open_cameras
+    from livebridge.nodes.node import CameraNode
+    from livebridge.nodes.source import NodeSource
+
+    board = parse_board(BOARD)
+    local = open_cameras(f"{BOARD_RIG}&camera=1")[0]
+    with CameraNode(open_cameras(f"{BOARD_RIG}&camera=1")) as node, local:
+        remote = NodeSource("127.0.0.1", node.port, "cam1", dead_after_s=HANG_S)
+        remote.detect_board_with(board)
+        remote.start()
+        try:
+            found = 0
+            for _ in range(4):
+                frame, truth = remote.read(HANG_S), local.read(HANG_S)
+                assert frame.image.size == 0 and frame.centroids is None
+                assert np.array_equal(frame.board_corners, detect_board(board, truth.image), equal_nan=True)
+                found += np.isfinite(frame.board_corners[:, 0]).sum()
+            assert found >= board.n_corners and remote.capabilities.size == (640, 480)
+        finally:
+            remote.stop()
+        assert node.cpu_detect_s == 0.0  # no marker detection for a host that asked for the board
+
+
+def test_calibrate_run_with_node_sources_detects_the_board_on_the_nodes_as_the_host_does(nodes, tmp_path):
+    """``calibrate run --sources node://...`` without images: the nodes detect the board; the calibration
+    equals the one from the same cameras read in this process (the host detecting), and finds the rig."""
     from click.testing import CliRunner
 
     from livebridge.calibration.calibfile import load_calibration
     from livebridge.cli import main
     from livebridge.simulators.board_render import example_rig
 
-    spec = "chessboard:7x7:55"
-    url = f"sim://rig?board={spec}&cameras=2&seed=4&views=8&size=640x480"
-    (node,) = nodes(([f"{url}&camera=0", f"{url}&camera=1"], {}))
-    sources = [f"{name}=node://127.0.0.1:{node.port}?camera=cam{c}" for c, name in enumerate(("left", "right"))]
-    out = tmp_path / "calibration.toml"
+    (node,) = nodes(([f"{BOARD_RIG}&camera=0", f"{BOARD_RIG}&camera=1"], {}))
 
-    def calibrate(images: str):
-        args = ["calibrate", "run", "--board", spec, "--out", str(out), "--quiet", "--frames", "8", "--every", "1"]
-        for source in sources:
-            args += ["--sources", source + images]
-        return CliRunner().invoke(main, args)
+    def calibrate(out: Path, urls) -> list:
+        args = ["calibrate", "run", "--board", BOARD, "--out", str(out), "--quiet", "--frames", "8", "--every", "1"]
+        for name, url in zip(("left", "right"), urls):
+            args += ["--sources", f"{name}={url}"]
+        result = CliRunner().invoke(main, args)
+        assert result.exit_code == 0, result.output
+        return load_calibration(out).cameras
 
-    refused = calibrate("")
-    assert refused.exit_code == 1 and "images=full" in refused.output and "--sources left" in refused.output
-    result = calibrate("&images=full")
-    assert result.exit_code == 0, result.output
-    truth, group = example_rig(2, size=(640, 480), seed=4), load_calibration(out)
-    baseline = np.linalg.norm(group.cameras[1].center - group.cameras[0].center)
+    on_host = calibrate(tmp_path / "host.toml", [f"{BOARD_RIG}&camera={c}" for c in (0, 1)])
+    on_nodes = calibrate(tmp_path / "nodes.toml", [f"node://127.0.0.1:{node.port}?camera=cam{c}" for c in (0, 1)])
+    for camera, reference in zip(on_nodes, on_host):
+        for field in ("matrix", "distortions", "rotation", "translation", "size"):
+            assert np.array_equal(getattr(camera, field), getattr(reference, field)), (camera.name, field)
+    truth = example_rig(2, size=(640, 480), seed=4)
+    baseline = np.linalg.norm(on_nodes[1].center - on_nodes[0].center)
     assert abs(baseline - np.linalg.norm(truth.cameras[1].center - truth.cameras[0].center)) < 2.0
-    for camera, true_camera in zip(group.cameras, truth.cameras):
+    for camera, true_camera in zip(on_nodes, truth.cameras):
         focal, true_focal = camera.matrix[[0, 1], [0, 1]], true_camera.matrix[[0, 1], [0, 1]]
         assert np.all(np.abs(focal / true_focal - 1) < 0.01), (camera.name, focal, true_focal)
 

@@ -36,6 +36,10 @@ class Frame:
         Marker centroids already detected where the frame was taken (a camera node), distorted pixels,
         read-only; None: the host detects them in ``image``. A frame that carries centroids may carry no
         pixels (``image`` of shape (0, 0)) or a thumbnail.
+    board_corners : ndarray, shape (n_corners, 2), or None
+        A calibration board's corners already detected where the frame was taken (a camera node asked for
+        the board), distorted pixels, NaN rows for corners not found, read-only; None: the host detects the
+        board in ``image``.
     """
 
     image: np.ndarray
@@ -46,6 +50,7 @@ class Frame:
     gain: float = float("nan")
     sync_domain: str = ""
     centroids: np.ndarray | None = None
+    board_corners: np.ndarray | None = None
 
     def __post_init__(self):
         image = np.asarray(self.image)
@@ -64,6 +69,10 @@ class Frame:
             centroids = np.array(self.centroids, dtype=np.float64).reshape(-1, 2)
             centroids.setflags(write=False)
             object.__setattr__(self, "centroids", centroids)
+        if self.board_corners is not None:
+            corners = np.array(self.board_corners, dtype=np.float64).reshape(-1, 2)
+            corners.setflags(write=False)
+            object.__setattr__(self, "board_corners", corners)
 
     @property
     def size(self) -> tuple[int, int]:

@@ -71,7 +71,7 @@ def board_command(board, out: Path, force: bool, dpi: int) -> None:
               help="A camera's video file; repeat per camera.")
 @click.option("--sources", multiple=True, type=Named(CameraURL(), "URL"),
               help="A live camera source URL (e.g. v4l2:///dev/video0, or a camera node's "
-                   "node://HOST:PORT?camera=ID&images=full); repeat per camera. Hold the board still.")
+                   "node://HOST:PORT?camera=ID: the node detects the board); repeat per camera. Hold the board still.")
 @click.option("--board", "board", required=True, type=BoardSpec(),
               help="Board spec, e.g. 'charuco:7x5:40:30:DICT_4X4_50'.")
 @click.option("--out", "out", required=True, type=OutputFile(), help="Calibration file to write (TOML).")
@@ -120,7 +120,7 @@ def _run(kind, named, board, out, fisheye, up, origin_view, board_pose, every, f
         frame_sets, total = read_videos(named)
         detections = detect_frames(board, list(named), frame_sets, progress, total, every=every)
     else:
-        detections = detect_frames(board, list(named), _source_frames(named, frames), progress, frames,
+        detections = detect_frames(board, list(named), _source_frames(named, frames, board), progress, frames,
                                    every=every)
     found = detections.counts() >= board.min_corners
     click.echo("board found in: " + ", ".join(f"{n} {int(k)}/{detections.n_views}"
@@ -133,10 +133,13 @@ def _run(kind, named, board, out, fisheye, up, origin_view, board_pose, every, f
     click.echo(f"wrote {out} and report in {folder}")
 
 
-def _source_frames(named: dict[str, str], n_frames: int):
+def _source_frames(named: dict[str, str], n_frames: int, board):
     """Frame sets from live sources (``livebridge.devices.registry``): one frame per camera, read in turn.
 
-    Frames are matched by read order, not by hardware sync, so hold the board still for a moment in each pose.
+    A source that can detect the board where it films (a camera node: ``detect_board_with``) is asked to,
+    and gives the corners it found (:class:`~livebridge.calibration.detect.FoundCorners`) in place of its
+    image. Frames are matched by read order, not by hardware sync, so hold the board still for a moment in
+    each pose.
     """
     from livebridge.devices.registry import open_camera
     from livebridge.errors import InputError
@@ -144,21 +147,47 @@ def _source_frames(named: dict[str, str], n_frames: int):
     opened = [open_camera(url) for url in named.values()]
     started = []
     try:
-        for (name, url), source in zip(named.items(), opened):
+        for source in opened:
+            detect_board_with = getattr(source, "detect_board_with", None)
+            if detect_board_with is not None:
+                detect_board_with(board)
             source.start()
             started.append(source)
-            if not source.capabilities.images:
-                raise InputError("this camera sends its markers' centroids, not its images (a camera node): add "
-                                 "images=full to its URL for calibration", url, f"--sources {name}")
+        blind = dict.fromkeys(named, 0)  # frames in a row with neither corners nor an image, per camera
         for _ in range(n_frames):
             frame_set = []
             for name, source in zip(named, opened):
-                frame = _next_frame(source, named[name], name)
-                frame_set.append(None if frame is None else frame.image)
+                view = _board_view(_next_frame(source, named[name], name), source)
+                blind[name] = blind[name] + 1 if view is _BLIND else 0
+                if blind[name] > MAX_BLIND_FRAMES:
+                    raise InputError("this camera sends neither the board's corners nor its images (a camera "
+                                     "node that does not detect boards): add images=full to its URL for "
+                                     "calibration", named[name], f"--sources {name}")
+                frame_set.append(None if view is _BLIND else view)
             yield frame_set
     finally:
         for source in started:
             source.stop()
+
+
+MAX_BLIND_FRAMES = 30
+"""Frames in a row a camera may send with neither board corners nor its image (a camera node's first frames,
+sent before it heard of the board) before calibration refuses it."""
+_BLIND = object()
+
+
+def _board_view(frame, source):
+    """What :func:`~livebridge.calibration.detect.detect_frames` takes of a frame: the corners found where it
+    was taken, else its image; None for no frame, ``_BLIND`` for one that carries neither."""
+    from livebridge.calibration.detect import FoundCorners
+
+    if frame is None:
+        return None
+    if frame.board_corners is not None:
+        return FoundCorners(frame.board_corners, source.capabilities.size)
+    if frame.image.size == 0 or not source.capabilities.images:
+        return _BLIND
+    return frame.image
 
 
 UNPACED_WAIT_S = 60.0

@@ -71,6 +71,12 @@ class _Settings:
     images: str = "none"
     images_until: float = -math.inf
     detect: object = None
+    board: object = None  # a calibration Board: detected instead of the markers while asked for
+    board_until: float = -math.inf
+
+    def board_now(self):
+        """The board asked for, None when none is (or the ask lapsed)."""
+        return self.board if time.monotonic() <= self.board_until else None
 
 
 class CameraNode:
@@ -141,8 +147,8 @@ class CameraNode:
         for source in self.sources.values():
             source.start()
         # what every pong tells about each camera (asked once: a driver may query its device for it)
-        self._described = {camera: (_camera_fields(source), float(source.capabilities.fps))
-                           for camera, source in self.sources.items()}
+        self._described = {camera: (_camera_fields(source), float(source.capabilities.fps),
+                                    _size(source.capabilities.size)) for camera, source in self.sources.items()}
         self._spawn(self._serve, "node control")
         for camera, source in self.sources.items():
             self._spawn(self._stream if source.realtime else self._on_request, f"node {camera}", camera)
@@ -215,13 +221,13 @@ class CameraNode:
         source = self.sources.get(ping.camera)
         if source is None:
             ended = f"no camera {ping.camera!r} on node {self.name} (it has: {', '.join(self.sources)})"
-            realtime, calibration, fps = True, None, math.nan
+            realtime, calibration, fps, size = True, None, math.nan, None
         else:
             self._renew(ping)
-            calibration, fps = self._described[ping.camera]
+            calibration, fps, size = self._described[ping.camera]
             ended, realtime = self.ended.get(ping.camera), source.realtime
         pong = Pong(ping.camera, ping.t1, t2, self.clock.now(), self.name, self.clock.time_source, ended, realtime,
-                    calibration, fps)
+                    calibration, fps, size)
         self._send_router(identity, protocol.encode(pong))
 
     def _renew(self, ping: Ping) -> None:
@@ -233,6 +239,8 @@ class CameraNode:
             settings.images = ping.images
         if ping.images != "none":
             settings.images_until = now + SETTINGS_TTL_S
+        if ping.board is not None:
+            self._renew_board(settings, ping.board, now)
         if ping.detect is not None:
             try:
                 detect = DetectConfig(**ping.detect)
@@ -241,6 +249,18 @@ class CameraNode:
                 return
             if detect != settings.detect:
                 settings.detect = detect
+
+    def _renew_board(self, settings: _Settings, spec: str, now: float) -> None:
+        from livebridge.calibration.boards import parse_board
+        from livebridge.errors import InputError
+
+        if settings.board is None or settings.board.spec != spec:
+            try:
+                settings.board = parse_board(spec)
+            except InputError:
+                self.drops.add("field")
+                return
+        settings.board_until = now + SETTINGS_TTL_S
 
     def _send_router(self, identity: bytes, data: bytes) -> None:
         try:
@@ -314,15 +334,35 @@ class CameraNode:
         from livebridge.reconstruct.detect import DetectConfig, detect_blobs
 
         settings = self._settings[camera]
-        cpu = time.thread_time()
-        centroids = detect_blobs(frame.image, settings.detect or DetectConfig())
-        self.cpu_detect_s += time.thread_time() - cpu
+        board = settings.board_now()
+        centroids = board_ids = board_points = None
+        if board is not None:  # calibration: the board, and no markers (their detection would only cost time)
+            board_ids, board_points = _board_corners(board, frame.image)
+        else:
+            cpu = time.thread_time()
+            centroids = detect_blobs(frame.image, settings.detect or DetectConfig())
+            self.cpu_detect_s += time.thread_time() - cpu
         source = self.sources[camera]
         # a paced camera's time is a clock reading (the host maps it to its own); an unpaced one's is its take's
         t = self.clock.from_monotonic(frame.t_capture) if source.realtime else frame.t_capture
         return FrameMessage(camera, frame.seq, t, centroids,
                             frame.exposure_us, frame.gain, frame.sync_domain, index, self.clock.now(),
-                            _image(frame.image, settings))
+                            _image(frame.image, settings), board_ids, board_points)
+
+
+def _board_corners(board, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The board corners found in ``image`` by the host's own detector: ids (m,) and pixels (m, 2)."""
+    from livebridge.calibration.detect import detect_board
+
+    corners = detect_board(board, image)
+    ids = np.flatnonzero(np.isfinite(corners[:, 0]))
+    return ids, corners[ids]
+
+
+def _size(size) -> tuple[int, int] | None:
+    """A camera's ``(width, height)``; None when unknown."""
+    width, height = (int(v) for v in size)
+    return (width, height) if width > 0 and height > 0 else None
 
 
 def _image(image: np.ndarray, settings: _Settings) -> np.ndarray | None:

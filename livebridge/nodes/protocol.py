@@ -8,19 +8,24 @@ protocol version, :data:`VERSION`) and ``type``:
 type           direction       fields
 =============  ==============  ===================================================================================
 ``ping``       host -> node    ``camera``, ``t1`` (host clock), ``images`` (``none``/``thumbnail``/``full``),
-                               ``detect`` (the host's detection parameters): a heartbeat, a clock probe and
-                               the subscription's settings at once
+                               ``detect`` (the host's detection parameters), ``board`` (None or a calibration
+                               board's spec, e.g. ``chessboard:7x7:55``: detect it on the node, and no markers):
+                               a heartbeat, a clock probe and the subscription's settings at once
 ``pong``       node -> host    ``t1`` (echoed), ``t2``, ``t3`` (node clock at receipt and reply), ``node``,
                                ``time_source`` (``ntp``: estimate the offset; ``ptp``/``hardware``: trust it),
                                ``camera``, ``ended`` (None while it runs, else why it ended: ``""`` for a
                                finished take), ``realtime``, ``calibration`` (None or the camera's intrinsics
-                               and pose), ``fps`` (the camera's frame rate, NaN when unknown)
+                               and pose), ``fps`` (the camera's frame rate, NaN when unknown), ``size``
+                               (None or the camera's ``[width, height]``)
 ``grab``       host -> node    ``camera``, ``index``: unpaced cameras send frame ``index`` on request only
                                (asked again for the same index, the node sends the same frame again)
 ``frame``      node -> host    ``camera``, ``seq``, ``t`` (node clock, mid-exposure; an unpaced camera's own
                                frame time, e.g. a replayed take's, which the host keeps), ``exposure_us``, ``gain``,
                                ``sync_domain``, ``centroids`` (float64 little-endian bytes, (n, 2) distorted
-                               pixels), ``index`` (-1 for paced cameras), ``t_sent`` (node clock),
+                               pixels; None when not detected: the host asked for board corners only),
+                               ``board`` (None or ``[ids, points]``: the board corners found, int32 and
+                               (n, 2) float64 little-endian bytes, distorted pixels), ``index`` (-1 for
+                               paced cameras), ``t_sent`` (node clock),
                                ``image`` (None or ``[width, height, bytes]``: a thumbnail or the full frame)
 =============  ==============  ===================================================================================
 
@@ -43,6 +48,7 @@ from livebridge.nodes import require
 VERSION = 1
 MAX_IMAGE_SIDE = 4096
 MAX_CENTROIDS = 4096
+MAX_BOARD_CORNERS = 4096
 MAX_TEXT = 256
 MAX_CONTROL_BYTES = 64 * 1024  # every message but a frame with an image
 MAX_MESSAGE_BYTES = MAX_IMAGE_SIDE * MAX_IMAGE_SIDE + MAX_CONTROL_BYTES
@@ -81,6 +87,7 @@ class Ping:
     t1: float
     images: str = "none"
     detect: dict | None = None
+    board: str | None = None
 
 
 @dataclass(frozen=True)
@@ -95,6 +102,7 @@ class Pong:
     realtime: bool = True
     calibration: dict | None = None
     fps: float = math.nan
+    size: tuple[int, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -109,21 +117,28 @@ class FrameMessage:
 
     Attributes
     ----------
-    centroids : ndarray, shape (n, 2)
-        Distorted pixels, read-only.
+    centroids : ndarray, shape (n, 2), or None
+        Distorted pixels, read-only; None when the node did not detect markers.
     image : ndarray of uint8, shape (height, width), or None
+    board_ids : ndarray of int, shape (m,), or None
+        The board corners found (ids as :mod:`livebridge.calibration.boards` numbers them); None when no
+        board was asked for.
+    board_points : ndarray, shape (m, 2), or None
+        Their distorted pixels.
     """
 
     camera: str
     seq: int
     t: float
-    centroids: np.ndarray
+    centroids: np.ndarray | None
     exposure_us: float = math.nan
     gain: float = math.nan
     sync_domain: str = ""
     index: int = -1
     t_sent: float = math.nan
     image: np.ndarray | None = None
+    board_ids: np.ndarray | None = None
+    board_points: np.ndarray | None = None
 
 
 Message = Ping | Pong | Grab | FrameMessage
@@ -140,15 +155,22 @@ def encode(message: Message, topic: str = "") -> bytes:
 
 def _fields(message: Message) -> dict[str, Any]:
     if isinstance(message, FrameMessage):
-        image = message.image
+        image, centroids = message.image, message.centroids
+        board = None if message.board_ids is None else [
+            np.ascontiguousarray(message.board_ids, dtype="<i4").tobytes(),
+            np.ascontiguousarray(message.board_points, dtype="<f8").tobytes()]
         return {"v": VERSION, "type": "frame", "camera": message.camera, "seq": int(message.seq), "t": message.t,
-                "centroids": np.ascontiguousarray(message.centroids, dtype="<f8").tobytes(),
+                "centroids": None if centroids is None else np.ascontiguousarray(centroids, dtype="<f8").tobytes(),
+                "board": board,
                 "exposure_us": float(message.exposure_us), "gain": float(message.gain),
                 "sync_domain": message.sync_domain, "index": int(message.index), "t_sent": float(message.t_sent),
                 "image": None if image is None else [image.shape[1], image.shape[0],
                                                       np.ascontiguousarray(image, dtype=np.uint8).tobytes()]}
     kind = {Ping: "ping", Pong: "pong", Grab: "grab"}[type(message)]
-    return {"v": VERSION, "type": kind, **message.__dict__}
+    fields = dict(message.__dict__)
+    if fields.get("size") is not None:
+        fields["size"] = list(fields["size"])
+    return {"v": VERSION, "type": kind, **fields}
 
 
 # ----------------------------------------------------------------------------------------------- decode
@@ -236,7 +258,8 @@ def _read_ping(f: _Fields) -> Ping:
     detect = f.get("detect", (dict, type(None)), None)
     if detect is not None:
         detect = _detect_fields(detect)
-    return Ping(f.text("camera"), f.time("t1"), f.choice("images", IMAGE_MODES, "none"), detect)
+    return Ping(f.text("camera"), f.time("t1"), f.choice("images", IMAGE_MODES, "none"), detect,
+                f.get("board", (str, type(None)), None))
 
 
 def _detect_fields(detect: dict) -> dict:
@@ -258,7 +281,7 @@ def _read_pong(f: _Fields) -> Pong:
     calibration = f.get("calibration", (dict, type(None)), None)
     return Pong(f.text("camera"), f.time("t1"), f.time("t2"), f.time("t3"), f.text("node"),
                 f.choice("time_source", TIME_SOURCES, "ntp"), f.get("ended", (str, type(None)), None),
-                f.get("realtime", (bool,), True), calibration, _fps(f))
+                f.get("realtime", (bool,), True), calibration, _fps(f), _size(f))
 
 
 def _fps(f: _Fields) -> float:
@@ -268,21 +291,55 @@ def _fps(f: _Fields) -> float:
     return fps
 
 
+def _size(f: _Fields) -> tuple[int, int] | None:
+    size = f.get("size", (list, type(None)), None)
+    if size is None:
+        return None
+    if (len(size) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in size)
+            or not all(0 <= v <= 1 << 16 for v in size)):
+        raise ProtocolError("field", f"pong.size: {size!r}")
+    return size[0], size[1]
+
+
 def _read_grab(f: _Fields) -> Grab:
     return Grab(f.text("camera"), f.integer("index", 0, 2**62))
 
 
 def _read_frame(f: _Fields) -> FrameMessage:
-    raw = f.get("centroids", (bytes,))
-    if len(raw) % 16 or len(raw) // 16 > MAX_CENTROIDS:
-        raise ProtocolError("field", f"frame.centroids: {len(raw)} bytes is not (n <= {MAX_CENTROIDS}, 2) float64")
-    centroids = np.frombuffer(raw, dtype="<f8").reshape(-1, 2).astype(np.float64)
-    if not np.isfinite(centroids).all():
-        raise ProtocolError("field", "frame.centroids: not finite")
-    centroids.setflags(write=False)
+    raw = f.get("centroids", (bytes, type(None)))
+    centroids = None if raw is None else _points(raw, MAX_CENTROIDS, "frame.centroids")
+    board_ids, board_points = _board(f)
     return FrameMessage(f.text("camera"), f.integer("seq", -2**62, 2**62), f.time("t"), centroids,
                         f.number("exposure_us"), f.number("gain"), f.text("sync_domain", ""),
-                        f.integer("index", -1, 2**62, -1), f.number("t_sent"), _image(f))
+                        f.integer("index", -1, 2**62, -1), f.number("t_sent"), _image(f), board_ids, board_points)
+
+
+def _points(raw: bytes, limit: int, name: str) -> np.ndarray:
+    """(n, 2) finite float64 points from little-endian bytes, read-only."""
+    if len(raw) % 16 or len(raw) // 16 > limit:
+        raise ProtocolError("field", f"{name}: {len(raw)} bytes is not (n <= {limit}, 2) float64")
+    points = np.frombuffer(raw, dtype="<f8").reshape(-1, 2).astype(np.float64)
+    if not np.isfinite(points).all():
+        raise ProtocolError("field", f"{name}: not finite")
+    points.setflags(write=False)
+    return points
+
+
+def _board(f: _Fields) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """A frame's board corners: unique ids in ``0..MAX_BOARD_CORNERS - 1`` and one finite point each."""
+    board = f.get("board", (list, type(None)), None)
+    if board is None:
+        return None, None
+    if len(board) != 2 or not all(isinstance(part, bytes) for part in board) or len(board[0]) % 4:
+        raise ProtocolError("field", "frame.board: not [ids, points] bytes")
+    ids = np.frombuffer(board[0], dtype="<i4").astype(np.int64)
+    points = _points(board[1], MAX_BOARD_CORNERS, "frame.board points")
+    if (len(ids) != len(points) or (len(ids) and not 0 <= ids.min() <= ids.max() < MAX_BOARD_CORNERS)
+            or len(np.unique(ids)) != len(ids)):
+        raise ProtocolError("field", f"frame.board: {len(ids)} ids (unique, < {MAX_BOARD_CORNERS}) for "
+                                     f"{len(points)} points")
+    ids.setflags(write=False)
+    return ids, points
 
 
 def _image(f: _Fields) -> np.ndarray | None:

@@ -18,7 +18,8 @@ truncated, oversized or forged are counted by reason (:attr:`NodeSource.drops`) 
 URL parameters: ``camera`` (required: the camera's id on the node), ``realtime`` (default: as the node's
 camera is; 0 for a node's unpaced camera, e.g. ``sim://rig?realtime=0``: frames are then fetched one by one,
 none is lost; a URL that says otherwise than the node is reported and delivers nothing),
-``images`` (``none``, ``thumbnail``, ``full``: pixels sent along, e.g. ``full`` for calibration),
+``images`` (``none``, ``thumbnail``, ``full``: pixels sent along; calibration does not need them: it asks
+the node to detect the board, :meth:`NodeSource.detect_board_with`),
 ``key`` (a shared key file: CURVE), ``dead_after_s``, ``ping_ms``.
 """
 
@@ -84,6 +85,8 @@ class NodeSource(SourceBase):
         self.frames = 0
         self.transport_s: list[float] = []  # node send -> host receipt of each frame, host seconds (bounded)
         self._detect: dict | None = None
+        self._board = None
+        self._size: tuple[int, int] | None = None
         self._queue: NewestQueue[Frame] = NewestQueue(1)
         self._running = threading.Event()
         self._thread: threading.Thread | None = None
@@ -137,6 +140,11 @@ class NodeSource(SourceBase):
         """Detect on the node with the host's parameters (:class:`~livebridge.reconstruct.detect.DetectConfig`)."""
         self._detect = asdict(config)
 
+    def detect_board_with(self, board) -> None:
+        """Detect a calibration board (:class:`~livebridge.calibration.boards.Board`) on the node, with the
+        host's own detector: frames then carry its corners (``Frame.board_corners``) and no centroids."""
+        self._board = board
+
     def set_exposure(self, manual: bool, exposure_us: float | None = None,
                      gain: float | None = None) -> ExposureSetting:
         return ExposureSetting(False)  # set on the node's own cameras (their URLs)
@@ -156,7 +164,8 @@ class NodeSource(SourceBase):
         """The node camera's image size and frame rate (NaN until the node answered); ``images`` only with
         ``images=full`` (otherwise frames carry centroids, and no pixels or a thumbnail)."""
         camera = self.calibration
-        return Capabilities(size=camera.size if camera is not None else (0, 0), fps=self._fps,
+        size = camera.size if camera is not None else self._size or (0, 0)
+        return Capabilities(size=tuple(int(v) for v in size), fps=self._fps,
                             images=self.images == "full")
 
     @property
@@ -224,7 +233,8 @@ class NodeSource(SourceBase):
             while self._running.is_set():
                 now = self.clock()
                 if now >= next_ping:
-                    self._send(dealer, Ping(self.camera, self.clock(), self.images, self._detect))
+                    board = None if self._board is None else self._board.spec
+                    self._send(dealer, Ping(self.camera, self.clock(), self.images, self._detect, board))
                     next_ping = now + self.ping_s
                 self._check_alive(now)
                 if self._realtime is False:
@@ -283,7 +293,7 @@ class NodeSource(SourceBase):
         self._last_reply = t4
         if pong.calibration is not None and self._calibration is None:
             self._calibration = self._camera(pong.calibration)
-        self._fps = pong.fps
+        self._fps, self._size = pong.fps, pong.size
         if self._node_realtime is None:
             self._node_realtime = pong.realtime
         if self._realtime is not None and pong.realtime != self._realtime and self._ended_on_node is None:
@@ -326,12 +336,28 @@ class NodeSource(SourceBase):
         image = _NO_PIXELS if message.image is None else message.image
         # an unpaced camera's times are its take's (a replay, a simulated take), not a clock's: kept as they are
         t = message.t if self._realtime is False else estimate.to_host(message.t)
+        board_corners = self._board_corners(message)
+        if board_corners is False:
+            return
         frame = Frame(image, t, message.seq, self.camera, message.exposure_us,
-                      message.gain, message.sync_domain or self.camera, centroids=message.centroids)
+                      message.gain, message.sync_domain or self.camera, centroids=message.centroids,
+                      board_corners=board_corners)
         if self._realtime is False:
             with self._index_lock:
                 self._want_index = -1
         self._queue.put(frame)
+
+    def _board_corners(self, message: FrameMessage):
+        """The frame's board corners as (n_corners, 2), NaN where not found; None when it carries none (or
+        this host asked for no board); False (and counted as a drop) when its ids do not fit the board."""
+        if message.board_ids is None or self._board is None:
+            return None
+        corners = np.full((self._board.n_corners, 2), np.nan)
+        if len(message.board_ids) and message.board_ids.max() >= len(corners):
+            self.drops.add("field")
+            return False
+        corners[message.board_ids] = message.board_points
+        return corners
 
     def _check_alive(self, now: float) -> None:
         if self._alive and now - self._last_reply > self.dead_after_s:
