@@ -8,7 +8,7 @@ Contractions leave finite and in [0, 1] whatever the packet held (a muscle the s
 value).
 
 The frame's timing: ``capture`` and ``complete`` are the packet's arrival at this machine (the kernel's
-receive time where the system gives one, else the receiver thread's; the phone's own clock is another
+receive time where the system gives one, else when the front read it; the phone's own clock is another
 device's), ``solved`` the end of the solve; the pipeline fills in ``servo`` (so its "latency servo" is
 packet arrival -> servo bytes written) and ``outputs``. ``seq`` is the packet's frame number, ``index``
 the front's own count.
@@ -69,7 +69,7 @@ class LiveLinkFront:
 
     def start(self) -> None:
         self._started = self.clock()
-        self.receiver.open()  # read on the front thread (receive): no reader thread
+        self.receiver.open()  # read on the front thread (receive)
 
     def read(self, timeout: float) -> SolvedFrame | None:
         """The next solved frame from the newest packet, or None when none came within ``timeout`` s."""
