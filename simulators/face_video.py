@@ -46,7 +46,7 @@ from livebridge.geometry.transforms import look_at
 from livebridge.simulators import raster, skin
 from livebridge.simulators.head_rig import LED_DIAMETER_MM, HeadRig, default_head_rig, frame_polyline, load_head_rig
 from livebridge.simulators.performer import FACE_SCRIPTS, HeadMotion, contraction_script, head_pivot
-from livebridge.simulators.rig import _NoiseTiles, render_discs
+from livebridge.simulators.rig import _NoiseTiles, check_range, render_discs
 
 HEAD_RIGS = ("leds", "none")
 SIZE_RANGE = ((32, 4096), (32, 4096))
@@ -134,10 +134,7 @@ class FaceVideoConfig:
             if not isinstance(value, int | np.integer) or isinstance(value, bool) or not low <= value <= high:
                 raise InputError(f"{name} must be an integer in {low}..{high}, got {value!r}", field=name)
         for name, (low, high) in _RANGES.items():
-            value = getattr(self, name)
-            ok = isinstance(value, int | float | np.number) and not isinstance(value, bool)
-            if not (ok and math.isfinite(value) and low <= value <= high):
-                raise InputError(f"{name} must be a number in [{low:g}, {high:g}], got {value!r}", field=name)
+            check_range(name, getattr(self, name), low, high, open_low=False, open_high=False)
         if self.head_rig not in HEAD_RIGS:
             raise InputError(f"head_rig must be one of {', '.join(HEAD_RIGS)}, got {self.head_rig!r}",
                              field="head_rig")

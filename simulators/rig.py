@@ -142,7 +142,7 @@ class RigConfig:
             raise InputError(f"distance_mm must be (near, far) with 0 < near <= far, got {self.distance_mm}",
                              field="distance_mm")
         for name, (low, high, open_low, open_high) in _CONFIG_RANGES.items():
-            _check_range(name, getattr(self, name), low, high, open_low, open_high)
+            check_range(name, getattr(self, name), low, high, open_low, open_high)
         if not 1 <= self.buffers <= 64:
             raise InputError(f"buffers must be in 1..64, got {self.buffers}", field="buffers")
 
@@ -170,7 +170,7 @@ _CONFIG_RANGES = {  # field: (low, high, low excluded, high excluded)
 }
 
 
-def _check_range(name: str, value, low: float, high: float, open_low: bool, open_high: bool) -> None:
+def check_range(name: str, value, low: float, high: float, open_low: bool, open_high: bool) -> None:
     """Raise :class:`InputError` naming ``name`` and its range unless ``value`` is a finite number in it."""
     ok = isinstance(value, int | float | np.number) and not isinstance(value, bool) and math.isfinite(value)
     ok = ok and (low < value if open_low else low <= value) and (value < high if open_high else value <= high)
