@@ -71,6 +71,11 @@ class GroundTruthScore:
     def rmse(self) -> float:
         return math.sqrt(self.squared / self.count) if self.count else math.nan
 
+    def describe(self) -> str:
+        """The summary line of a run."""
+        return (f"contraction RMSE vs ground truth: {self.rmse:.4f} (worst {self.worst_abs:.3f}), "
+                f"label swaps: {self.swaps}")
+
 
 class ContractionScore:
     """Contraction error of solved frames against a truth looked up by the frame's ``seq``.
@@ -111,3 +116,7 @@ class ContractionScore:
     @property
     def rmse(self) -> float:
         return math.sqrt(self.squared / self.count) if self.count else math.nan
+
+    def describe(self) -> str:
+        """The summary line of a run."""
+        return f"contraction RMSE vs ground truth: {self.rmse:.4f} (worst {self.worst_abs:.3f})"

@@ -37,6 +37,7 @@ def _announce_outputs(pipeline) -> None:
 
 
 def _print_summary(summary, score=None, pipeline=None) -> None:
+    """The end-of-run summary; ``score`` (a simulator's ground-truth score) describes its own line."""
     if pipeline is not None and pipeline.front.kind == "livelink":
         _print_livelink_summary(summary, score, pipeline)
         return
@@ -56,12 +57,8 @@ def _print_summary(summary, score=None, pipeline=None) -> None:
     if summary.frames_skipped:
         per_camera = ", ".join(f"{name} {count}" for name, count in summary.frames_skipped)
         click.echo(f"frames skipped (damaged or missing images): {summary.frames_skipped_total} ({per_camera})")
-    if score is not None and hasattr(score, "mae"):
-        click.echo(f"contraction MAE vs ground truth: {score.mae:.4f} over {score.frames} frames "
-                   f"(worst {score.worst_abs:.3f})")
-    elif score is not None:
-        click.echo(f"contraction RMSE vs ground truth: {score.rmse:.4f} (worst {score.worst_abs:.3f}), "
-                   f"label swaps: {score.swaps}")
+    if score is not None:
+        click.echo(score.describe())
 
 
 def _print_livelink_summary(summary, score, pipeline) -> None:
@@ -76,7 +73,7 @@ def _print_livelink_summary(summary, score, pipeline) -> None:
                f"p99 {summary.render_latency_p99_ms:.2f} ms")
     click.echo(f"phone: {receiver.received} datagrams, {receiver.lost} lost, refused {front.refused_text()}")
     if score is not None:
-        click.echo(f"contraction RMSE vs ground truth: {score.rmse:.4f} (worst {score.worst_abs:.3f})")
+        click.echo(score.describe())
 
 
 EXIT_CAMERA_FAILED = 1

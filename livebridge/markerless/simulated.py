@@ -84,3 +84,8 @@ class MarkerlessScore:
     @property
     def mae(self) -> float:
         return self.absolute / self.count if self.count else float("nan")
+
+    def describe(self) -> str:
+        """The summary line of a run."""
+        return (f"contraction MAE vs ground truth: {self.mae:.4f} over {self.frames} frames "
+                f"(worst {self.worst_abs:.3f})")

@@ -190,7 +190,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
     model = _markerless_model(session, basis) if session.markerless is not None else None
     if model is None:
         check_markers(markers, basis, session)
-    sources, cameras, realtime, fps = [], None, True, 60.0
+    sources, cameras, realtime, fps = [], None, True, None  # a phone: no cameras (recording is refused)
     if session.source.kind == "cameras":
         log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
         if model is None:
