@@ -313,6 +313,12 @@ class _BlankCamera:
     def status_text(self):
         return None
 
+    def detect_with(self, config) -> None:
+        pass
+
+    def detect_board_with(self, board) -> None:
+        pass
+
 
 def _give_up(sources, cameras, clock, **options):
     from livebridge.simulators.rig import default_face

@@ -194,6 +194,12 @@ class _ProcessRigSource:
     def status_text(self) -> None:
         return None
 
+    def detect_with(self, config) -> None:
+        pass
+
+    def detect_board_with(self, board) -> None:
+        pass
+
 
 def cpu_split() -> tuple[set[int], set[int]] | None:
     """``(pipeline CPUs, rig CPUs)``: the last CPU for the simulated cameras, the others for the pipeline;

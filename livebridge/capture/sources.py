@@ -115,6 +115,14 @@ class CameraSource(Protocol):
         """What the source adds to the live status line (a camera node: its clock offset and jitter, or
         ``lost``), or None for nothing."""
 
+    def detect_with(self, config) -> None:
+        """The host's marker-detection parameters (:class:`~livebridge.reconstruct.detect.DetectConfig`), for
+        a source that detects where it films (a camera node); others detect nothing and ignore them."""
+
+    def detect_board_with(self, board) -> None:
+        """Calibration: a source that can detect the board where it films (a camera node) does, and its
+        frames carry the corners (``Frame.board_corners``); others ignore it."""
+
 
 class SourceWrapper:
     """A camera source that wraps another and adds to ``read``; everything else is the inner source's.
@@ -149,6 +157,12 @@ class SourceWrapper:
     def status_text(self) -> str | None:
         return self.source.status_text()
 
+    def detect_with(self, config) -> None:
+        self.source.detect_with(config)
+
+    def detect_board_with(self, board) -> None:
+        self.source.detect_board_with(board)
+
 
 class SourceBase:
     """Context-manager plumbing shared by the implementations (subclasses define start/stop)."""
@@ -181,6 +195,12 @@ class SourceBase:
     def status_text(self) -> str | None:
         """None: a source with something to say in the status line overrides this."""
         return None
+
+    def detect_with(self, config) -> None:
+        """Nothing: the host detects in this source's images."""
+
+    def detect_board_with(self, board) -> None:
+        """Nothing: the host detects the board in this source's images."""
 
     def _end(self, error: str | None) -> None:
         self._ended = True

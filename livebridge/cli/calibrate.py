@@ -136,10 +136,10 @@ def _run(kind, named, board, out, fisheye, up, origin_view, board_pose, every, f
 def _source_frames(named: dict[str, str], n_frames: int, board):
     """Frame sets from live sources (``livebridge.devices.registry``): one frame per camera, read in turn.
 
-    A source that can detect the board where it films (a camera node: ``detect_board_with``) is asked to,
-    and gives the corners it found (:class:`~livebridge.calibration.detect.FoundCorners`) in place of its
-    image. Frames are matched by read order, not by hardware sync, so hold the board still for a moment in
-    each pose.
+    Every source is told the board (``CameraSource.detect_board_with``); one that can detect it where it
+    films (a camera node) does, and gives the corners it found
+    (:class:`~livebridge.calibration.detect.FoundCorners`) in place of its image. Frames are matched by read
+    order, not by hardware sync, so hold the board still for a moment in each pose.
     """
     from livebridge.devices.registry import open_camera
     from livebridge.errors import InputError
@@ -148,9 +148,7 @@ def _source_frames(named: dict[str, str], n_frames: int, board):
     started = []
     try:
         for source in opened:
-            detect_board_with = getattr(source, "detect_board_with", None)
-            if detect_board_with is not None:
-                detect_board_with(board)
+            source.detect_board_with(board)  # a camera node detects it where it films
             source.start()
             started.append(source)
         blind = dict.fromkeys(named, 0)  # frames in a row with neither corners nor an image, per camera

@@ -616,8 +616,8 @@ class DetectingSource(SourceWrapper):
     Wraps any :class:`~livebridge.capture.sources.CameraSource`; ``read`` returns the frame as the inner
     source does, after storing its :class:`Detection`, which the reconstruct stage looks up with
     :meth:`result`. A frame that arrives with its centroids already detected (``Frame.centroids``: a camera
-    node ran :func:`detect_blobs` on it) is only undistorted; a source that detects where its frames are
-    taken has a ``detect_with(config)`` method and is told this wrapper's config, so both detect alike.
+    node ran :func:`detect_blobs` on it) is only undistorted; every source is told this wrapper's config
+    (``CameraSource.detect_with``), so a source that detects where its frames are taken detects alike.
 
     Parameters
     ----------
@@ -636,9 +636,7 @@ class DetectingSource(SourceWrapper):
         super().__init__(source)
         self._camera, self._config = camera, config
         self._clock = clock
-        detect_with = getattr(source, "detect_with", None)
-        if detect_with is not None:
-            detect_with(config)
+        source.detect_with(config)
         self._results: dict[int, Detection] = {}
         self._order: deque[int] = deque()
         self._keep = keep
