@@ -17,6 +17,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from livebridge.capture.frame import Frame
 from livebridge.errors import InputError
 from livebridge.markerless.analysis import Analyser
 from livebridge.markerless.model import MarkerlessModel
@@ -94,9 +95,14 @@ class MarkerlessFront:
         self.cpu_s = 0.0
 
     def warm_up(self) -> None:
-        """LED detection (compiled; on the reader thread when live) and one analysis, on a blank image."""
+        """LED detection (compiled; on the reader thread when live) and one analysis, on a dark image with four
+        bright spots (a blank one would leave the detection's blob kernels cold)."""
         width, height = self.model.normalisation.input_size
-        pose, frame = normalise(np.zeros((height, width), np.uint8), self.model.normalisation)
+        image = np.zeros((height, width), np.uint8)
+        for x in (0.3, 0.4, 0.6, 0.7):
+            image[height // 3:height // 3 + 3, int(x * width):int(x * width) + 3] = 255
+        leds = self.source.detect(Frame(image, 0.0, 0, self.source.source_id))
+        pose, frame = normalise(image, self.model.normalisation, candidates=leds)
         self.analyser.step(self.analyser.initial_state(), frame)
 
     def start(self) -> None:
