@@ -4,10 +4,14 @@ are held, the model file round-trips, the front runs in the pipeline, the comman
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from livebridge.capture.frame import Frame
+from livebridge.capture.sources import SourceBase
 from livebridge.cli import main
 from livebridge.face.builtin import builtin_basis
 from livebridge.markerless.analysis import Analyser
@@ -190,7 +194,70 @@ def test_the_pipeline_runs_a_markerless_session(trained, tmp_path):
     for frame in frames:
         assert np.isfinite(frame.contractions).all() and frame.contractions.min() >= 0
         assert frame.contractions.max() <= 1 and frame.regions is not None and frame.held is not None
+        t = frame.timing
+        assert t.complete <= t.detected <= t.dequeued <= t.reconstructed <= t.solved <= t.outputs
     assert "markerless confidence" in pipeline.front.status(summary)
+
+
+class _SetClock:
+    """A monotonic clock the test sets."""
+
+    def __init__(self, now: float):
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class _OneFrameCamera(SourceBase):
+    """A live camera that delivers one image, then nothing; ``asked_again`` is set when its reader comes back
+    for the next frame, so by then the first has been stamped and handed to the synchroniser."""
+
+    source_id = "face"
+
+    def __init__(self, image: np.ndarray, t_capture: float):
+        self.image, self.t_capture = image, t_capture
+        self.delivered = False
+        self.asked_again, self._stopped = threading.Event(), threading.Event()
+
+    def start(self) -> None:
+        pass
+
+    def stop(self) -> None:
+        self._stopped.set()
+
+    def read(self, timeout=None):
+        if not self.delivered:
+            self.delivered = True
+            return Frame(self.image, self.t_capture, 0, self.source_id)
+        self.asked_again.set()
+        self._stopped.wait(timeout)
+        return None
+
+
+def test_latency_counts_from_the_frames_arrival_with_its_wait_for_the_front(trained):
+    """A frame that waits 0.25 s in the queue for a busy front reports that wait: its timing starts when the
+    camera's reader took it (as the marker front's does), and its LEDs were found there, giving the same pose
+    as finding them on the front's thread."""
+    from livebridge.markerless.front import MarkerlessFront
+
+    _, _, _, _, result, held_out = trained
+    model = result.model
+    clock = _SetClock(100.0)
+    camera = _OneFrameCamera(held_out[0], t_capture=99.99)
+    front = MarkerlessFront(camera, model, 1 / FPS, realtime=True, clock=clock)
+    front.start()
+    try:
+        assert camera.asked_again.wait(10.0)  # hang guard
+        clock.now = 100.25  # the front comes for the frame 0.25 s after it arrived
+        solved = front.read(timeout=10.0)
+    finally:
+        front.stop()
+    timing = solved.timing
+    assert (timing.complete, timing.detected, timing.dequeued, timing.solved) == (100.0, 100.0, 100.25, 100.25)
+    _, alone = normalise(held_out[0], model.normalisation)
+    assert dict(solved.quality)["leds"] == 1.0
+    np.testing.assert_array_equal(solved.head_pose, alone.head2cam)
 
 
 def test_session_refuses_a_markerless_model_of_another_rig(trained, tmp_path):

@@ -2,9 +2,11 @@
 
 Runs on the pipeline's front thread (:mod:`livebridge.runtime.pipeline`). The camera is read through the
 same synchroniser as the marker front's cameras (one camera: it brings newest-wins dropping when live, and
-in-step reading of unpaced sources). Each frame's contractions are finite and in [0, 1]; regions that lose
-the face, and every region while the head rig's LEDs are lost, hold their last state (``SolvedFrame.held``)
-and report low confidence.
+in-step reading of unpaced sources); as there, the camera's reader thread stamps each frame's arrival and
+detects its blobs (the head rig's LEDs), so a frame's latency counts from its arrival, the wait for the
+front included. Each frame's contractions are finite and in [0, 1]; regions that lose the face, and every
+region while the head rig's LEDs are lost, hold their last state (``SolvedFrame.held``) and report low
+confidence.
 """
 
 from __future__ import annotations
@@ -15,12 +17,39 @@ from collections.abc import Callable
 
 import numpy as np
 
+from livebridge.capture.frame import Frame
 from livebridge.errors import InputError
 from livebridge.markerless.analysis import Analyser
 from livebridge.markerless.model import MarkerlessModel
-from livebridge.markerless.normalise import PoseState, normalise
+from livebridge.markerless.normalise import Normalisation, PoseState, detect_leds, normalise
+from livebridge.reconstruct.detect import ReaderDetectingSource
 from livebridge.runtime.frame import FrameTiming, SolvedFrame
 from livebridge.runtime.front import FrontStats
+
+
+class LedDetectingSource(ReaderDetectingSource):
+    """A camera source that finds the head rig's LED candidates (:func:`detect_leds`) on its reader thread;
+    without a head rig it only stamps each frame's arrival.
+
+    Parameters
+    ----------
+    source : CameraSource
+    normalisation : Normalisation
+        The model's (its ``head_rig`` and ``input_size``).
+    clock : callable
+        Monotonic seconds (the pipeline's clock).
+    """
+
+    def __init__(self, source, normalisation: Normalisation, clock: Callable[[], float] = time.monotonic):
+        super().__init__(source, clock=clock)
+        self._normalisation = normalisation
+
+    def detect(self, frame) -> np.ndarray:
+        """LED candidates of one frame, shape (n, 2) pixels, brightest first; none without a head rig or in an
+        image of another size than the model's (which the front refuses)."""
+        if self._normalisation.head_rig is None or frame.size != self._normalisation.input_size:
+            return np.zeros((0, 2))
+        return detect_leds(frame.image)
 
 
 class MarkerlessFront:
@@ -51,11 +80,11 @@ class MarkerlessFront:
 
         self.model = model
         self.muscle_names = model.muscle_names
-        self.source = source
+        self.source = LedDetectingSource(source, model.normalisation, clock=clock)
         self.realtime = bool(realtime)
         self.clock = clock
         self.analyser = Analyser(model, min_confidence)
-        self.capture = SyncedCapture([source], float(period_s), queue_size=1, realtime=self.realtime,
+        self.capture = SyncedCapture([self.source], float(period_s), queue_size=1, realtime=self.realtime,
                                      tolerance_s=0.5 * float(period_s), in_flight=None if self.realtime else 1,
                                      clock=clock)
         self._pose = PoseState()
@@ -66,9 +95,14 @@ class MarkerlessFront:
         self.cpu_s = 0.0
 
     def warm_up(self) -> None:
-        """Blob detection (compiled) and one analysis, on a blank image."""
+        """LED detection (compiled; on the reader thread when live) and one analysis, on a dark image with four
+        bright spots (a blank one would leave the detection's blob kernels cold)."""
         width, height = self.model.normalisation.input_size
-        pose, frame = normalise(np.zeros((height, width), np.uint8), self.model.normalisation)
+        image = np.zeros((height, width), np.uint8)
+        for x in (0.3, 0.4, 0.6, 0.7):
+            image[height // 3:height // 3 + 3, int(x * width):int(x * width) + 3] = 255
+        leds = self.source.detect(Frame(image, 0.0, 0, self.source.source_id))
+        pose, frame = normalise(image, self.model.normalisation, candidates=leds)
         self.analyser.step(self.analyser.initial_state(), frame)
 
     def start(self) -> None:
@@ -96,7 +130,8 @@ class MarkerlessFront:
         if image.shape[:2] != (height, width):
             raise InputError(f"the camera gives {image.shape[1]}x{image.shape[0]} images, the markerless model "
                              f"was trained on {width}x{height}: film at that size or train again")
-        self._pose, normalised = normalise(image, self.model.normalisation, self._pose)
+        leds = self.source.result(frame)
+        self._pose, normalised = normalise(image, self.model.normalisation, self._pose, leds.points_2d)
         reconstructed = self.clock()
         self._state, result = self.analyser.step(self._state, normalised)
         solved = self.clock()
@@ -107,7 +142,7 @@ class MarkerlessFront:
         contractions.setflags(write=False)
         quality = (("confidence", result.mean_confidence), ("leds", 0.0 if result.lost else 1.0),
                    ("held", float(np.mean([s.held for s in result.regions])) if result.regions else 0.0))
-        timing = FrameTiming(frameset.t, dequeued, dequeued, dequeued, reconstructed, solved)
+        timing = FrameTiming(frameset.t, leds.arrived, leds.detected, dequeued, reconstructed, solved)
         return SolvedFrame(frame.seq, frameset.index, timing, contractions, held=result.held, quality=quality,
                            head_pose=normalised.head2cam, regions=result.regions)
 
@@ -136,7 +171,8 @@ class MarkerlessFront:
         errors = tuple((name, faults[name]) for name in (self.source.source_id,) if name in faults)
         return FrontStats(inputs=1, dead=tuple(sync.dead), errors=errors,
                           dropped=int(self.capture.dropped_framesets),
-                          input_frame_drops=sum(sync.stats.drops.values()), attempts=self.frames, cpu_s=self.cpu_s)
+                          input_frame_drops=sum(sync.stats.drops.values()), attempts=self.frames,
+                          cpu_s=self.cpu_s + self.source.cpu_s, input_cpu_s=self.source.cpu_s)
 
     def stop(self) -> None:
         self.capture.stop()

@@ -242,7 +242,8 @@ def _coplanar(points: np.ndarray) -> bool:
 
 
 def estimate_head_pose(image: np.ndarray, norm: Normalisation, state: PoseState = PoseState(),
-                       max_error_px: float = 2.0) -> tuple[PoseState, np.ndarray | None]:
+                       max_error_px: float = 2.0, candidates: np.ndarray | None = None
+                       ) -> tuple[PoseState, np.ndarray | None]:
     """The head pose of one image from its LEDs.
 
     Parameters
@@ -254,6 +255,9 @@ def estimate_head_pose(image: np.ndarray, norm: Normalisation, state: PoseState 
         The previous pose (for the LED assignment).
     max_error_px : float
         A pose whose LEDs reproject worse than this (RMS) is refused.
+    candidates : ndarray, shape (n, 2), optional
+        The image's LED candidates already found (:func:`detect_leds`, e.g. on the camera's reader thread);
+        None: found here.
 
     Returns
     -------
@@ -261,7 +265,7 @@ def estimate_head_pose(image: np.ndarray, norm: Normalisation, state: PoseState 
         None when fewer than four LEDs are seen or no assignment fits: the LEDs are lost.
     """
     leds = norm.head_rig.leds
-    points = detect_leds(image)
+    points = detect_leds(image) if candidates is None else candidates
     if len(points) < N_LEDS:
         return PoseState(None), None
     previous = state.head2cam if state.head2cam is not None else norm.canonical_head2cam
@@ -386,8 +390,8 @@ class NormalisedFrame:
     lost: bool
 
 
-def normalise(image: np.ndarray, norm: Normalisation, state: PoseState = PoseState()
-              ) -> tuple[PoseState, NormalisedFrame]:
+def normalise(image: np.ndarray, norm: Normalisation, state: PoseState = PoseState(),
+              candidates: np.ndarray | None = None) -> tuple[PoseState, NormalisedFrame]:
     """Pose warp (with a head rig), crop and lighting normalisation of one camera image.
 
     Parameters
@@ -396,6 +400,8 @@ def normalise(image: np.ndarray, norm: Normalisation, state: PoseState = PoseSta
         ``(W, H)`` must be ``norm.input_size``.
     norm : Normalisation
     state : PoseState
+    candidates : ndarray, shape (n, 2), optional
+        With a head rig: the image's LED candidates already found (:func:`detect_leds`); None: found here.
 
     Returns
     -------
@@ -407,7 +413,7 @@ def normalise(image: np.ndarray, norm: Normalisation, state: PoseState = PoseSta
                          f"{norm.input_size[0]}x{norm.input_size[1]}")
     head2cam, lost = None, False
     if norm.head_rig is not None:
-        state, head2cam = estimate_head_pose(gray, norm, state)
+        state, head2cam = estimate_head_pose(gray, norm, state, candidates=candidates)
         lost = head2cam is None
         if not lost and norm.pose_warp and norm.surface is not None:
             gray = warp_to_canonical(gray, norm, head2cam)

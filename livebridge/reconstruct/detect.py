@@ -593,12 +593,12 @@ def detect_undistorted(image: np.ndarray, camera: Camera, config: DetectConfig =
 
 @dataclass(frozen=True, eq=False)
 class Detection:
-    """The markers detected in one frame, and when.
+    """The blobs detected in one frame, and when.
 
     Attributes
     ----------
     points_2d : ndarray, shape (n_blobs, 2)
-        Undistorted centroids.
+        Centroids, pixels as the detecting source gives them (:class:`DetectingSource`: undistorted markers).
     arrived : float
         The frame reached the host (its source's ``read`` returned it), monotonic seconds.
     detected : float
@@ -610,33 +610,27 @@ class Detection:
     detected: float
 
 
-class DetectingSource(SourceWrapper):
-    """A camera source that detects its markers on its own reader thread.
+class ReaderDetectingSource(SourceWrapper):
+    """A camera source that stamps each frame's arrival and detects its blobs on its own reader thread.
 
     Wraps any :class:`~livebridge.capture.sources.CameraSource`; ``read`` returns the frame as the inner
-    source does, after storing its :class:`Detection`, which the reconstruct stage looks up with
-    :meth:`result`. A frame that arrives with its centroids already detected (``Frame.centroids``: a camera
-    node ran :func:`detect_blobs` on it) is only undistorted; every source is told this wrapper's config
-    (``CameraSource.detect_with``), so a source that detects where its frames are taken detects alike.
+    source does, after storing its :class:`Detection` (when the frame arrived, what :meth:`detect` found in
+    it, when that finished), which the front looks up with :meth:`result` when it takes the frame: so a
+    front's latency counts from the frame's arrival, the wait in the synchroniser's queue included, and the
+    detection (compiled, releasing the GIL) runs beside the front's work. Subclasses say what to detect.
 
     Parameters
     ----------
     source : CameraSource
-    camera : Camera
-        The source's calibration (detections are undistorted with it).
-    config : DetectConfig
     keep : int
         Detections kept for :meth:`result` (the newest).
     clock : callable
         Monotonic seconds (the pipeline's clock).
     """
 
-    def __init__(self, source, camera: Camera, config: DetectConfig = DetectConfig(), keep: int = 64,
-                 clock: Callable[[], float] = time.monotonic):
+    def __init__(self, source, keep: int = 64, clock: Callable[[], float] = time.monotonic):
         super().__init__(source)
-        self._camera, self._config = camera, config
         self._clock = clock
-        source.detect_with(config)
         self._results: dict[int, Detection] = {}
         self._order: deque[int] = deque()
         self._keep = keep
@@ -644,16 +638,17 @@ class DetectingSource(SourceWrapper):
         self.cpu_s = 0.0
         self.frames = 0
 
+    def detect(self, frame) -> np.ndarray:
+        """The blobs of one frame, shape (n_blobs, 2) pixels."""
+        raise NotImplementedError
+
     def read(self, timeout: float | None = None):
         frame = self.source.read(timeout)
         if frame is None:
             return None
         arrived = self._clock()
         cpu = time.thread_time()
-        if frame.centroids is None:
-            points = detect_undistorted(frame.image, self._camera, self._config)
-        else:  # detected where the frame was taken (a camera node): undistorted here, with the host's calibration
-            points = self._camera.undistort_points(frame.centroids)
+        points = self.detect(frame)
         self.cpu_s += time.thread_time() - cpu
         self.frames += 1
         with self._lock:
@@ -670,6 +665,37 @@ class DetectingSource(SourceWrapper):
         if found is not None:
             return found
         now = self._clock()  # not seen by read (should not happen): detect here
-        if frame.centroids is not None:
-            return Detection(self._camera.undistort_points(frame.centroids), now, self._clock())
-        return Detection(detect_undistorted(frame.image, self._camera, self._config), now, self._clock())
+        return Detection(self.detect(frame), now, self._clock())
+
+
+class DetectingSource(ReaderDetectingSource):
+    """A camera source that detects its markers on its own reader thread (:class:`ReaderDetectingSource`).
+
+    A frame that arrives with its centroids already detected (``Frame.centroids``: a camera node ran
+    :func:`detect_blobs` on it) is only undistorted; every source is told this wrapper's config
+    (``CameraSource.detect_with``), so a source that detects where its frames are taken detects alike.
+
+    Parameters
+    ----------
+    source : CameraSource
+    camera : Camera
+        The source's calibration (detections are undistorted with it).
+    config : DetectConfig
+    keep : int
+        Detections kept for :meth:`result` (the newest).
+    clock : callable
+        Monotonic seconds (the pipeline's clock).
+    """
+
+    def __init__(self, source, camera: Camera, config: DetectConfig = DetectConfig(), keep: int = 64,
+                 clock: Callable[[], float] = time.monotonic):
+        super().__init__(source, keep, clock)
+        self._camera, self._config = camera, config
+        source.detect_with(config)
+
+    def detect(self, frame) -> np.ndarray:
+        """Undistorted marker centroids of one frame, shape (n_blobs, 2)."""
+        if frame.centroids is None:
+            return detect_undistorted(frame.image, self._camera, self._config)
+        # detected where the frame was taken (a camera node): undistorted here, with the host's calibration
+        return self._camera.undistort_points(frame.centroids)
