@@ -117,8 +117,8 @@ SOURCE_KINDS = ("cameras", "livelinkface")
 @dataclass(frozen=True)
 class SourceOptions:
     """``[source]``: ``kind`` "cameras" (the session's ``camera_urls``) or "livelinkface" (``url``, the receiver's
-    ``livelinkface://`` URL, or a phone take's ``replay://`` URL, relative paths resolved; ``arkit_shapes``, an ARKit shape set on the basis's mesh, None: synthesised from
-    the basis's muscles, in ``arkit_shapes_units``)."""
+    ``livelinkface://`` URL, or a phone take's ``replay://`` URL, its folder resolved; ``arkit_shapes``, an ARKit
+    shape set on the basis's mesh, None: synthesised from the basis's muscles, in ``arkit_shapes_units``)."""
 
     kind: str = "cameras"
     url: str = "livelinkface://127.0.0.1:11111"
