@@ -175,3 +175,34 @@ def test_a_relative_replay_url_is_relative_to_the_session_file(tmp_path):
     path.parent.mkdir()
     path.write_text('[source]\nkind = "livelinkface"\nurl = "replay://takes/t1?realtime=0"\n')
     assert load_session(path).source.url == f"replay://{tmp_path / 'sub' / 'takes' / 't1'}?realtime=0"
+
+
+def test_the_demo_records_a_phone_take_that_run_replays(tmp_path):
+    import re
+
+    from click.testing import CliRunner
+
+    from livebridge.cli import main
+
+    take = tmp_path / "demo-take"
+    result = CliRunner().invoke(main, ["demo", "--source", "livelinkface", "--frames", "60", "--no-render",
+                                       "--no-servo", "--record", str(take)])
+    assert result.exit_code == 0, result.output
+    recorded = load_take_dir(take)
+    assert recorded.complete and recorded.n_frames >= 60 and recorded.arkit is not None
+    session = tmp_path / "replay.toml"
+    session.write_text(PHONE_SESSION.format(url="replay://demo-take?realtime=0"))  # relative to the session
+    result = CliRunner().invoke(main, ["run", str(session)])
+    assert result.exit_code == 0, result.output
+    assert int(re.search(r"packets solved: (\d+)", result.output).group(1)) == recorded.n_frames
+    assert re.search(rf"phone: {recorded.n_frames} datagrams, 0 lost, refused 0", result.output)
+
+
+def test_a_phone_take_replayed_as_cameras_says_how_to_replay_it(tmp_path):
+    from livebridge.take.replay import open_take
+
+    phone = SimulatedIPhone(("jaw",))
+    with TakeRecorder(tmp_path / "phone", ("jaw",), (), phone=True) as recorder:
+        recorder.record(phone.frame0, 1.0, np.array([0.5]), packet=phone.packet(phone.frame0))
+    with pytest.raises(InputError, match='a phone take has no camera frames.*url = "replay://'):
+        open_take(tmp_path / "phone")

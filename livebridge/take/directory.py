@@ -196,6 +196,9 @@ def markers_header(marker_names) -> list[str]:
 def raw_frames_folder(path: str | Path) -> Path:
     """The raw camera frames of the take directory ``path`` (an error names the take when it has none)."""
     frames = Path(path) / RAW_FRAMES
+    if not frames.is_dir() and is_take_dir(path) and load_manifest(path).get("source") == "livelinkface":
+        raise InputError("a phone take has no camera frames: solve it again with [source] kind = "
+                         '"livelinkface", url = "replay://TAKE_DIR"', path)
     if not frames.is_dir():
         raise InputError("this take was recorded without raw frames (recording.raw_frames = false); "
                          "it cannot be replayed through the cameras", path)
