@@ -23,6 +23,8 @@ from collections import Counter, deque
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from livebridge.arkit.packet import LiveLinkPacket
 from livebridge.arkit.receiver import Arrival
 from livebridge.devices.url import DeviceURL
@@ -111,7 +113,8 @@ class PhoneReplay:
         if not self.loop:
             self._ended = True
             return False
-        step = float(t[1] - t[0]) if len(t) > 1 else 1.0 / 60.0
+        steps = np.diff(t)
+        step = float(np.median(steps)) if len(steps) else 1.0 / 60.0  # the lap's last packet lasts a usual step
         self._lap_s += float(t[-1] - t[0]) + step
         self._index = 0
         return True
