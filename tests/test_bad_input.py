@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -434,6 +435,13 @@ SESSION_CASES = _toml_cases() + (
          ("source.arkit_shapes", ".npz")),
     Case("livelinkface shapes units", _phone('arkit_shapes_units = "inch"\n'),
          ("source.arkit_shapes_units", "inch")),
+    Case("livelinkface replay without a take", _phone('url = "replay://"\n'), ("source.url", "take folder")),
+    Case("livelinkface replay unknown parameter", _phone('url = "replay://take?speed=2"\n'),
+         ("source.url", "speed")),
+    Case("livelinkface replay of a missing take", _phone('url = "replay://nowhere"\n'),
+         ("nowhere", "no such take directory"), names_input=False),
+    Case("livelinkface raw frames", _text(_PHONE + '[recording]\nenabled = true\ndirectory = "takes"\n'
+                                          "raw_frames = true\n"), ("recording.raw_frames", "camera images")),
     Case("livelinkface shapes not ARKit names", _phone_shapes(names=["smile"]),
          ("source.arkit_shapes", "shapes.npz", "smile")),
     Case("livelinkface shapes on another mesh", _phone_shapes(vertices=5),
@@ -640,6 +648,79 @@ def _scans(path: Path, folder: Path) -> list[str]:
     return [arg.format(dir=folder) for arg in _SCANS] + ["--neutral", str(path), "--out", str(folder / "b.npz")]
 
 
+# ------------------------------------------------------------------------------------------------ phone takes
+# A phone take (take/, as the recorder writes it) replayed by a phone session (replay.toml): a case spoils one
+# of its files.
+def _phone_take(folder: Path) -> None:
+    from livebridge.simulators.iphone import SimulatedIPhone
+    from livebridge.take.recorder import TakeRecorder
+
+    phone = SimulatedIPhone(("jaw",))
+    with TakeRecorder(folder / "take", ("jaw",), (), phone=True) as recorder:
+        for k in range(3):
+            recorder.record(phone.frame0 + k, 10.0 + k / 60, np.array([0.1 * k]), packet=phone.packet(phone.frame0 + k))
+    (folder / "replay.toml").write_text('[source]\nkind = "livelinkface"\nurl = "replay://take?realtime=0"\n'
+                                        "[outputs.render]\nenabled = false\n")
+
+
+def _arkit_rows(change: Callable[[list[list[str]]], None]) -> Callable[[Path], None]:
+    """The take's good ``arkit.csv`` (header + rows as fields) changed by ``change``."""
+    def write(path: Path) -> None:
+        rows = [line.split(",") for line in path.read_text().splitlines()]
+        change(rows)
+        path.write_text("".join(",".join(row) + "\n" for row in rows))
+    return write
+
+
+def _set(line: int, column: str, value: str) -> Callable[[list[list[str]]], None]:
+    def change(rows: list[list[str]]) -> None:
+        rows[line - 1][rows[0].index(column)] = value
+    return change
+
+
+def _manifest(change: Callable[[str], str]) -> Callable[[Path], None]:
+    def write(path: Path) -> None:
+        path.write_text(change(path.read_text()))
+    return write
+
+
+PHONE_ARKIT_CASES = (
+    Case("missing", lambda path: path.unlink(), ("file not found",)),
+    Case("empty file", _text(""), ("empty file",)),
+    Case("header only", _arkit_rows(lambda rows: rows.__delitem__(slice(1, None))), ("no packets",)),
+    Case("not utf-8", _bytes(b"frame,seq\n\xff\n"), ("not UTF-8",)),
+    Case("header renamed", _arkit_rows(_set(1, "jawOpen", "jaw_open")), ("line 1", "jawOpen", "jaw_open")),
+    Case("a row short", _arkit_rows(lambda rows: rows[2].pop()), ("line 3", "fields")),
+    Case("weight NaN", _arkit_rows(_set(2, "eyeBlinkLeft", "nan")), ("line 2", "eyeBlinkLeft", "weight")),
+    Case("weight empty", _arkit_rows(_set(3, "jawOpen", "")), ("line 3", "jawOpen", "weight")),
+    Case("weight above 1", _arkit_rows(_set(2, "mouthClose", "1.5")), ("line 2", "mouthClose", "[0, 1]")),
+    Case("head turned past a quarter", _arkit_rows(_set(4, "headYaw", "-1.2")), ("line 4", "headYaw", "[-1, 1]")),
+    Case("eye rotation text", _arkit_rows(_set(2, "rightEyeRoll", "up")), ("line 2", "rightEyeRoll", "'up'")),
+    Case("sub-frame 1", _arkit_rows(_set(2, "sub_frame", "1")), ("line 2", "sub_frame", "[0, 1)")),
+    Case("rate 0", _arkit_rows(_set(3, "rate_numerator", "0")), ("line 3", "rate_numerator", "positive")),
+    Case("frame number fractional", _arkit_rows(_set(2, "frame_number", "12.5")), ("line 2", "frame_number",
+                                                                                  "integer")),
+    Case("time infinite", _arkit_rows(_set(2, "t", "inf")), ("line 2", "column 3 (t)")),
+)
+PHONE_MANIFEST_CASES = (
+    Case("a camera take", _manifest(lambda text: "\n".join(line for line in text.splitlines() if not line.startswith(
+        ("source", "arkit", "device_id", "subject"))).replace("version = 2", "version = 1") + "\n"),
+         ("arkit", "recorded from cameras")),
+    Case("version 1 with a phone", _manifest(lambda text: text.replace("version = 2", "version = 1")),
+         ("source", "version 1")),
+    Case("a newer version", _manifest(lambda text: text.replace("version = 2", "version = 3")),
+         ("version", "newer livebridge")),
+    Case("source unknown", _manifest(lambda text: text.replace('source = "livelinkface"', 'source = "android"')),
+         ("source", "android")),
+    Case("phone without arkit", _manifest(lambda text: text.replace('arkit = "arkit.csv"\n', "")), ("arkit",
+                                                                                                   "missing")),
+    Case("arkit outside the take", _manifest(lambda text: text.replace('"arkit.csv"', '"../arkit.csv"')),
+         ("arkit", "file name inside the take")),
+    Case("device id a number", _manifest(lambda text: re.sub(r'(?m)^device_id = ".*"$', "device_id = 5", text)),
+         ("device_id", "text")),
+)
+
+
 # ------------------------------------------------------------------------------------------------ markerless
 def _markerless_take(folder: Path) -> None:
     (folder / "frames").mkdir()
@@ -702,6 +783,10 @@ FORMATS = (
            CHARACTER_CASES, setup=_write_character_parts),
     Format("scan ply", "neutral.ply", _scans, PLY_CASES, setup=_write_scan_landmarks),
     Format("scan xyz", "neutral.xyz", _scans, XYZ_CASES, setup=_write_scan_landmarks),
+    Format("phone take arkit", "take/arkit.csv", lambda path, folder: ["run", str(folder / "replay.toml")],
+           PHONE_ARKIT_CASES, setup=_phone_take),
+    Format("phone take manifest", "take/take.toml", lambda path, folder: ["run", str(folder / "replay.toml")],
+           PHONE_MANIFEST_CASES, setup=_phone_take),
     Format("markerless model", "model.npz", lambda path, folder: ["markerless", "analyse", str(folder / "frames"),
                                                                   "--model", str(path)],
            MARKERLESS_MODEL_CASES, setup=_markerless_take),

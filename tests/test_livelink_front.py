@@ -177,7 +177,7 @@ def test_a_phone_session_file_builds_the_livelink_front_and_the_livelink_output(
         assert packet.subject == "Head" and np.isfinite(packet.values).all()
 
 
-@pytest.mark.parametrize("key", ["cameras", "recording"])
+@pytest.mark.parametrize("key", ["cameras"])  # [recording] is allowed: tests/test_livelink_take.py
 def test_a_phone_session_refuses_what_only_cameras_have(tmp_path, key):
     from livebridge.errors import InputError
     from livebridge.runtime.session import load_session

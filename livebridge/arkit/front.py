@@ -38,7 +38,9 @@ class LiveLinkFront:
     Parameters
     ----------
     receiver : LiveLinkReceiver
-        Open or not; :meth:`start` starts it.
+        Open or not; :meth:`start` starts it. Or a recorded phone take played back
+        (:class:`~livebridge.take.phone_replay.PhoneReplay`): the front is then as paced as the replay, and ends
+        with it.
     solver : ArkitSolver
     clock : callable
         Host monotonic seconds (the receiver's clock).
@@ -46,10 +48,10 @@ class LiveLinkFront:
 
     kind = "livelink"
     input_name = "phone"
-    realtime = True
 
     def __init__(self, receiver: LiveLinkReceiver, solver: ArkitSolver, clock: Callable[[], float] = time.monotonic):
         self.receiver, self.solver, self.clock = receiver, solver, clock
+        self.realtime = bool(receiver.realtime)
         self.muscle_names = tuple(solver.solver.basis.names)
         self.state = solver.initial_state()
         self.frames = 0
@@ -89,15 +91,15 @@ class LiveLinkFront:
                             contractions=contractions, held=result.held,
                             quality=(("residual upper mm", float(result.rms_error_mm[0])),
                                      ("residual lower mm", float(result.rms_error_mm[1]))),
-                            head_pose=head_pose_from_rotation(arrival.packet.head_rotation))
+                            head_pose=head_pose_from_rotation(arrival.packet.head_rotation), packet=arrival.packet)
         self.frames += 1
         self.cpu_s += time.thread_time() - t0
         return frame
 
     @property
     def ended(self) -> bool:
-        """A network source does not end by itself; only :meth:`stop` ends it."""
-        return self._stopped
+        """A network source does not end by itself (only :meth:`stop` ends it); a replayed take does."""
+        return self._stopped or self.receiver.ended
 
     def done(self, frame: SolvedFrame) -> None:
         """Nothing: the phone sends at its own pace."""

@@ -107,7 +107,12 @@ class LiveLinkReceiver:
         Refused datagrams by reason.
     lost : int
         Frame numbers skipped between accepted packets.
+    realtime : bool
+        Always: a phone sends at its own pace (a replayed take may not, see
+        :class:`~livebridge.take.phone_replay.PhoneReplay`).
     """
+
+    realtime = True
 
     def __init__(self, address: ReceiverAddress | str = ReceiverAddress(), clock: Callable[[], float] = time.monotonic):
         self.address = parse_receiver_url(address) if isinstance(address, str) else address
@@ -150,6 +155,11 @@ class LiveLinkReceiver:
         if self._socket is not None:
             self._socket.close()
             self._socket = None
+
+    @property
+    def ended(self) -> bool:
+        """Never: a phone may always send again."""
+        return False
 
     @property
     def bound(self) -> tuple[str, int]:

@@ -130,7 +130,7 @@ def run(session: str, frames: int | None, allow_remote: bool) -> None:
     _exit_on_camera_errors(summary)
 
 
-RIG_ONLY = ("cameras", "fps", "size", "unpaced", "record", "record_frames")
+RIG_ONLY = ("cameras", "fps", "size", "unpaced", "record_frames")
 
 
 @click.command()
@@ -153,7 +153,8 @@ RIG_ONLY = ("cameras", "fps", "size", "unpaced", "record", "record_frames")
 @click.option("--no-servo", is_flag=True, help="Leave out the simulated servo bus.")
 @click.option("--no-render", is_flag=True, help="Leave out the render client.")
 @click.option("--vmc", type=Destination(), default=None, help="Also send VMC/OSC blendshapes there.")
-@click.option("--record", type=NewFolder(), default=None, help="Record the take to this new folder.")
+@click.option("--record", type=NewFolder(), default=None,
+              help="Record the take to this new folder (a phone's: its packets too, replay://FOLDER solves it again).")
 @click.option("--record-frames", is_flag=True,
               help="With --record: also record the raw camera frames (replay them with replay://FOLDER).")
 @click.option("--markerless", is_flag=True,
@@ -197,7 +198,7 @@ def demo(ctx, source, frames, cameras, seed, fps, size, host, allow_remote, port
         raise click.BadParameter("the phone sends ARKit weights, not images", param_hint="--markerless")
     if source == "livelinkface":
         parts = build_livelink_demo(seed=seed, servo=not no_servo, render=not no_render, host=host, port=port,
-                                    vmc=vmc, log=_log, on_frame=to_outputs)
+                                    vmc=vmc, record=record, log=_log, on_frame=to_outputs)
     elif markerless:
         from livebridge.runtime.demo import build_markerless_demo
 

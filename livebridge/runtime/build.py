@@ -190,7 +190,7 @@ def build_pipeline(session: Session, log=print, on_frame=None):
     model = _markerless_model(session, basis) if session.markerless is not None else None
     if model is None:
         check_markers(markers, basis, session)
-    sources, cameras, realtime, fps = [], None, True, None  # a phone: no cameras (recording is refused)
+    sources, cameras, realtime, fps = [], None, True, None  # a phone: no cameras
     if session.source.kind == "cameras":
         log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
         if model is None:
@@ -225,9 +225,13 @@ def build_pipeline(session: Session, log=print, on_frame=None):
 
             name = session.recording.take_name or f"take-{datetime.datetime.now().strftime('%Y%m%d-%H%M%S')}"
             directory = session.recording.directory / name
-            recorder = TakeRecorder(directory, basis.names, markers.names, session.path, session.calibration,
-                                    fps=fps, record_frames=session.recording.raw_frames, cameras=cameras,
-                                    lossless_frames=not realtime, frame_format=session.recording.frame_format)
+            if front is not None:  # a phone: its packets, no markers (the fps is the packets')
+                recorder = TakeRecorder(directory, basis.names, (), session.path, record_displacements=False,
+                                        phone=True)
+            else:
+                recorder = TakeRecorder(directory, basis.names, markers.names, session.path, session.calibration,
+                                        fps=fps, record_frames=session.recording.raw_frames, cameras=cameras,
+                                        lossless_frames=not realtime, frame_format=session.recording.frame_format)
             opened.append(recorder.close)
             sources = recorder.wrap_sources(sources)
             log(f"recording to {directory}" + (" (with raw frames)" if session.recording.raw_frames else ""))
@@ -292,25 +296,45 @@ def load_arkit_shapes_for(session: Session, basis):
 
 
 def _livelink_front(session: Session, basis, markers, opened: list, log):
-    """The phone's front: the receiver bound now (a taken port fails here), the ARKit solver for the face."""
+    """The phone's front: the receiver bound now (a taken port fails here) or the recorded phone take read and
+    checked (``replay://``), then the ARKit solver for the face."""
     from livebridge.arkit.front import LiveLinkFront
-    from livebridge.arkit.receiver import LiveLinkReceiver
     from livebridge.arkit.solve import ArkitSolver
 
+    receiver = _phone_input(session, opened, log)
     try:
         solver = ArkitSolver(basis, markers, load_arkit_shapes_for(session, basis), session.solver)
     except InputError as error:
         if error.path is not None:
             raise
         raise InputError(error.message, session.path, "source.arkit_shapes") from None
-    receiver = LiveLinkReceiver(session.source.url)
+    return LiveLinkFront(receiver, solver)
+
+
+def _phone_input(session: Session, opened: list, log):
+    """The phone's packets: a bound :class:`~livebridge.arkit.receiver.LiveLinkReceiver`, or a phone take played
+    back (:class:`~livebridge.take.phone_replay.PhoneReplay`, for ``replay://`` URLs)."""
+    from livebridge.arkit.receiver import LiveLinkReceiver
+    from livebridge.take.phone_replay import SCHEME, open_phone_replay
+
+    url = session.source.url
+    if url.lower().startswith(f"{SCHEME}:"):
+        try:
+            replay = open_phone_replay(url)
+        except InputError as error:
+            if error.path is None or str(error.path) == url:  # about the URL itself
+                raise InputError(f"{url}: {error.message}", session.path, "source.url") from None
+            raise  # about the take's files: the error names the file and the field
+        log(f"set-up: replaying the phone take {replay.path} ({len(replay.track.t)} packets)")
+        return replay
+    receiver = LiveLinkReceiver(url)
     try:
         receiver.open()
     except InputError as error:
         raise InputError(error.message, session.path, "source.url") from None
     opened.append(receiver.stop)
     log(f"set-up: listening for Live Link Face on {receiver.url}")
-    return LiveLinkFront(receiver, solver)
+    return receiver
 
 
 def _markerless_model(session: Session, basis):

@@ -125,7 +125,7 @@ PHONE_NOISE = 0.02  # ARKit's frame-to-frame jitter on the weights, roughly (sta
 
 def build_livelink_demo(seed: int = 1, script: str = "mixed", noise: float = PHONE_NOISE, servo: bool = True,
                         render: bool = True, host: str = "127.0.0.1", port: int = 8765,
-                        vmc: tuple[str, int] | None = None, log=print, on_frame=None) -> DemoParts:
+                        vmc: tuple[str, int] | None = None, record=None, log=print, on_frame=None) -> DemoParts:
     """The Live Link Face demo (not started): a phone session on the built-in face, the receiver on a free
     loopback port, and the simulated iPhone that will send to it (``parts.phone``, not yet sending).
 
@@ -134,6 +134,8 @@ def build_livelink_demo(seed: int = 1, script: str = "mixed", noise: float = PHO
     seed, script : the performer's (:class:`~livebridge.simulators.performer.ContractionScript`)
     noise : float
         Gaussian noise on the phone's weights (standard deviation).
+    record : Path, optional
+        Record the take (the solved contractions and the phone's packets) to this new folder.
     servo, render, host, port, vmc, log, on_frame : as :func:`build_demo`'s
     """
     from livebridge.runtime.build import build_pipeline
@@ -145,7 +147,9 @@ def build_livelink_demo(seed: int = 1, script: str = "mixed", noise: float = PHO
                       servo_rig=demo_rig(DEMO_SERVO_URL) if servo else None,
                       render=RenderOptions(render, host, port),
                       vmc=VMCOptions(True, *vmc) if vmc is not None else VMCOptions(),
-                      source=SourceOptions("livelinkface", "livelinkface://127.0.0.1:0"))
+                      source=SourceOptions("livelinkface", "livelinkface://127.0.0.1:0"),
+                      recording=RecordingOptions(True, Path(record).parent, take_name=Path(record).name)
+                      if record is not None else RecordingOptions())
     score = None
 
     def both(frame):

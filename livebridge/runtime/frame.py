@@ -75,6 +75,9 @@ class SolvedFrame:
         Head model -> world (mm), where the front measures the head (LEDs, the phone's head rotation).
     regions : tuple or None
         Per co-articulation region state (markerless fronts), for the 2D character.
+    packet : LiveLinkPacket or None
+        The phone's packet the frame was solved from (Live Link Face fronts), recorded with a take so that it
+        can be solved again.
     """
 
     seq: int
@@ -92,3 +95,4 @@ class SolvedFrame:
     quality: tuple[tuple[str, float], ...] = ()
     head_pose: np.ndarray | None = None
     regions: tuple | None = None
+    packet: object | None = None

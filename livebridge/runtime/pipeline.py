@@ -405,7 +405,9 @@ class Pipeline:
             cpu += time.thread_time() - t0
             self.stats.cpu_front_s = cpu
         self._ended.set()
-        self._hand_over(None)
+        # the end waits for room, paced or not: it must not supersede the last frame (a take's last row)
+        if not self._queue.put_waiting(None, lambda: not self._outputs_gone.is_set()):
+            self._queue.put(None)
 
     def _outputs_loop(self) -> None:
         try:
@@ -438,7 +440,7 @@ class Pipeline:
                 output.send(frame)
             if self.recorder is not None:
                 self.recorder.record(frame.seq, timing.capture, frame.contractions, frame.positions_world,
-                                     frame.displacements, frame.region_errors)
+                                     frame.displacements, frame.region_errors, frame.packet)
             done = self.clock()
             frame = replace(frame, timing=replace(timing, outputs=done))
             self._count(frame)

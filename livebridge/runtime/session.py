@@ -11,10 +11,11 @@ puts them in that table)::
 
     [source]                      # optional; what the pipeline reads
     kind = "cameras"              # default: the [cameras] below; or "livelinkface": an iPhone running Live
-                                  # Link Face (then no [cameras], calibration or [recording]), with:
+                                  # Link Face (then no [cameras] or calibration), with:
     # url = "livelinkface://127.0.0.1:11111"   # where to listen (this default); the network is heard only
     #                             # on a named address: "livelinkface://0.0.0.0:11111"; "?device=ID" follows
-    #                             # one phone (default: the first heard)
+    #                             # one phone (default: the first heard); or a recorded phone take, solved
+    #                             # again: "replay://takes/take-20250101-120000?realtime=1&loop=0"
     # arkit_shapes = "face_region.npz"  # optional: ARKit-named shapes on the basis's mesh (.npz of names (n,)
     #                             # and deltas (n, V, 3), ICT-FaceKit's layout; ARKit names or NAME_L/NAME_R);
     #                             # default: synthesised from the basis's muscles
@@ -71,6 +72,7 @@ puts them in that table)::
     enabled = false
     directory = "takes"           # each run writes a new take directory inside
     raw_frames = false            # also the camera images: replay://takes/take-... runs the take again
+                                  # (a phone session records the phone's packets instead: always)
     frame_format = "pgm"          # raw images: "pgm" (uncompressed, keeps up live) or "png" (smaller, slow)
 
     # [markerless]                # instead of markers: ONE camera URL filming a bare face (no calibration)
@@ -115,8 +117,8 @@ SOURCE_KINDS = ("cameras", "livelinkface")
 @dataclass(frozen=True)
 class SourceOptions:
     """``[source]``: ``kind`` "cameras" (the session's ``camera_urls``) or "livelinkface" (``url``, the receiver's
-    ``livelinkface://`` URL; ``arkit_shapes``, an ARKit shape set on the basis's mesh, None: synthesised from
-    the basis's muscles, in ``arkit_shapes_units``)."""
+    ``livelinkface://`` URL, or a phone take's ``replay://`` URL, its folder resolved; ``arkit_shapes``, an ARKit
+    shape set on the basis's mesh, None: synthesised from the basis's muscles, in ``arkit_shapes_units``)."""
 
     kind: str = "cameras"
     url: str = "livelinkface://127.0.0.1:11111"
@@ -346,7 +348,7 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
             raise InputError("at most half a frame period", path, "cameras.sync_tolerance")
         cameras.check_known()
     else:
-        for key in ("cameras", "calibration", "recording"):
+        for key in ("cameras", "calibration"):
             if key in data:
                 raise InputError(f"a {source.kind} session has no {key} (the phone sends ARKit weights, "
                                  "not images)", path, key)
@@ -411,6 +413,9 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
                                  rec.get("raw_frames", bool, False), "." + rec.get("frame_format", str, "pgm"))
     if recording.enabled and recording.directory is None:
         raise InputError("recording is enabled: give the directory for takes", path, "recording.directory")
+    if recording.raw_frames and source.kind != "cameras":
+        raise InputError("raw frames are camera images; a phone sends none (its take records the phone's "
+                         "packets)", path, "recording.raw_frames")
     from livebridge.take.directory import FRAME_FORMATS
 
     if recording.frame_format not in FRAME_FORMATS:
@@ -431,9 +436,24 @@ def session_from_dict(data: dict, path: Path | None = None) -> Session:
                    display=display, display_mode=display_mode, source=source, markerless=markerless)
 
 
+def _phone_url(url: str, path: Path | None) -> str:
+    """A phone source's URL, checked: a receiver's, or a take's ``replay://`` (a relative take folder made
+    relative to the session file's)."""
+    from livebridge.arkit.receiver import parse_receiver_url
+    from livebridge.take.phone_replay import SCHEME, parse_replay_url
+
+    if not url.lower().startswith(f"{SCHEME}:"):
+        parse_receiver_url(url)
+        return url
+    take, _, _ = parse_replay_url(url)
+    if take.is_absolute() or path is None:
+        return url
+    query = url.partition("?")[2]
+    return f"{SCHEME}://{(path.parent / take).resolve()}" + (f"?{query}" if query else "")
+
+
 def _source(table: _Table, path: Path | None) -> SourceOptions:
     """``[source]``: the kind, and for a phone its receiver URL (checked now) and ARKit shape set."""
-    from livebridge.arkit.receiver import parse_receiver_url
     from livebridge.arkit.shapes import UNITS_TO_MM
 
     kind = table.get("kind", str, "cameras")
@@ -444,7 +464,7 @@ def _source(table: _Table, path: Path | None) -> SourceOptions:
         return SourceOptions()
     url = table.get("url", str, SourceOptions.url)
     try:
-        parse_receiver_url(url)
+        url = _phone_url(url, path)
     except InputError as error:
         inner = f"{error.field}: {error.message}" if error.field else error.message
         raise InputError(f"{url}: {inner}", path, "source.url") from None

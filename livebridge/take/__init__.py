@@ -9,6 +9,8 @@
 - :mod:`~livebridge.take.raw_frames`: raw camera frames on disk (image folders or videos and timestamp
   files) and their writer;
 - :mod:`~livebridge.take.replay`: raw frames played back as camera sources (``replay://``);
+- :mod:`~livebridge.take.phone`: a phone take's Live Link Face packets (``arkit.csv``), and
+  :mod:`~livebridge.take.phone_replay`: a phone take played back as the phone (``[source] url = "replay://..."``);
 - :mod:`~livebridge.take.trajectories`: :class:`~livebridge.take.trajectories.Trajectories` (labelled markers
   over time, any system) and ``read_trajectories`` / ``write_trajectories`` by suffix;
 - :mod:`~livebridge.take.c3d`: labelled markers as C3D (``markers.c3d``, ``livebridge take export-c3d``) and

@@ -32,6 +32,13 @@
     Copies of the files the take was recorded with (``calibration.toml`` is
     written from the cameras themselves when there is no file, e.g. for a
     simulated rig).
+``arkit.csv`` (a phone take, version 2)
+    The Live Link Face packets the contractions were solved from, one row per row of ``contractions.csv``
+    (:mod:`livebridge.take.phone`); the manifest then says ``source = "livelinkface"``, ``arkit``
+    (the file), and the phone's ``device_id`` and ``subject``. A phone take has no markers
+    (``marker_names = []``, ``markers.csv`` holds only ``frame,seq,t``) and no calibration;
+    ``[source] url = "replay://TAKE_DIR"`` solves it again through the pipeline. Takes from cameras stay
+    version 1.
 ``frames/`` (optional)
     Raw camera images in the format of :mod:`livebridge.take.raw_frames`: per camera
     ``frames/<camera>/000000.pgm ...`` (uncompressed binary PGM by default: ~1 ms
@@ -59,10 +66,13 @@ from pathlib import Path
 import numpy as np
 
 from livebridge.errors import InputError
+from livebridge.take.phone import ArkitTrack, parse_arkit
 from livebridge.tomlio import load_toml, save_toml
 
 TAKE_DIR_FORMAT = "livebridge-take-dir"
-TAKE_DIR_VERSION = 1
+TAKE_DIR_VERSION = 2  # 2: phone takes (source, arkit, device_id, subject); camera takes are still written as 1
+PHONE_VERSION = 2
+SOURCES = ("cameras", "livelinkface")
 MANIFEST = "take.toml"
 CONTRACTIONS = "contractions.csv"
 MARKERS = "markers.csv"
@@ -80,7 +90,7 @@ def is_take_dir(folder: str | Path) -> bool:
 def new_manifest(muscle_names, marker_names, fps: float | None) -> dict:
     """The manifest of a take directory just created (now as its ``created`` time)."""
     manifest = {
-        "format": TAKE_DIR_FORMAT, "version": TAKE_DIR_VERSION,
+        "format": TAKE_DIR_FORMAT, "version": 1,  # what a camera take needs (older livebridge reads it)
         "created": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
         "units": "mm", "muscle_names": list(muscle_names), "marker_names": list(marker_names),
     }
@@ -147,7 +157,12 @@ MANIFEST_KEYS = {  # key: (required, check, what the check wants)
     "frames_dropped": (False, _is_count, "a count (integer >= 0)"),
     "t0": (False, _is_number, "a finite number of seconds"),
     "frames": (False, _is_count, "a count (integer >= 0)"),
+    "source": (False, lambda v: v in SOURCES, f"one of {', '.join(map(repr, SOURCES))}"),
+    "arkit": (False, _is_file_name, "a file name inside the take"),
+    "device_id": (False, lambda v: isinstance(v, str), "the phone's device id (text)"),
+    "subject": (False, lambda v: isinstance(v, str), "the phone's subject name (text)"),
 }
+PHONE_KEYS = ("source", "arkit", "device_id", "subject")  # version 2 on
 
 
 def _check_manifest(file: Path, manifest: dict) -> None:
@@ -160,6 +175,12 @@ def _check_manifest(file: Path, manifest: dict) -> None:
                 raise InputError(f"missing (expected {wanted})", file, key)
         elif not check(manifest[key]):
             raise InputError(f"expected {wanted}, got {manifest[key]!r:.80}", file, key)
+    newer = [key for key in PHONE_KEYS if key in manifest and manifest["version"] < PHONE_VERSION]
+    if newer:
+        raise InputError(f"a version {manifest['version']} take has no {newer[0]} (phone takes are version "
+                         f"{PHONE_VERSION})", file, newer[0])
+    if manifest.get("source") == "livelinkface" and "arkit" not in manifest:
+        raise InputError("missing: a phone take names its ARKit file (arkit = \"arkit.csv\")", file, "arkit")
 
 
 def contractions_header(muscle_names) -> list[str]:
@@ -175,6 +196,9 @@ def markers_header(marker_names) -> list[str]:
 def raw_frames_folder(path: str | Path) -> Path:
     """The raw camera frames of the take directory ``path`` (an error names the take when it has none)."""
     frames = Path(path) / RAW_FRAMES
+    if not frames.is_dir() and is_take_dir(path) and load_manifest(path).get("source") == "livelinkface":
+        raise InputError("a phone take has no camera frames: solve it again with [source] kind = "
+                         '"livelinkface", url = "replay://TAKE_DIR"', path)
     if not frames.is_dir():
         raise InputError("this take was recorded without raw frames (recording.raw_frames = false); "
                          "it cannot be replayed through the cameras", path)
@@ -208,6 +232,9 @@ class RecordedTake:
     manifest : dict
     complete : bool
         False when the take was cut short (no final manifest, or a torn last line).
+    arkit : ArkitTrack or None
+        A phone take's packets (:mod:`livebridge.take.phone`), row for row with the contractions; None for a
+        take from cameras.
     """
 
     path: Path
@@ -221,6 +248,7 @@ class RecordedTake:
     marker_names: tuple[str, ...]
     manifest: dict
     complete: bool
+    arkit: ArkitTrack | None = None
 
     @property
     def n_frames(self) -> int:
@@ -244,6 +272,11 @@ def read_text(path: Path) -> str:
         raise InputError(f"not UTF-8 text (byte {error.start})", path) from None
     except OSError as error:
         raise InputError(f"cannot read ({error.strerror})", path) from None
+
+
+def read_arkit(path: str | Path) -> ArkitTrack:
+    """A phone take's ``arkit.csv`` at ``path``, read and checked (:func:`livebridge.take.phone.parse_arkit`)."""
+    return parse_arkit(path, read_text(Path(path)))
 
 
 def _read_csv(path: Path, header: list[str]) -> tuple[np.ndarray, bool]:
@@ -304,19 +337,26 @@ def load_take_dir(path: str | Path) -> RecordedTake:
     d_rows, torn_d = None, False
     if (path / DISPLACEMENTS).exists():
         d_rows, torn_d = _read_csv(path / DISPLACEMENTS, markers_header(markers))
-    n = min(len(c_rows), len(m_rows), len(d_rows) if d_rows is not None else len(c_rows))
+    arkit = read_arkit(path / manifest["arkit"]) if "arkit" in manifest else None
+    n = min(len(c_rows), len(m_rows), len(d_rows) if d_rows is not None else len(c_rows),
+            len(arkit.t) if arkit is not None else len(c_rows))
     c_rows, m_rows = c_rows[:n], m_rows[:n]
     if not np.array_equal(c_rows[:, :2], m_rows[:, :2]):
         raise InputError(f"{CONTRACTIONS} and {MARKERS} disagree on frame numbers", path)
+    if arkit is not None:
+        arkit = arkit.head(n)
+        if not (np.array_equal(c_rows[:, 0], arkit.frame) and np.array_equal(c_rows[:, 1], arkit.seq)):
+            raise InputError(f"{CONTRACTIONS} and {manifest['arkit']} disagree on frame numbers", path)
     displacements = None
     if d_rows is not None:
         displacements = d_rows[:n, 3:].reshape(n, len(markers), 3)
-    complete = "frames" in manifest and manifest["frames"] == n and not (torn_c or torn_m or torn_d)
+    complete = ("frames" in manifest and manifest["frames"] == n
+                and not (torn_c or torn_m or torn_d or (arkit is not None and arkit.torn)))
     return RecordedTake(
         path=path, seq=c_rows[:, 1].astype(np.int64), t=c_rows[:, 2],
         contractions=c_rows[:, 3:3 + len(muscles)], region_errors=c_rows[:, 3 + len(muscles):],
         markers=m_rows[:, 3:].reshape(n, len(markers), 3), displacements=displacements,
-        muscle_names=muscles, marker_names=markers, manifest=manifest, complete=complete,
+        muscle_names=muscles, marker_names=markers, manifest=manifest, complete=complete, arkit=arkit,
     )
 
 

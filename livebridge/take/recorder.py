@@ -28,12 +28,14 @@ from livebridge.take.directory import (
     DISPLACEMENTS,
     FRAME_FORMATS,
     MARKERS,
+    PHONE_VERSION,
     RAW_FRAMES,
     contractions_header,
     markers_header,
     new_manifest,
     save_manifest,
 )
+from livebridge.take.phone import ARKIT, arkit_header, arkit_row
 from livebridge.take.raw_frames import RawFrameWriter
 
 
@@ -71,6 +73,11 @@ def _fmt(values: np.ndarray, digits: int) -> str:
     return ",".join("" if v != v else f"{v:.{digits}f}" for v in np.asarray(values, dtype=np.float64).ravel().tolist())
 
 
+def _line(lead: str, fields: str) -> str:
+    """A CSV line: the lead columns, then ``fields`` unless there are none (a take without markers)."""
+    return f"{lead},{fields}\n" if fields else f"{lead}\n"
+
+
 class TakeRecorder:
     """Writes a take directory while the pipeline runs.
 
@@ -100,6 +107,10 @@ class TakeRecorder:
         cameras can wait; a live camera cannot, so the default drops and counts).
     frame_queue : int
         Raw frames waiting for the disk beyond which a new frame set is dropped.
+    phone : bool
+        A phone take: also write each frame's Live Link Face packet (``arkit.csv``, :mod:`livebridge.take.phone`;
+        :meth:`record` then needs ``packet``), the phone's device id and subject and, without ``fps``, the
+        packets' frame rate in the manifest.
     clock : callable () -> float
         Monotonic seconds, for the flush timing (tests pass a fake one).
     """
@@ -107,7 +118,7 @@ class TakeRecorder:
     def __init__(self, path: str | Path, muscle_names, marker_names, session_file=None, calibration_file=None,
                  fps: float | None = None, record_displacements: bool = True, record_frames: bool = False,
                  flush_interval: float = 0.5, cameras=None, lossless_frames: bool = False, frame_queue: int = 64,
-                 frame_format: str = ".pgm", clock: Callable[[], float] = time.monotonic):
+                 frame_format: str = ".pgm", phone: bool = False, clock: Callable[[], float] = time.monotonic):
         self.path = Path(path)
         if self.path.exists() and (not self.path.is_dir() or any(self.path.iterdir())):
             raise InputError("the take directory exists and is not empty; choose a new one", self.path)
@@ -122,12 +133,15 @@ class TakeRecorder:
         self.flush_interval = flush_interval
         self._clock = clock
         self._manifest = new_manifest(self.muscle_names, self.marker_names, fps)
+        if phone:
+            self._manifest.update(version=PHONE_VERSION, source="livelinkface", arkit=ARKIT)
         self._copy_inputs(session_file, calibration_file, cameras)
         save_manifest(self.path, self._manifest)
         self._contractions = _CsvStream(self.path / CONTRACTIONS, contractions_header(self.muscle_names))
         self._markers = _CsvStream(self.path / MARKERS, markers_header(self.marker_names))
         self._displacements = _CsvStream(self.path / DISPLACEMENTS, markers_header(self.marker_names)) \
             if record_displacements else None
+        self._arkit = _CsvStream(self.path / ARKIT, arkit_header()) if phone else None
         self._frame_writer: RawFrameWriter | None = None
         self._frame_queue: queue.Queue | None = None
         self._frames_lock = threading.Lock()  # frame-set decisions and frames_dropped: reader threads share them
@@ -164,7 +178,8 @@ class TakeRecorder:
             self._manifest["calibration"] = "calibration.toml"
 
     def record(self, seq: int, t: float, contractions: np.ndarray, markers: np.ndarray | None = None,
-               displacements: np.ndarray | None = None, region_errors=(float("nan"), float("nan"))) -> None:
+               displacements: np.ndarray | None = None, region_errors=(float("nan"), float("nan")),
+               packet=None) -> None:
         """Append one frame set.
 
         Parameters
@@ -179,20 +194,35 @@ class TakeRecorder:
             Displacements in the model frame, mm; NaN unseen.
         region_errors : (float, float)
             RMS marker error of the upper and lower solve, mm.
+        packet : LiveLinkPacket, optional
+            The phone's packet the frame was solved from (needed by a phone take, ignored otherwise).
         """
         if self._closed:
             raise RuntimeError("the recorder is closed")
+        if self._arkit is not None and packet is None:
+            raise ValueError("a phone take records the packet of every frame")
         if self._t0 is None:
             self._t0 = float(t)
         frame = self.frames
-        lead = f"{frame},{int(seq)},{t:.6f},"
-        self._contractions.append(lead + _fmt(contractions, 6) + "," + _fmt(region_errors, 4) + "\n")
-        n = len(self.marker_names)
-        blank = ",".join([""] * (3 * n))
-        self._markers.append(lead + (blank if markers is None else _fmt(markers, 4)) + "\n")
+        lead = f"{frame},{int(seq)},{t:.6f}"
+        self._contractions.append(f"{lead},{_fmt(contractions, 6)},{_fmt(region_errors, 4)}\n")
+        blank = ",".join([""] * (3 * len(self.marker_names)))
+        self._markers.append(_line(lead, blank if markers is None else _fmt(markers, 4)))
         if self._displacements is not None:
-            self._displacements.append(lead + (blank if displacements is None else _fmt(displacements, 4)) + "\n")
+            self._displacements.append(_line(lead, blank if displacements is None else _fmt(displacements, 4)))
+        if self._arkit is not None:
+            if self.frames == 0:
+                self._name_phone(packet)
+            self._arkit.append(f"{lead},{arkit_row(packet)}\n")
         self.frames += 1
+
+    def _name_phone(self, packet) -> None:
+        """The phone of a phone take (its first packet's) in the manifest, on disk now: a crash keeps it."""
+        numerator, denominator = packet.rate
+        self._manifest.update(device_id=packet.device_id, subject=packet.subject)
+        if "fps" not in self._manifest and numerator > 0 and denominator > 0:
+            self._manifest["fps"] = numerator / denominator
+        save_manifest(self.path, self._manifest)
 
     def record_frames(self, frames) -> None:
         """Queue raw camera frames (:class:`~livebridge.capture.frame.Frame`) for the ``frames/`` take.
@@ -269,9 +299,11 @@ class TakeRecorder:
         self._frame_writer.write(frame)
 
     def _flush_all(self, sync: bool = False) -> None:
-        for stream in (self._contractions, self._markers, self._displacements):
-            if stream is not None:
-                stream.flush(sync)
+        for stream in self._streams():
+            stream.flush(sync)
+
+    def _streams(self) -> list[_CsvStream]:
+        return [s for s in (self._contractions, self._markers, self._displacements, self._arkit) if s is not None]
 
     def close(self) -> None:
         """Write everything still pending, fsync, and close the files (idempotent)."""
@@ -286,9 +318,8 @@ class TakeRecorder:
                     self._write_image(self._frame_queue.get_nowait())
                 except queue.Empty:
                     break
-        for stream in (self._contractions, self._markers, self._displacements):
-            if stream is not None:
-                stream.close()
+        for stream in self._streams():
+            stream.close()
         if self._frame_writer is not None:
             self._frame_writer.close()
             with self._frames_lock:
