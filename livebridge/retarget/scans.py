@@ -15,9 +15,11 @@ is the muscle's element.
 That geometry fixes the motion normal to the skin; the motion ALONG the skin (most of a brow raise, a smile)
 it knows only at the landmarks. When the scans carry colour, the skin's pattern is tracked from the neutral
 to each expression (:mod:`~livebridge.retarget.skin_flow`, starting from the geometric warp) on a finer
-image of both scans, and each grid vertex moves to the expressive surface where its skin went; where the
-skin cannot be tracked (occluded, a hole, no pattern) the geometric warp stays. The skin that did not move
-then corrects the shape-only rigid registration (which can slide a fraction of a mm along the face).
+image of both scans, and each grid vertex moves to the expressive surface where its skin went. Where the skin
+cannot be tracked (occluded, a hole, no pattern, gone out of the frontal scanner's view) the tracked skin's
+motion is carried over by a spline through it, with the lips' seam cut (:mod:`~livebridge.retarget.seams`:
+nothing is smoothed or carried from one lip to the other). The skin that did not move then corrects the
+shape-only rigid registration (which can slide a fraction of a mm along the face).
 """
 
 from __future__ import annotations
