@@ -103,3 +103,32 @@ def test_smoothing_does_not_reach_across_the_seam():
     far = (np.abs(xx) > 40) & (xx > -44)
     np.testing.assert_allclose(smoothed[far], plain[far], atol=1e-3)
     assert cover[:, 10].max() < 0.6
+
+
+@pytest.mark.parametrize("degrees", [0.0, 20.0])
+def test_the_seam_moves_onto_the_groove_between_the_lips(degrees):
+    """Landmarks 1 mm off the lips' line: the seam follows the deepest crease of the surface instead (sides
+    right at 0.3 mm from it), and the middle of the gap where the lips are apart."""
+    from livebridge.retarget.grid import FaceGrid
+
+    landmarks = _turned(MOUTH, degrees)
+    true_line = LipSeam.from_landmarks(landmarks)
+    x = np.arange(-60.0, 60.01, 0.5)
+    y = np.arange(-80.0, 0.01, 0.5)
+    xx, yy = np.meshgrid(x, y)
+    xy = np.column_stack([xx.ravel(), yy.ravel()])
+    width, along, up = true_line._frame()
+    u = np.clip((xy - true_line.right) @ along / width, 0.0, 1.0)
+    across = (xy - true_line.right) @ up - true_line._seam_v(u)  # mm above the true line
+    heights = (-np.abs(xy[:, 0]) / 10.0 - 3.0 * np.exp(-across ** 2 / (2 * 0.8 ** 2))).reshape(xx.shape)
+    lifted = {name: p + np.r_[1.0 * up, 0.0] for name, p in landmarks.items()}  # the landmarks 1 mm too high
+    seam = LipSeam.from_landmarks(lifted)
+    for apart in (False, True):
+        grid = FaceGrid(x, y, np.where((np.abs(across) < 1.0).reshape(xx.shape), np.nan, heights) if apart
+                        else heights)
+        refined = seam.along_groove(grid)
+        probe_u = np.linspace(0.15, 0.85, 25)
+        for offset, expected in ((0.3, True), (-0.3, False)):
+            points = _on_seam(landmarks, probe_u, offset)
+            assert (refined.sides(points)[0] == expected).all(), (apart, offset)
+        assert not seam.sides(_on_seam(landmarks, probe_u, 0.3))[0].any()  # the landmarks alone: 1 mm off

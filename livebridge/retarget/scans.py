@@ -169,7 +169,7 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
         return geometric
     spacing = np.nanmax([neutral.point_spacing, expression.point_spacing, 0.0])
     smooth = SMOOTH_SPACINGS * (spacing if spacing > 0 else TYPICAL_SPACING_MM)
-    seam = LipSeam.from_landmarks(neutral.landmarks)  # the lips part: nothing is smoothed or carried across
+    seam = _lip_seam(neutral)
     element, trust = skin_motion(neutral.skin, expression.skin, neutral.grid, neutral.skin_factor,
                                  neutral.skin_margin, geometric, smooth, seam)
     # Where the skin was not tracked, the motion of the tracked skin around it is a better guess than the
@@ -180,6 +180,16 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
         element = element + (1.0 - trust)[:, None] * (fallback - geometric)
     correction = still_skin_correction(neutral.vertices, element, trust)
     return apply(correction, neutral.vertices + element) - neutral.vertices
+
+
+def _lip_seam(neutral: FaceScan) -> LipSeam | None:
+    """Where the neutral's lips meet (None without its mouth landmarks): nothing is smoothed or carried across
+    it, since an opened mouth takes the lips apart. From the landmarks, moved onto the groove between the lips
+    (the skin image's depth), which is more exact than a landmark."""
+    seam = LipSeam.from_landmarks(neutral.landmarks)
+    if seam is None:
+        return None
+    return seam.along_groove(neutral.skin if neutral.skin is not None else neutral.grid)
 
 
 def _carried(neutral: FaceScan, motion: np.ndarray, trust: np.ndarray, stride: int, kernel: Kernel | str,

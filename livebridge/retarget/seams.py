@@ -22,6 +22,10 @@ TAPER_MM = 6.0
 """Past a mouth corner, a point's own side counts fully at the corner and not at all this far beyond it."""
 CORNERS = ("mouth_corner_R", "mouth_corner_L")
 INNER_LIPS = ("lip_upper_inner", "lip_lower_inner")
+GROOVE_WINDOW_MM = 2.0
+"""How far across the landmarks' seam the groove between the lips is looked for (their noise: ~0.5 mm)."""
+GROOVE_MEDIAN_MM = 3.0
+"""The groove's offsets are median-filtered over this length along the seam (the scanner's noise)."""
 MIN_PIECE_POINTS = 10
 """A side with fewer points than this is not fitted on its own (the whole face's fit stands in)."""
 
@@ -37,12 +41,17 @@ class LipSeam:
     middle : ndarray, shape (2,)
         Between the inner lip landmarks.
     taper_mm : float
+    groove : ndarray, shape (k,), or None
+        How far the seam is above the parabola through the corners and ``middle`` (mm, along the up
+        direction) at ``k`` evenly spaced points from the right corner to the left one (see
+        :meth:`along_groove`); None: on the parabola.
     """
 
     right: np.ndarray
     left: np.ndarray
     middle: np.ndarray
     taper_mm: float = TAPER_MM
+    groove: np.ndarray | None = None
 
     @classmethod
     def from_landmarks(cls, landmarks: dict[str, np.ndarray], taper_mm: float = TAPER_MM) -> LipSeam | None:
@@ -54,6 +63,49 @@ class LipSeam:
             return None
         middle = 0.5 * sum(np.asarray(landmarks[name], dtype=np.float64)[:2] for name in INNER_LIPS)
         return cls(right, left, middle, float(taper_mm))
+
+    def _frame(self) -> tuple[float, np.ndarray, np.ndarray]:
+        """(corner distance, unit vector from the right corner to the left, unit up vector)."""
+        width = float(np.linalg.norm(self.left - self.right))
+        along = (self.left - self.right) / width
+        up = np.array([-along[1], along[0]])
+        return width, along, (up if up[1] >= 0 else -up)
+
+    def _seam_v(self, u: np.ndarray) -> np.ndarray:
+        """The seam's offset along the up direction at ``u`` in [0, 1] (0 at the right corner, 1 at the left)."""
+        width, along, up = self._frame()
+        u_mid = float(np.clip((self.middle - self.right) @ along / width, 0.05, 0.95))
+        v = float((self.middle - self.right) @ up) * u * (1.0 - u) / (u_mid * (1.0 - u_mid))
+        if self.groove is not None:
+            v = v + np.interp(u, np.linspace(0.0, 1.0, len(self.groove)), self.groove)
+        return v
+
+    def along_groove(self, grid, window_mm: float = GROOVE_WINDOW_MM, step_mm: float = 0.5) -> LipSeam:
+        """This seam moved onto the groove where the closed lips meet.
+
+        Between the corners, the seam goes through the deepest point (lowest z: the face looks along +z) of
+        ``grid`` (a :class:`~livebridge.retarget.grid.FaceGrid`) within ``window_mm`` of this seam across it
+        (the landmarks are off by their noise); where there is no surface there (the lips apart), through the
+        middle of the gap. The offsets are median-filtered along the seam and fade to nothing at the corners
+        (landmarks themselves)."""
+        from scipy.ndimage import map_coordinates, median_filter
+
+        width, along, up = self._frame()
+        u = np.linspace(0.0, 1.0, max(int(np.ceil(width / step_mm)) + 1, 3))
+        across = np.arange(-window_mm, window_mm + 1e-9, step_mm / 4)
+        on_seam = self.right + u[:, None] * width * along + self._seam_v(u)[:, None] * up  # (k, 2)
+        xy = on_seam[:, None, :] + across[None, :, None] * up  # (k, m, 2)
+        rows = (xy[..., 1] - grid.y[0]) / (grid.y[1] - grid.y[0])
+        cols = (xy[..., 0] - grid.x[0]) / (grid.x[1] - grid.x[0])
+        z = map_coordinates(grid.heights, [rows.ravel(), cols.ravel()], order=1, cval=np.nan).reshape(rows.shape)
+        depth = np.where(np.isfinite(z), z, -np.inf)  # no surface: the lips are apart there
+        deepest = depth <= depth.min(axis=1, keepdims=True)
+        offset = (deepest * across).sum(axis=1) / deepest.sum(axis=1)
+        offset = median_filter(offset, size=int(GROOVE_MEDIAN_MM / step_mm) | 1, mode="nearest")
+        offset *= np.clip(np.minimum(u, 1.0 - u) * width / window_mm, 0.0, 1.0)
+        if self.groove is not None:
+            offset = offset + np.interp(u, np.linspace(0.0, 1.0, len(self.groove)), self.groove)
+        return LipSeam(self.right, self.left, self.middle, self.taper_mm, offset)
 
     def sides(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Which side each point is on and how much that counts.
@@ -70,18 +122,11 @@ class LipSeam:
             1 between the corners (along the corner-to-corner line), falling linearly to 0 at ``taper_mm``
             beyond them.
         """
-        width = float(np.linalg.norm(self.left - self.right))
-        along = (self.left - self.right) / width
-        up = np.array([-along[1], along[0]])
-        if up[1] < 0:
-            up = -up
+        width, along, up = self._frame()
         relative = np.asarray(xy, dtype=np.float64) - self.right
         u = relative @ along / width
         v = relative @ up
-        u_mid = float(np.clip((self.middle - self.right) @ along / width, 0.05, 0.95))
-        v_mid = float((self.middle - self.right) @ up)
-        inside = np.clip(u, 0.0, 1.0)
-        seam_v = v_mid * inside * (1.0 - inside) / (u_mid * (1.0 - u_mid))
+        seam_v = self._seam_v(np.clip(u, 0.0, 1.0))
         beyond = np.maximum(-u, u - 1.0) * width
         strength = np.clip(1.0 - np.maximum(beyond, 0.0) / max(self.taper_mm, 1e-9), 0.0, 1.0)
         return v > seam_v, strength
