@@ -291,7 +291,7 @@ def test_skin_tracking_measures_the_motion_along_the_skin(ict_scan_figures):
 
 def test_scan_basis_surface_away_from_the_lips_and_eyelids(ict_scan_figures):
     """The expression the built basis gives lies on the true expressive surface within 10% of the element's
-    RMS motion for the brow and the smile (measured 0.063 and 0.047 here)."""
+    RMS motion for the brow and the smile (measured 0.063 and 0.048 here)."""
     figures = ict_scan_figures
     for name in ("frontalis_L", "zygomatic_major_L"):
         assert figures.surface[figures.names.index(name)] <= ERROR_LIMIT, name
@@ -317,9 +317,10 @@ def test_scan_basis_eyelids(ict_scan_figures):
 
 
 @pytest.mark.xfail(strict=True, reason="open: with colour 0.10-0.21 relative RMS per element at 60k points a "
-                   "scan (3 of 16 within 0.10), 0.06-0.15 at 150k (7 of 16), the eyelids 0.60-0.75 (without colour "
+                   "scan (3 of 16 within 0.10), 0.06-0.15 at 150k (8 of 16), the eyelids 0.60-0.75 (without colour "
                    "0.33-1.55; `livebridge bench scans`): the flow's noise (depressor_anguli_oris, lips_pressor, "
-                   "risorius), the skin under an opened jaw's chin that no frontal scan sees (jaw 0.11), the eyelids")
+                   "risorius), the skin under an opened jaw's chin that no frontal scan sees (jaw 0.11 / 0.09), "
+                   "the eyelids")
 def test_scan_basis_reproduces_the_ict_elements_within_10_percent(ict_scan_figures):
     figures = ict_scan_figures
     assert np.nanmax(figures.errors) <= ERROR_LIMIT, dict(zip(figures.names, np.round(figures.errors, 3)))
