@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from livebridge.errors import InputError
+
 TAPER_MM = 6.0
 """Past a mouth corner, a point's own side counts fully at the corner and not at all this far beyond it."""
 CORNERS = ("mouth_corner_R", "mouth_corner_L")
@@ -156,7 +158,10 @@ class LipSeam:
             member = shared | (upper == side)
             if member.sum() < MIN_PIECE_POINTS or member.all():
                 return whole
-            pieces[side] = fit(start[member], end[member])
+            try:
+                pieces[side] = fit(start[member], end[member])
+            except InputError:  # that side's points are degenerate (on one plane): the whole face's warp serves
+                return whole
 
         def warp(points: np.ndarray) -> np.ndarray:
             above, weight = self.sides(points[:, :2])
@@ -214,8 +219,7 @@ class LipSeam:
             for k, v in enumerate(values):
                 own_mean[k][at] = (blur(v * weight * piece) / np.maximum(density, 1e-9))[at]
             own_cover[at] = (density / np.maximum(area, 1e-9))[at]
-        has_own = own_cover > 1e-6
-        blend = np.where(has_own, strength, 0.0)
+        blend = strength  # no skin of its own side around: not tracked (nothing taken from the other lip)
         sums = [blend * o + (1.0 - blend) * m for o, m in zip(own_mean, mean)]
         cover = np.clip(blend * own_cover + (1.0 - blend) * cover, 0.0, 1.0)
         return sums, np.ones_like(cover), cover
