@@ -128,7 +128,7 @@ def _dis():
 
 
 def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: FaceGrid, factor: int, margin: int,
-                first_guess: np.ndarray, smooth_mm: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+                first_guess: np.ndarray, smooth_mm: float = 2.0, seam=None) -> tuple[np.ndarray, np.ndarray]:
     """The 3D motion of the ``neutral`` grid's vertices from skin tracking, and its trust.
 
     Parameters
@@ -142,6 +142,8 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
         The geometric estimate of the motion of ``neutral``'s vertices.
     smooth_mm : float
         Gaussian sigma of the smoothing of the tracked motion (see :data:`SMOOTH_SPACINGS`).
+    seam : LipSeam, optional
+        The smoothing does not reach across it (:mod:`~livebridge.retarget.seams`).
 
     Returns
     -------
@@ -164,6 +166,9 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
               (xy[..., 0] * weight, xy[..., 1] * weight, np.nan_to_num(dz) * weight)]
     density = _masked_blur(weight, weight > 0, sigma)
     density_all = cv2.GaussianBlur(weight.astype(np.float32), (0, 0), sigma)
+    if seam is not None:
+        smooth, density, density_all = seam.smoothed(neutral_fine.x, neutral_fine.y, [xy[..., 0], xy[..., 1], dz],
+                                                     np.where(good, weight, 0.0), sigma)
     start = margin * factor
     coarse = (slice(start, start + (neutral.shape[0] - 1) * factor + 1, factor),
               slice(start, start + (neutral.shape[1] - 1) * factor + 1, factor))
