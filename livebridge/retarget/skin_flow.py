@@ -39,6 +39,13 @@ spacing 0.35 mm). Measured in `livebridge bench scans`: 3 mm beat 2 mm at 60k po
 error 0.157 against 0.170 over the 14 elements besides the eyelids) and 2 mm beat 3 mm at 150k (spacing 0.23 mm)."""
 PASSES = 2
 """Flow passes, each starting from the last one's motion (the first from the geometric warp)."""
+ROBUST_ROUNDS = 3
+ROBUST_C = 3.0
+PRE_BLUR_MM = 0.0
+PATCH_PX = 0
+"""DIS patch size (0: preset default)."""
+PATCH_STRIDE = 0.25
+"""DIS patch stride as a fraction of the patch."""
 STILL_FRACTION = 0.4
 """The fraction of the face taken as not moved by an expression when the registration is corrected."""
 
@@ -57,6 +64,8 @@ def skin_image(grid: FaceGrid) -> tuple[np.ndarray, np.ndarray]:
     its valid mask."""
     valid = np.isfinite(grid.heights) & np.isfinite(grid.colours).all(axis=2)
     luminance = np.where(valid, np.nan_to_num(grid.colours) @ np.array([0.299, 0.587, 0.114]), 0.0)
+    if PRE_BLUR_MM > 0:
+        luminance = _masked_blur(luminance, valid, PRE_BLUR_MM / grid.spacing)
     sigma = CONTRAST_MM / grid.spacing
     mean = _masked_blur(luminance, valid, sigma)
     detail = np.where(valid, luminance - mean, 0.0)
@@ -124,6 +133,9 @@ def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray) -> tu
 def _dis():
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     dis.setFinestScale(0)
+    if PATCH_PX:
+        dis.setPatchSize(int(PATCH_PX))
+        dis.setPatchStride(max(1, int(round(PATCH_PX * PATCH_STRIDE))))
     return dis
 
 
@@ -160,20 +172,45 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
     good = (trust > 0) & np.isfinite(dz)
     weight = np.where(good, trust, 0.0)
     sigma = smooth_mm / step
-    smooth = [_masked_blur(np.where(good, channel, 0.0), weight > 0, sigma) for channel in
-              (xy[..., 0] * weight, xy[..., 1] * weight, np.nan_to_num(dz) * weight)]
-    density = _masked_blur(weight, weight > 0, sigma)
+    values = np.dstack([xy, np.nan_to_num(dz)])
+    smooth = _robust_smooth(values, weight, sigma)
     density_all = cv2.GaussianBlur(weight.astype(np.float32), (0, 0), sigma)
     start = margin * factor
     coarse = (slice(start, start + (neutral.shape[0] - 1) * factor + 1, factor),
               slice(start, start + (neutral.shape[1] - 1) * factor + 1, factor))
     valid = neutral.valid
-    tracked = np.stack([channel[coarse][valid] for channel in smooth], axis=1) / np.maximum(
-        density[coarse][valid], 1e-6)[:, None]
+    tracked = smooth[coarse][valid]
     trust_out = np.clip(density_all[coarse][valid], 0.0, 1.0)
     trust_out = np.where(np.isfinite(tracked).all(axis=1), trust_out, 0.0)
     motion = trust_out[:, None] * np.nan_to_num(tracked) + (1.0 - trust_out[:, None]) * first_guess
     return motion, trust_out
+
+
+def _robust_smooth(values: np.ndarray, weight: np.ndarray, sigma: float) -> np.ndarray:
+    """``values`` (rows, cols, 3: x, y, z motion) Gaussian-smoothed over ``sigma`` pixels with ``weight``
+    (rows, cols), outliers down-weighted (Cauchy, scale from the median absolute residual) in
+    :data:`ROBUST_ROUNDS` rounds; NaN where no weight."""
+    w_xy = w_z = weight
+    groups = (slice(0, 2), slice(2, 3))
+    for round_ in range(ROBUST_ROUNDS + 1):
+        smooth = np.dstack([_weighted_blur(values[..., c], w, sigma) for c, w in
+                            ((0, w_xy), (1, w_xy), (2, w_z))])
+        if round_ == ROBUST_ROUNDS:
+            return smooth
+        out = []
+        for group in groups:
+            residual = np.linalg.norm(values[..., group] - smooth[..., group], axis=-1)
+            used = weight > 0
+            scale = max(float(np.median(residual[used & np.isfinite(residual)])) * ROBUST_C, 1e-9)
+            out.append(weight / (1.0 + (np.nan_to_num(residual, nan=np.inf) / scale) ** 2))
+        w_xy, w_z = out
+    return smooth
+
+
+def _weighted_blur(channel: np.ndarray, weight: np.ndarray, sigma: float) -> np.ndarray:
+    total = cv2.GaussianBlur((channel * weight).astype(np.float32), (0, 0), sigma)
+    norm = cv2.GaussianBlur(weight.astype(np.float32), (0, 0), sigma)
+    return np.where(norm > 1e-6, total / np.maximum(norm, 1e-6), np.nan)
 
 
 def still_skin_correction(vertices: np.ndarray, motion: np.ndarray, trust: np.ndarray,
