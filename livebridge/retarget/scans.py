@@ -42,7 +42,13 @@ from livebridge.retarget.grid import (
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points, place_at_points
 from livebridge.retarget.normalise import normalisation, register_rigid, transform_landmarks
 from livebridge.retarget.scan import Scan
-from livebridge.retarget.skin_flow import SMOOTH_SPACINGS, fine_axes, skin_motion, still_skin_correction
+from livebridge.retarget.skin_flow import (
+    SMOOTH_SPACINGS,
+    fine_axes,
+    shrink_noise,
+    skin_motion,
+    still_skin_correction,
+)
 from livebridge.retarget.tps import Kernel, fit_tps
 
 CROP_FACTOR = 1.2
@@ -164,6 +170,7 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
                                      neutral.skin_margin, element, smooth)
         correction = still_skin_correction(neutral.vertices, element, trust)
         element = apply(correction, neutral.vertices + element) - neutral.vertices
+        element = shrink_noise(neutral.grid, vertex_normals(neutral.vertices, neutral.triangles), element, trust)
     return element
 
 
