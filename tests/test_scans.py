@@ -208,7 +208,7 @@ def test_crop_sphere(rng):
 def test_skin_tracking_recovers_a_known_slide_of_the_skin(rng):
     """A textured, gently curved surface whose skin slides by a known smooth field ``d`` (3 mm peak) in an
     expression scan with other sampling and noise: the tracked motion matches ``d`` from a zero first guess
-    (measured 0.071 of its RMS)."""
+    (measured 0.074 of its RMS)."""
     import cv2
     from scipy.interpolate import RegularGridInterpolator
 
@@ -245,7 +245,7 @@ def test_skin_tracking_recovers_a_known_slide_of_the_skin(rng):
     error = np.linalg.norm(motion[:, :2] - truth, axis=1)
     assert trust.mean() > 0.9
     relative = np.sqrt(np.mean(error ** 2) / np.mean((truth ** 2).sum(axis=1)))
-    assert relative < 0.1
+    assert relative < 0.1, relative
 
 
 def test_noise_shrinkage_keeps_still_skin_still_and_moving_skin_moving(rng):
@@ -308,8 +308,8 @@ def test_scan_basis_moves_the_face_where_the_ict_elements_do(ict_scan_figures):
 def test_skin_tracking_measures_the_motion_along_the_skin(ict_scan_figures):
     """With colour, the brow's, the smile's and the lip corner's errors are at most half of what shape alone
     gives (which knows the sliding of the skin at the landmarks only), the eyelid's lower too. Measured here
-    0.18, 0.21, 0.29 and the eyelid 0.58; over all 16 elements in `livebridge bench scans` 0.14-0.31, jaw 0.56,
-    eyelids 0.62 and 0.75."""
+    0.12, 0.16, 0.18 and the eyelid 0.58; over all 16 elements in `livebridge bench scans` (60k points a scan)
+    0.11-0.24, jaw 0.54, eyelids 0.59 and 0.80."""
     figures = ict_scan_figures
     ratio = dict(zip(figures.names, figures.errors / figures.errors_without_colour))
     for name, value in ratio.items():
@@ -318,33 +318,38 @@ def test_skin_tracking_measures_the_motion_along_the_skin(ict_scan_figures):
 
 def test_scan_basis_surface_away_from_the_lips_and_eyelids(ict_scan_figures):
     """The expression the built basis gives lies on the true expressive surface within 10% of the element's
-    RMS motion for the brow and the smile (measured 0.079 and 0.052 here)."""
+    RMS motion for the brow and the smile (measured 0.050 and 0.042 here)."""
     figures = ict_scan_figures
     for name in ("frontalis_L", "zygomatic_major_L"):
         assert figures.surface[figures.names.index(name)] <= ERROR_LIMIT, name
 
 
-@pytest.mark.xfail(strict=True, reason="open: surface error 0.14 of the element's RMS at the lip corner "
-                   "(depressor_anguli_oris), 0.11 at the eyelid here; in `livebridge bench scans` 12 of 16 elements "
-                   "within 0.10 at 60k and at 150k points a scan, worst 0.14 / 0.12 (depressor_anguli_oris)")
+@pytest.mark.xfail(strict=True, reason="open: surface error 0.11 of the element's RMS at the eyelid here (the lip "
+                   "corner 0.093); in `livebridge bench scans` 13 of 16 elements within 0.10 at 60k points a scan, "
+                   "15 at 150k, worst 0.117 / 0.102 (orbicularis_oculi_L), depressor_anguli_oris 0.111 at 60k")
 def test_scan_basis_surface_within_10_percent(ict_scan_figures):
     figures = ict_scan_figures
     assert np.nanmax(figures.surface) <= ERROR_LIMIT, dict(zip(figures.names, np.round(figures.surface, 3)))
 
 
-@pytest.mark.xfail(strict=True, reason="open: the lid's skin slides ~9 mm over the eye; its blurred, stretched "
-                   "pattern matches no better at its true place than ~3 mm down, where the flow puts it (eyelids "
-                   "0.66-0.78 relative RMS at 60k and 150k points a scan)")
 def test_scan_basis_eyelids(ict_scan_figures):
+    """The eyelid's element moves the face where the ICT one does (measured 0.82 of its squared motion here).
+
+    Met since the tracked motion that is not above the flow's noise is shrunk (0.52 without); near the bar:
+    in `livebridge bench scans` 0.73 / 0.65 (left / right lid) at 60k points a scan, 0.85 / 0.79 at 150k.
+    The lid's error stays large (0.51-0.80 relative RMS): its skin slides ~9 mm over the eye, and its
+    blurred, stretched pattern matches no better at its true place than ~3 mm down, where the flow puts it.
+    """
     figures = ict_scan_figures
     for name in set(EYELIDS) & set(figures.names):
         k = figures.names.index(name)
         assert _share_where_ict_moves(figures.with_colour[k], figures.truth[k]) > 0.75, name
 
 
-@pytest.mark.xfail(strict=True, reason="open: with colour 0.11-0.23 relative RMS per element at 60k points a "
-                   "scan, 0.07-0.18 at 150k (5 of 16 within 0.10), the eyelids 0.66-0.78 (without colour 0.36-1.31; "
-                   "`livebridge bench scans`): the flow's noise, the lips' and eyelids' occlusions")
+@pytest.mark.xfail(strict=True, reason="open: with colour 0.094-0.196 relative RMS per element besides the eyelids "
+                   "at 60k points a scan (1 of 16 within 0.10), 0.069-0.167 at 150k (10 of 16), the eyelids 0.51-0.80 "
+                   "(without colour 0.33-1.55; `livebridge bench scans`): the flow's noise (what the skin images "
+                   "resolve at 60k points), the lips' and eyelids' occlusions")
 def test_scan_basis_reproduces_the_ict_elements_within_10_percent(ict_scan_figures):
     figures = ict_scan_figures
     assert np.nanmax(figures.errors) <= ERROR_LIMIT, dict(zip(figures.names, np.round(figures.errors, 3)))

@@ -17,7 +17,9 @@ it knows only at the landmarks. When the scans carry colour, the skin's pattern 
 to each expression (:mod:`~livebridge.retarget.skin_flow`, starting from the geometric warp) on a finer
 image of both scans, and each grid vertex moves to the expressive surface where its skin went; where the
 skin cannot be tracked (occluded, a hole, no pattern) the geometric warp stays. The skin that did not move
-then corrects the shape-only rigid registration (which can slide a fraction of a mm along the face).
+then corrects the shape-only rigid registration (which can slide a fraction of a mm along the face), and
+tracked motion along the skin that is not above the flow's noise (estimated on that still skin) is shrunk
+towards zero.
 """
 
 from __future__ import annotations

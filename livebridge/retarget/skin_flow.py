@@ -8,10 +8,34 @@ a neutral skin point went in an expression is where its pattern went between the
 
 Both images are contrast-normalised (the local mean subtracted and divided by the local spread, over
 :data:`CONTRAST_MM`), so a scan's exposure and slow shading do not count as motion. OpenCV's DIS optical
-flow then finds the residual motion after a first guess (the landmark and geometry warp), and a
-photometric check (how well the neutral skin matches the expressive skin where the flow puts it) says
-where the flow is trusted: occluded skin (lips rolled in, the inside of an opened mouth), holes and
-featureless skin fall back to the first guess.
+flow (patches of :data:`PATCH_MM`) then finds the residual motion after a first guess (the landmark and
+geometry warp), and a photometric check (how well the neutral skin matches the expressive skin where the
+flow puts it) says where the flow is trusted: occluded skin (lips rolled in, the inside of an opened
+mouth), holes and featureless skin fall back to the first guess.
+
+The tracked motion is noisy, and its noise is what limits a basis built from scans. Three things keep it
+down, each general (no knowledge of the muscle, the person or the scanner's noise):
+
+- the motion is smoothed over :data:`SMOOTH_SPACINGS` of the scan's own point spacing, the heights
+  robustly (:func:`_robust_smooth`): a skin image's heights have outliers of several mm where two surfaces
+  mix (the nostrils, the scan's rim) that a plain Gaussian spreads over centimetres;
+- the rigid slip the shape-only registration leaves is taken out on the skin that did not move
+  (:func:`still_skin_correction`);
+- the motion along the skin is shrunk towards zero where it is not above the noise, the noise level read
+  from the still skin of the same scan pair (:func:`shrink_noise`), so skin an expression does not move
+  stays still instead of carrying 0.2-0.5 mm blotches.
+
+Measured in `livebridge bench scans` (seed 7, 16 elements; the 8 "smooth" elements frontalis_L,
+corrugator_L, zygomatic_major_L, risorius_L, levator_labii_L, depressor_anguli_oris, lips_pressor,
+orbicularis_oris): mean relative RMS error of those 8 at 60k points a scan 0.159 before these changes, 0.124
+after; each change undone alone gives 0.155 (heights smoothed plainly), 0.145 (the DIS preset's 4 mm
+patches), 0.138 (the former 8.5-spacing smoothing), 0.131 (the former trust threshold 0.8), 0.127 (no
+shrinkage). The errors of differently tuned flows are 0.8-0.97 correlated (patches of 4, 8 and 12 mm), and
+a dense Gauss-Newton photometric refinement after DIS (a bilinear lattice of 1.5-2 mm nodes with a
+second-difference prior, over all pixels) cut the per-pixel flow noise 2-3x but not the error at the
+element's scale (0.124 either way, 6 s more per element), so what remains at 60k points is what the skin
+images themselves say, not the estimator: a low-pass of the images before normalising (0.3-0.8 mm) was
+worse (0.158-0.187 against 0.159), so the finest pattern still carries motion.
 """
 
 from __future__ import annotations
@@ -33,33 +57,31 @@ TRUSTED_RESIDUAL = 1.0
 """A match with a local RMS residual (contrast-normalised units; unrelated skin gives about 1.4) of at most
 this is trusted fully; the trust falls to zero at twice it. Two scans of the same skin at 60k points differ
 by about 0.6 (their finest pores are resolved differently), so 1.0 leaves true matches fully trusted: 0.8
-lost 0.012 of mean relative error on the smooth elements in `livebridge bench scans`, 0.6 lost 0.05."""
+gave 0.131 instead of 0.124 mean relative error on the 8 smooth elements (see above), 0.6 gave 0.18."""
 PATCH_MM = 8.0
 """DIS patch width. A face's trackable pattern (freckles, brows, 3 mm blotches) is sparse: 8 mm patches
 (16 px at the 0.5 mm skin image) always hold some, where the preset's 8 px (4 mm) often hold pores only.
-Measured (8 smooth elements at 60k points a scan): mean relative error 0.127 with 8 px, 0.124 with 16 px,
+Mean relative error of the 8 smooth elements at 60k points a scan: 0.145 with 8 px, 0.124 with 16 px,
 0.126 with 20 px."""
 PATCH_OVERLAP = 4
 """Patches start every ``1 / PATCH_OVERLAP`` of a patch (the DIS presets' ratio; half-overlap lost 0.005)."""
 SMOOTH_SPACINGS = 5.0
 """The skin motion is smoothed (Gaussian sigma) over this many of the scan's point spacings before it is
-sampled at the grid vertices: the flow's noise grows with the spacing (0.4 mm RMS per skin pixel at 60k
-points a scan, spacing 0.38 mm). With the robust smoothing (:func:`_robust_smooth`) the outliers no longer
-need a wide window: mean relative error of the smooth elements 0.174 / 0.153 / 0.145 / 0.150 at 3 / 4.5 /
-6 / 8.5 spacings (60k points, robust smoothing, preset patches); with 16 px patches 0.126 / 0.124 / 0.125 at
-4 / 5 / 6, and at 150k points 0.093 / 0.092 at 5 / 7."""
+sampled at the grid vertices: the flow's noise grows with the spacing (spacing 0.38 mm at 60k points a
+scan, 0.23 mm at 150k). With the heights smoothed robustly, outliers no longer ask for a wide window: mean
+relative error of the 8 smooth elements 0.126 / 0.124 / 0.125 / 0.138 at 4 / 5 / 6 / 8.5 spacings (60k
+points), 0.093 / 0.092 at 5 / 7 (150k)."""
 ROBUST_ROUNDS = 3
-"""Rounds of re-weighting in the robust smoothing."""
+"""Rounds of re-weighting in the robust smoothing of the heights (none: 0.155 instead of 0.124)."""
 ROBUST_SCALE = 5.0
-"""Cauchy scale of the robust smoothing, in median absolute residuals: a skin pixel whose motion is this far
-from the smooth field counts half. The fine height images have outliers of several mm (the nostrils'
-insides, the scan's rim, where two surfaces mix) that a plain Gaussian spreads over centimetres: with a
-perfect x-y flow they alone left 0.19 relative RMS error on depressor_anguli_oris. 3 and 5 are equally good
-(0.124), 2 and 8 worse (0.163 / 0.156 with the old 8 px patches)."""
+"""Cauchy scale of the robust smoothing of the heights, in median absolute residuals: a skin pixel whose
+height change is this far from the smooth one counts half (3: 0.124, 5: 0.124, 10: 0.126)."""
 SHRINK_WINDOW_MM = 8.0
 """Width (Gaussian sigma) over which :func:`shrink_noise` measures the local strength of the tangential
 motion: wide enough that a muscle's own motion is not mistaken for noise, narrow enough that still skin
-next to a moving region is still found still (4 mm: 0.143, 8 mm: 0.140, 15 mm: 0.141 mean relative error)."""
+next to a moving region is still found still (4 mm: 0.143, 8 mm: 0.140, 15 mm: 0.141 mean relative error,
+measured with the former 4 mm patches; stronger shrinkage, 2 or 4 times the estimated noise variance, was
+worse: 0.150 / 0.176)."""
 PASSES = 2
 """Flow passes, each starting from the last one's motion (the first from the geometric warp)."""
 STILL_FRACTION = 0.4
