@@ -208,7 +208,7 @@ def test_crop_sphere(rng):
 def test_skin_tracking_recovers_a_known_slide_of_the_skin(rng):
     """A textured, gently curved surface whose skin slides by a known smooth field ``d`` (3 mm peak) in an
     expression scan with other sampling and noise: the tracked motion matches ``d`` from a zero first guess
-    (measured 0.071 of its RMS)."""
+    (measured 0.074 of its RMS)."""
     import cv2
     from scipy.interpolate import RegularGridInterpolator
 
@@ -245,7 +245,34 @@ def test_skin_tracking_recovers_a_known_slide_of_the_skin(rng):
     error = np.linalg.norm(motion[:, :2] - truth, axis=1)
     assert trust.mean() > 0.9
     relative = np.sqrt(np.mean(error ** 2) / np.mean((truth ** 2).sum(axis=1)))
-    assert relative < 0.1
+    assert relative < 0.1, relative
+
+
+def test_noise_shrinkage_keeps_still_skin_still_and_moving_skin_moving(rng):
+    """A slide over a third of a flat face plus noise correlated over millimetres (what the flow leaves): the
+    shrinkage, with the noise level read from the data, brings the still skin nearer to still and leaves the
+    slide (much larger than the noise) nearly whole."""
+    from scipy.ndimage import gaussian_filter
+
+    from livebridge.retarget.skin_flow import shrink_noise
+
+    x, y = square_axes(40.0, (81, 81))
+    grid = resample(np.column_stack([rng.uniform(-41, 41, (20_000, 2)), np.zeros(20_000)]), x, y)
+    xy = grid.vertices[:, :2]
+    slide = 3.0 * np.exp(-((xy - [15.0, 0.0]) ** 2).sum(axis=1) / 8.0 ** 2)[:, None] * np.array([[0.0, 1.0, 0.0]])
+    noise = np.stack([gaussian_filter(rng.normal(0, 1, grid.shape), 2.0)[grid.valid] for _ in range(3)], axis=1)
+    noise *= 0.2 / noise[:, :2].std()
+    noise[:, 2] = 0.0
+    normals = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
+    shrunk = shrink_noise(grid, normals, slide + noise, np.ones(len(xy)))
+    still = np.linalg.norm(slide, axis=1) < 0.01
+    moving = np.linalg.norm(slide, axis=1) > 1.5
+
+    def rms(values, where):
+        return float(np.sqrt(np.mean(np.sum(values[where] ** 2, axis=1))))
+
+    assert rms(shrunk - slide, still) < 0.6 * rms(noise, still)
+    assert rms(shrunk - slide, moving) < 1.2 * rms(noise, moving)
 
 
 # ------------------------------------------------------------------------------------------------ bases from scans
@@ -281,8 +308,8 @@ def test_scan_basis_moves_the_face_where_the_ict_elements_do(ict_scan_figures):
 def test_skin_tracking_measures_the_motion_along_the_skin(ict_scan_figures):
     """With colour, the brow's, the smile's and the lip corner's errors are at most half of what shape alone
     gives (which knows the sliding of the skin at the landmarks only), the eyelid's lower too. Measured here
-    0.14, 0.13, 0.19 and the eyelid 0.58; over all 16 elements in `livebridge bench scans` 0.11-0.29 (jaw) at 60k
-    points a scan, eyelids 0.60 and 0.73."""
+    0.12, 0.16, 0.18 and the eyelid 0.58; over all 16 elements in `livebridge bench scans` (60k points a scan)
+    0.11-0.24, jaw 0.54, eyelids 0.59 and 0.80."""
     figures = ict_scan_figures
     ratio = dict(zip(figures.names, figures.errors / figures.errors_without_colour))
     for name, value in ratio.items():
@@ -291,36 +318,38 @@ def test_skin_tracking_measures_the_motion_along_the_skin(ict_scan_figures):
 
 def test_scan_basis_surface_away_from_the_lips_and_eyelids(ict_scan_figures):
     """The expression the built basis gives lies on the true expressive surface within 10% of the element's
-    RMS motion for the brow and the smile (measured 0.063 and 0.048 here)."""
+    RMS motion for the brow and the smile (measured 0.050 and 0.042 here)."""
     figures = ict_scan_figures
     for name in ("frontalis_L", "zygomatic_major_L"):
         assert figures.surface[figures.names.index(name)] <= ERROR_LIMIT, name
 
 
-@pytest.mark.xfail(strict=True, reason="open: surface error 0.12 of the element's RMS at the lip corner "
-                   "(depressor_anguli_oris), 0.14 at the eyelid here; in `livebridge bench scans` 12 of 16 elements "
-                   "within 0.10 at 60k and at 150k points a scan, worst 0.14 (depressor_anguli_oris) / 0.13 "
-                   "(orbicularis_oculi_L)")
+@pytest.mark.xfail(strict=True, reason="open: surface error 0.11 of the element's RMS at the eyelid here (the lip "
+                   "corner 0.093); in `livebridge bench scans` 13 of 16 elements within 0.10 at 60k points a scan, "
+                   "15 at 150k, worst 0.117 / 0.102 (orbicularis_oculi_L), depressor_anguli_oris 0.111 at 60k")
 def test_scan_basis_surface_within_10_percent(ict_scan_figures):
     figures = ict_scan_figures
     assert np.nanmax(figures.surface) <= ERROR_LIMIT, dict(zip(figures.names, np.round(figures.surface, 3)))
 
 
-@pytest.mark.xfail(strict=True, reason="open: the lid's skin slides ~9 mm over the eye; its blurred, stretched "
-                   "pattern matches no better at its true place than ~3 mm down, where the flow puts it (eyelids "
-                   "0.60-0.75 relative RMS at 60k and 150k points a scan)")
 def test_scan_basis_eyelids(ict_scan_figures):
+    """The eyelid's element moves the face where the ICT one does (measured 0.82 of its squared motion here).
+
+    Met since the tracked motion that is not above the flow's noise is shrunk (0.52 without); near the bar:
+    in `livebridge bench scans` 0.73 / 0.65 (left / right lid) at 60k points a scan, 0.85 / 0.79 at 150k.
+    The lid's error stays large (0.51-0.80 relative RMS): its skin slides ~9 mm over the eye, and its
+    blurred, stretched pattern matches no better at its true place than ~3 mm down, where the flow puts it.
+    """
     figures = ict_scan_figures
     for name in set(EYELIDS) & set(figures.names):
         k = figures.names.index(name)
         assert _share_where_ict_moves(figures.with_colour[k], figures.truth[k]) > 0.75, name
 
 
-@pytest.mark.xfail(strict=True, reason="open: with colour 0.10-0.21 relative RMS per element at 60k points a "
-                   "scan (3 of 16 within 0.10), 0.06-0.15 at 150k (8 of 16), the eyelids 0.60-0.75 (without colour "
-                   "0.33-1.55; `livebridge bench scans`): the flow's noise (depressor_anguli_oris, lips_pressor, "
-                   "risorius), the skin under an opened jaw's chin that no frontal scan sees (jaw 0.11 / 0.09), "
-                   "the eyelids")
+@pytest.mark.xfail(strict=True, reason="open: with colour 0.094-0.196 relative RMS per element besides the eyelids "
+                   "at 60k points a scan (1 of 16 within 0.10), 0.069-0.167 at 150k (10 of 16), the eyelids 0.51-0.80 "
+                   "(without colour 0.33-1.55; `livebridge bench scans`): the flow's noise (what the skin images "
+                   "resolve at 60k points), the lips' and eyelids' occlusions")
 def test_scan_basis_reproduces_the_ict_elements_within_10_percent(ict_scan_figures):
     figures = ict_scan_figures
     assert np.nanmax(figures.errors) <= ERROR_LIMIT, dict(zip(figures.names, np.round(figures.errors, 3)))

@@ -19,7 +19,8 @@ image of both scans, and each grid vertex moves to the expressive surface where 
 cannot be tracked (occluded, a hole, no pattern, gone out of the frontal scanner's view) the tracked skin's
 motion is carried over by a spline through it, with the lips' seam cut (:mod:`~livebridge.retarget.seams`:
 nothing is smoothed or carried from one lip to the other). The skin that did not move then corrects the
-shape-only rigid registration (which can slide a fraction of a mm along the face).
+shape-only rigid registration (which can slide a fraction of a mm along the face), and tracked motion along
+the skin that is not above the flow's noise (estimated on that still skin) is shrunk towards zero.
 """
 
 from __future__ import annotations
@@ -45,7 +46,13 @@ from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points, p
 from livebridge.retarget.normalise import normalisation, register_rigid, transform_landmarks
 from livebridge.retarget.scan import Scan
 from livebridge.retarget.seams import LipSeam
-from livebridge.retarget.skin_flow import SMOOTH_SPACINGS, fine_axes, skin_motion, still_skin_correction
+from livebridge.retarget.skin_flow import (
+    SMOOTH_SPACINGS,
+    fine_axes,
+    shrink_noise,
+    skin_motion,
+    still_skin_correction,
+)
 from livebridge.retarget.tps import Kernel, fit_tps
 
 CROP_FACTOR = 1.2
@@ -179,7 +186,8 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
     if fallback is not None:
         element = element + (1.0 - trust)[:, None] * (fallback - geometric)
     correction = still_skin_correction(neutral.vertices, element, trust)
-    return apply(correction, neutral.vertices + element) - neutral.vertices
+    element = apply(correction, neutral.vertices + element) - neutral.vertices
+    return shrink_noise(neutral.grid, vertex_normals(neutral.vertices, neutral.triangles), element, trust)
 
 
 def _lip_seam(neutral: FaceScan) -> LipSeam | None:
