@@ -30,6 +30,7 @@ from livebridge.errors import InputError
 from livebridge.face.basis import CHOE_KO_BY_NAME, Basis, Muscle
 from livebridge.face.meshio import vertex_normals
 from livebridge.geometry.transforms import apply
+from livebridge.retarget.eyelids import eyelid_guess
 from livebridge.retarget.grid import (
     GAP_SPACINGS,
     GRID_SHAPE,
@@ -137,8 +138,14 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
     fine_x, fine_y, factor = fine_axes(np.linspace(x[0] - margin * step, x[-1] + margin * step, len(x) + 2 * margin),
                                        np.linspace(y[0] - margin * step, y[-1] + margin * step, len(y) + 2 * margin))
     wider = crop_sphere(points, np.zeros(3), radius + SKIN_MARGIN_MM)
-    skin = resample(points[wider], fine_x, fine_y, step * GAP_SPACINGS / 2, source, scan.colours[wider])
+    skin = resample(points[wider], fine_x, fine_y, skin_gap_mm(step), source, scan.colours[wider])
     return FaceScan(grid, landmarks, scan2face, skin, factor, margin, spacing)
+
+
+def skin_gap_mm(step: float) -> float:
+    """A skin-image point farther than this from any scan point is a hole (``step``: the grid's cell, mm): so
+    every hole of a skin image (an eye's opening) lies this far inside the scan's."""
+    return step * GAP_SPACINGS / 2
 
 
 def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: FaceScan, source=None) -> FaceScan:
@@ -160,6 +167,8 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
     if colour and neutral.skin is not None and expression.skin is not None:
         spacing = np.nanmax([neutral.point_spacing, expression.point_spacing, 0.0])
         smooth = SMOOTH_SPACINGS * (spacing if spacing > 0 else TYPICAL_SPACING_MM)
+        element = eyelid_guess(neutral.skin, expression.skin, neutral.grid, neutral.skin_factor, neutral.skin_margin,
+                               element, neutral.landmarks, expression.landmarks, skin_gap_mm(neutral.grid.spacing))
         element, trust = skin_motion(neutral.skin, expression.skin, neutral.grid, neutral.skin_factor,
                                      neutral.skin_margin, element, smooth)
         correction = still_skin_correction(neutral.vertices, element, trust)
