@@ -36,8 +36,10 @@ from livebridge.retarget.grid import FaceGrid
 REACH_EYE_WIDTHS = 0.35
 """The lid's skin moves with its margin up to this many eye widths (corner to corner) away from it."""
 MIN_MOTION_MM = 1.5
-"""An eye whose margins moved less than this (the edges of a resampled hole are uncertain by about a fine
-grid step) keeps the first guess."""
+"""An eye whose margins moved less than this in the median column (the edges of a resampled hole are uncertain
+by about a fine grid step) keeps the first guess."""
+COLUMN_MEDIAN_MM = 2.0
+"""The margins' motion is the median over columns this wide."""
 LID_LANDMARKS = {"L": (("lm_43", "lm_44"), ("lm_47", "lm_46")), "R": (("lm_38", "lm_37"), ("lm_40", "lm_41"))}
 """Per side, the iBUG landmarks of the upper lid and of the lower lid, each from the inner corner outwards."""
 
@@ -90,6 +92,7 @@ def lid_columns(neutral: FaceGrid, expression: FaceGrid, inner: np.ndarray, oute
         else:  # closed: the upper lid comes down onto the lower one
             up, down = (lower - upper) * step, 0.0
         columns[int(col)] = LidColumn(upper, lower, up, down)
+    columns = _median_across(columns, max(1, int(round(COLUMN_MEDIAN_MM / step / 2))))
     _taper_to_corners(columns, neutral, inner, outer)
     return columns
 
@@ -176,8 +179,9 @@ def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Fac
             columns = lid_columns_from_landmarks(neutral_fine, before, after, side, inner, outer)
         else:
             columns = lid_columns(neutral_fine, expression_fine, inner, outer, grow_mm)
-        if not columns or max(max(abs(c.upper_motion), abs(c.lower_motion)) for c in columns.values()) < MIN_MOTION_MM:
-            continue  # this eye's lids did not move: the first guess stays
+        if not columns or np.median([max(abs(c.upper_motion), abs(c.lower_motion)) for c in columns.values()]
+                                    ) < MIN_MOTION_MM:
+            continue  # this eye's lids did not move (a thin opening at a corner may read as closed): the guess stays
         reach = REACH_EYE_WIDTHS * float(np.linalg.norm(outer - inner))
         dy, hit = lid_motion(neutral_fine, columns, reach, dy)
         touched |= hit
@@ -215,6 +219,20 @@ def _run_around(mask: np.ndarray, centre: int, reach: int) -> tuple[int, int] | 
     while high + 1 < len(mask) and mask[high + 1]:
         high += 1
     return low, high
+
+
+def _median_across(columns: dict[int, LidColumn], half: int) -> dict[int, LidColumn]:
+    """Each column's motions the median over the found columns within ``half`` columns of it (one column's
+    opening edge can be off by a stray scan point or a thin end of the opening)."""
+    keys = sorted(columns)
+    up = np.array([columns[k].upper_motion for k in keys])
+    down = np.array([columns[k].lower_motion for k in keys])
+    out = {}
+    for i, key in enumerate(keys):
+        near = slice(max(i - half, 0), i + half + 1)
+        out[key] = LidColumn(columns[key].upper, columns[key].lower, float(np.median(up[near])),
+                             float(np.median(down[near])))
+    return out
 
 
 def _taper_to_corners(columns: dict[int, LidColumn], grid: FaceGrid, inner: np.ndarray, outer: np.ndarray) -> None:
