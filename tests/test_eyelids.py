@@ -110,8 +110,8 @@ def test_retarget_scans_takes_lid_landmarks_beside_the_22(tmp_path, ict):
     basis = Basis.load(tmp_path / "b.npz")
     element = basis.elements[0]
     # the ICT element on the same grid (the CLI's grid is the neutral's: rebuild its frame the same way)
-    from livebridge.retarget.scans import prepare_neutral
     from livebridge.retarget.scan import read_scan
+    from livebridge.retarget.scans import prepare_neutral
 
     face = prepare_neutral(read_scan(tmp_path / "neutral.ply"), neutral.landmarks, _builtin_reference(),
                            shape=(100, 100))

@@ -23,10 +23,11 @@ a hole moves that far in; the margins are put back by it.
 When the neutral shows no opening (a scanner that fills holes, a mesh closed over the eye) and the landmark
 files also name the lids' points of the 68-point iBUG layout (37, 38, 40, 41 on the subject's right eye, 43,
 44, 46, 47 on the left, as ``lm_37`` ...; a landmark detector on each scan's texture gives them), the margins
-and their motion come from those landmarks. Where the opening is seen it is used first: on the bench scans
-(60k points, the 8 lid landmarks with 0.5 mm noise) the landmark margins gave 0.40 and 0.40 relative RMS for
-the two eyelid elements against 0.36 and 0.39 from the openings. Lid landmarks also join the landmark spline
-of the shape warp (:func:`~livebridge.retarget.scans.geometric_element` uses every landmark both scans name).
+and their motion come from those landmarks. Where the opening is seen it is used first: in `livebridge bench
+scans` with the 8 lid landmarks added (0.5 mm noise, 60k points a scan) the margins from the landmarks gave 0.40
+and 0.41 relative RMS for the two eyelid elements, from the openings 0.35 and 0.35 (the lid landmarks still
+join the landmark spline of the shape warp: :func:`~livebridge.retarget.scans.geometric_element` uses every
+landmark both scans name).
 """
 
 from __future__ import annotations

@@ -16,8 +16,10 @@ That geometry fixes the motion normal to the skin; the motion ALONG the skin (mo
 it knows only at the landmarks. When the scans carry colour, the skin's pattern is tracked from the neutral
 to each expression (:mod:`~livebridge.retarget.skin_flow`, starting from the geometric warp) on a finer
 image of both scans, and each grid vertex moves to the expressive surface where its skin went; where the
-skin cannot be tracked (occluded, a hole, no pattern) the geometric warp stays. The skin that did not move
-then corrects the shape-only rigid registration (which can slide a fraction of a mm along the face).
+skin cannot be tracked (occluded, a hole, no pattern) the geometric warp stays. Around a closing eye the
+flow starts from where the eye openings say the lids went (:mod:`~livebridge.retarget.eyelids`), not from the
+geometric warp. The skin that did not move then corrects the shape-only rigid registration (which can slide a
+fraction of a mm along the face).
 """
 
 from __future__ import annotations
