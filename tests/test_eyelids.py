@@ -3,7 +3,12 @@
 import numpy as np
 import pytest
 
-from livebridge.retarget.eyelids import eyelid_guess, lid_columns, lid_columns_from_landmarks
+from livebridge.retarget.eyelids import (
+    TAPER_BEYOND_EYE_WIDTHS,
+    eyelid_guess,
+    lid_columns,
+    lid_columns_from_landmarks,
+)
 from livebridge.retarget.grid import FaceGrid, resample
 from livebridge.retarget.scans import skin_gap_mm
 
@@ -40,9 +45,11 @@ def test_the_margins_go_where_the_opening_went(rng, upper_after, lower_after):
     assert abs(FINE[0] + lid.upper * step - 4.0) < 1.0 and abs(FINE[0] + lid.lower * step + 4.0) < 1.0
     assert lid.upper_motion == pytest.approx(upper_after - 4.0, abs=1.0)
     assert lid.lower_motion == pytest.approx(lower_after + 4.0, abs=1.0)
-    # the columns taper to no motion at the corners
-    near_corner = min(columns, key=lambda col: abs(FINE[col] - HALF_WIDTH))
-    assert abs(columns[near_corner].upper_motion) < 0.5 * abs(upper_after - 4.0) + 0.5
+    # past the opening the columns taper to no motion a tenth of the eye's width beyond its corners
+    reach = HALF_WIDTH + TAPER_BEYOND_EYE_WIDTHS * 2 * HALF_WIDTH
+    assert max(abs(FINE[col]) for col in columns) < reach
+    outermost = columns[max(columns)]
+    assert abs(outermost.upper_motion) < 0.25 * abs(upper_after - 4.0) + 0.5
 
 
 def test_lid_landmarks_give_the_margins_and_their_motion():
