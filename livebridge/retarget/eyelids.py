@@ -111,27 +111,21 @@ def lid_columns_from_landmarks(neutral: FaceGrid, before: dict, after: dict, sid
     """The margins and their motion along every column of one eye from its lid landmarks
     (:data:`LID_LANDMARKS`), piecewise linear in x between the corners (which do not move)."""
     rows = np.arange(neutral.shape[0])
-    (upper_names, lower_names) = LID_LANDMARKS[side]
-    xs = [inner[0]] + [before[n][0] for n in upper_names] + [outer[0]]
-    order = np.argsort(xs)
+    ends = [(inner[0], _corner_line_y(inner, outer, inner[0])), (outer[0], _corner_line_y(inner, outer, outer[0]))]
 
-    def along(names, values):
-        return np.array([_corner_line_y(inner, outer, inner[0])] + values + [_corner_line_y(inner, outer, outer[0])])
+    def margin(names):
+        """(x, y, y motion) of a margin through the corners and its landmarks, sorted by x."""
+        points = [(x, y, 0.0) for x, y in ends] + [(before[n][0], before[n][1], after[n][1] - before[n][1])
+                                                  for n in names]
+        return np.array(sorted(points)).T
 
-    upper_y = along(upper_names, [before[n][1] for n in upper_names])
-    upper_d = np.array([0.0] + [after[n][1] - before[n][1] for n in upper_names] + [0.0])
-    lower_xs = np.array([inner[0]] + [before[n][0] for n in lower_names] + [outer[0]])
-    lower_y = along(lower_names, [before[n][1] for n in lower_names])
-    lower_d = np.array([0.0] + [after[n][1] - before[n][1] for n in lower_names] + [0.0])
-    lower_order = np.argsort(lower_xs)
-    xs = np.asarray(xs)[order]
+    upper, lower = (margin(names) for names in LID_LANDMARKS[side])
     columns = {}
     left, right = sorted((inner[0], outer[0]))
     for col in np.flatnonzero((neutral.x > left) & (neutral.x < right)):
         x = neutral.x[col]
-        up_y, up_d = np.interp(x, xs, upper_y[order]), np.interp(x, xs, upper_d[order])
-        lo_y = np.interp(x, lower_xs[lower_order], lower_y[lower_order])
-        lo_d = np.interp(x, lower_xs[lower_order], lower_d[lower_order])
+        up_y, up_d = (np.interp(x, upper[0], values) for values in upper[1:])
+        lo_y, lo_d = (np.interp(x, lower[0], values) for values in lower[1:])
         columns[int(col)] = LidColumn(float(np.interp(up_y, neutral.y, rows)), float(np.interp(lo_y, neutral.y, rows)),
                                       float(up_d), float(lo_d))
     return columns
