@@ -306,14 +306,14 @@ def test_scan_basis_moves_the_face_where_the_ict_elements_do(ict_scan_figures):
 
 
 def test_skin_tracking_measures_the_motion_along_the_skin(ict_scan_figures):
-    """With colour, the brow's, the smile's and the lip corner's errors are at most half of what shape alone
-    gives (which knows the sliding of the skin at the landmarks only), the eyelid's lower too. Measured here
-    0.12, 0.16, 0.18 and the eyelid 0.58; over all 16 elements in `livebridge bench scans` (60k points a scan)
-    0.11-0.24, jaw 0.54, eyelids 0.59 and 0.80."""
+    """With colour, the brow's, the smile's, the lip corner's and the eyelid's errors are at most half of what
+    shape alone gives (which knows the sliding of the skin at the landmarks only). Measured here 0.15, 0.22, 0.24
+    and the eyelid 0.35 (0.54 before the eyelids' first guess from the eye openings, retarget/eyelids.py); over
+    all 16 elements in `livebridge bench scans` 0.14-0.31, jaw 0.56, eyelids 0.36 and 0.33."""
     figures = ict_scan_figures
     ratio = dict(zip(figures.names, figures.errors / figures.errors_without_colour))
     for name, value in ratio.items():
-        assert value < (0.9 if name in EYELIDS else 0.5), (name, round(float(value), 3))
+        assert value < 0.5, (name, round(float(value), 3))
 
 
 def test_scan_basis_surface_away_from_the_lips_and_eyelids(ict_scan_figures):

@@ -18,9 +18,11 @@ to each expression (:mod:`~livebridge.retarget.skin_flow`, starting from the geo
 image of both scans, and each grid vertex moves to the expressive surface where its skin went. Where the skin
 cannot be tracked (occluded, a hole, no pattern, gone out of the frontal scanner's view) the tracked skin's
 motion is carried over by a spline through it, with the lips' seam cut (:mod:`~livebridge.retarget.seams`:
-nothing is smoothed or carried from one lip to the other). The skin that did not move then corrects the
-shape-only rigid registration (which can slide a fraction of a mm along the face), and tracked motion along
-the skin that is not above the flow's noise (estimated on that still skin) is shrunk towards zero.
+nothing is smoothed or carried from one lip to the other). Around a closing eye the flow starts from where
+the eye openings say the lids went (:mod:`~livebridge.retarget.eyelids`), not from the geometric warp. The
+skin that did not move then corrects the shape-only rigid registration (which can slide a fraction of a mm
+along the face), and tracked motion along the skin that is not above the flow's noise (estimated on that still
+skin) is shrunk towards zero.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from livebridge.errors import InputError
 from livebridge.face.basis import CHOE_KO_BY_NAME, Basis, Muscle
 from livebridge.face.meshio import vertex_normals
 from livebridge.geometry.transforms import apply
+from livebridge.retarget.eyelids import eyelid_guess
 from livebridge.retarget.grid import (
     GAP_SPACINGS,
     GRID_SHAPE,
@@ -152,8 +155,14 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
     fine_x, fine_y, factor = fine_axes(np.linspace(x[0] - margin * step, x[-1] + margin * step, len(x) + 2 * margin),
                                        np.linspace(y[0] - margin * step, y[-1] + margin * step, len(y) + 2 * margin))
     wider = crop_sphere(points, np.zeros(3), radius + SKIN_MARGIN_MM)
-    skin = resample(points[wider], fine_x, fine_y, step * GAP_SPACINGS / 2, source, scan.colours[wider])
+    skin = resample(points[wider], fine_x, fine_y, skin_gap_mm(step), source, scan.colours[wider])
     return FaceScan(grid, landmarks, scan2face, skin, factor, margin, spacing)
+
+
+def skin_gap_mm(step: float) -> float:
+    """A skin-image point farther than this from any scan point is a hole (``step``: the grid's cell, mm): so
+    every hole of a skin image (an eye's opening) lies this far inside the scan's."""
+    return step * GAP_SPACINGS / 2
 
 
 def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: FaceScan, source=None) -> FaceScan:
@@ -176,15 +185,17 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
         return geometric
     spacing = np.nanmax([neutral.point_spacing, expression.point_spacing, 0.0])
     smooth = SMOOTH_SPACINGS * (spacing if spacing > 0 else TYPICAL_SPACING_MM)
+    guess = eyelid_guess(neutral.skin, expression.skin, neutral.grid, neutral.skin_factor, neutral.skin_margin,
+                         geometric, neutral.landmarks, expression.landmarks, skin_gap_mm(neutral.grid.spacing))
     seam = _lip_seam(neutral)
     element, trust = skin_motion(neutral.skin, expression.skin, neutral.grid, neutral.skin_factor,
-                                 neutral.skin_margin, geometric, smooth, seam)
+                                 neutral.skin_margin, guess, smooth, seam)
     # Where the skin was not tracked, the motion of the tracked skin around it is a better guess than the
     # geometric warp: the skin went out of the scanner's view (under an opened jaw's chin, round the face's
     # outline) or into a hole, where the warp snaps it to the wrong, visible, surface.
     fallback = _carried(neutral, element, trust, stride, kernel, seam)
     if fallback is not None:
-        element = element + (1.0 - trust)[:, None] * (fallback - geometric)
+        element = element + (1.0 - trust)[:, None] * (fallback - guess)
     correction = still_skin_correction(neutral.vertices, element, trust)
     element = apply(correction, neutral.vertices + element) - neutral.vertices
     return shrink_noise(neutral.grid, vertex_normals(neutral.vertices, neutral.triangles), element, trust)
