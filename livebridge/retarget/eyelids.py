@@ -38,21 +38,15 @@ import numpy as np
 
 from livebridge.retarget.grid import FaceGrid
 
-REACH_EYE_WIDTHS = 0.3
-"""The lid's skin moves with its margin up to this many eye widths (corner to corner) away from it. A closed
-upper lid's skin moves fully within ~2 mm of its margin and hardly at all ~7 mm above it; the flow only blurs
-a correction to this profile. Eyelid elements in `livebridge bench scans` (60k / 150k points a scan, with
-:data:`TAPER_BEYOND_EYE_WIDTHS` 0.15): 0.25 gave 0.291 / 0.275 and 0.254 / 0.249, 0.3 gave 0.287 / 0.273 and
-0.236 / 0.244, 0.35 (with the taper 0.1) 0.298 / 0.279 and 0.239 / 0.247, 0.45 0.306 / 0.295 at 60k."""
+REACH_EYE_WIDTHS = 0.35
+"""The lid's skin moves with its margin up to this many eye widths (corner to corner) away from it."""
 MIN_MOTION_MM = 1.5
 """An eye whose margins moved less than this in the median column (the edges of a resampled hole are uncertain
 by about a fine grid step) keeps the first guess."""
-TAPER_BEYOND_EYE_WIDTHS = 0.15
+TAPER_BEYOND_EYE_WIDTHS = 0.1
 """Past the opening's ends the lids' motion falls to none this many eye widths beyond the corners (the ring
-muscle moves the skin past the corners too: in the simulated blink the upper lid still moves 2-4 mm 5 mm past
-the outer corner). On the bench scans (eyelid elements, 60k / 150k points a scan, with :data:`REACH_EYE_WIDTHS`
-0.3): 0.05 gave 0.293 / 0.282 and 0.243 / 0.249, 0.15 0.287 / 0.273 and 0.236 / 0.244, 0.2 0.292 / 0.278 and
-0.236 / 0.248 (a half-sine or half-cosine fall instead of a linear one: no better)."""
+muscle moves the skin past the corners too; on the bench scans at 60k points 0.1 measured 0.345 and 0.384 for
+the two eyelids, 0 gave 0.363 and 0.386, 0.2 gave 0.376 and 0.392)."""
 COLUMN_MEDIAN_MM = 2.0
 """The margins' motion is the median over columns this wide."""
 LID_LANDMARKS = {"L": (("lm_43", "lm_44"), ("lm_47", "lm_46")), "R": (("lm_38", "lm_37"), ("lm_40", "lm_41"))}
