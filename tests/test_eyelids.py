@@ -133,3 +133,24 @@ def _builtin_reference():
     from livebridge.cli.retarget_scans import reference_landmarks
 
     return reference_landmarks("builtin", 1.0)
+
+
+
+
+def test_a_closing_eye_s_opening_is_not_skin_up_to_its_margins(rng):
+    """The closing eye's opening, grown back to the lids' margins (the band the resampling filled from the
+    rims included), is what the skin flow leaves out of the depth change; an eye that did not move gives none."""
+    from livebridge.retarget.eyelids import closing_openings
+
+    gap = skin_gap_mm(COARSE_STEP)
+    landmarks = {"eye_inner_L": np.r_[CORNERS[0], 0.0], "eye_outer_L": np.r_[CORNERS[1], 0.0]}
+    neutral = _scan(rng, 4.0, -4.0)
+    assert closing_openings(neutral, _scan(rng, 4.0, -4.0), landmarks, landmarks, gap) is None
+    opening = closing_openings(neutral, _scan(rng, 0.0, 0.0), landmarks, landmarks, gap)
+    xx, yy = np.meshgrid(FINE, FINE)
+    margin = 4.0 * np.sqrt(np.clip(1.0 - (xx / HALF_WIDTH) ** 2, 0.0, None))  # the true margins: y = +-margin
+    middle = np.abs(xx) < 0.6 * HALF_WIDTH
+    hole = ~np.isfinite(neutral.heights)
+    filled = middle & ~hole & (np.abs(yy) < margin - 0.75)  # the resampling's fill inside the true opening
+    assert filled.any() and opening[filled].all() and opening[middle & hole & (np.abs(yy) < margin)].all()
+    assert not opening[middle & (np.abs(yy) > margin + 1.0)].any()  # the skin beyond the margins counts

@@ -172,18 +172,7 @@ def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Fac
 
     guess = _fine_field(neutral, first_guess[:, :2], neutral_fine)[..., 1]
     dy, touched = guess, np.zeros(neutral_fine.shape, bool)
-    for side in ("L", "R"):
-        if f"eye_inner_{side}" not in before or f"eye_outer_{side}" not in before:
-            continue
-        inner = np.asarray(before[f"eye_inner_{side}"], dtype=np.float64)[:2]
-        outer = np.asarray(before[f"eye_outer_{side}"], dtype=np.float64)[:2]
-        columns = lid_columns(neutral_fine, expression_fine, inner, outer, grow_mm)
-        names = [n for pair in LID_LANDMARKS[side] for n in pair]
-        if not columns and all(n in before and n in after for n in names):  # no opening in the neutral
-            columns = lid_columns_from_landmarks(neutral_fine, before, after, side, inner, outer)
-        if not columns or np.median([max(abs(c.upper_motion), abs(c.lower_motion)) for c in columns.values()]
-                                    ) < MIN_MOTION_MM:
-            continue  # this eye's lids did not move (a thin opening at a corner may read as closed): the guess stays
+    for inner, outer, columns in _moving_lids(neutral_fine, expression_fine, before, after, grow_mm):
         reach = REACH_EYE_WIDTHS * float(np.linalg.norm(outer - inner))
         dy, hit = lid_motion(neutral_fine, columns, reach, dy)
         touched |= hit
@@ -199,6 +188,47 @@ def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Fac
     dz = landed - neutral_fine.heights[fine_r[hit], fine_c[hit]]
     out[hit, 2] = np.where(np.isfinite(dz), dz, out[hit, 2])
     return out
+
+
+def closing_openings(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict, after: dict,
+                     grow_mm: float) -> np.ndarray | None:
+    """The neutral's eye openings whose lids moved, between the lids' margins (n_rows, n_cols) bool on
+    ``neutral_fine``'s grid; None when no eye's lids moved. Arguments as in :func:`eyelid_guess`.
+
+    The skin image's hole lies inside the opening by ``grow_mm``; the heights in that band are the
+    resampling's fill from the last scan points of the lids' rims, which curl back over the eye, away from
+    the scanner. Once the opening closes, the expression's surface there is the lid's front, so the change in
+    height there is not the skin's motion: read as such it brought the lids' edges forward (+0.5 to +2 mm by
+    the lower lid's margin in `livebridge bench scans`, where the lower lid hardly moves). The skin flow leaves
+    these points out of the depth change (:func:`~livebridge.retarget.skin_flow.skin_motion`'s ``not_skin``):
+    eyelid elements at 150k points a scan 0.242 / 0.248 relative RMS -> 0.228 / 0.237 (60k: 0.322 / 0.279 ->
+    0.319 / 0.280), with another seed's scans 0.246 / 0.235 -> 0.225 / 0.222 (60k: 0.248 / 0.270 -> 0.243 /
+    0.269). Leaving out every hole's fill band the same way (nostrils, the face's outline) cost other elements
+    up to 0.003.
+    """
+    opening = np.zeros(neutral_fine.shape, bool)
+    rows = np.arange(neutral_fine.shape[0])
+    for _, _, columns in _moving_lids(neutral_fine, expression_fine, before, after, grow_mm):
+        for col, lid in columns.items():
+            opening[:, col] |= (rows >= lid.lower) & (rows <= lid.upper)
+    return opening if opening.any() else None
+
+
+def _moving_lids(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict, after: dict, grow_mm: float):
+    """(inner corner, outer corner, lid columns) of every eye whose lids moved (see :func:`eyelid_guess`)."""
+    for side in ("L", "R"):
+        if f"eye_inner_{side}" not in before or f"eye_outer_{side}" not in before:
+            continue
+        inner = np.asarray(before[f"eye_inner_{side}"], dtype=np.float64)[:2]
+        outer = np.asarray(before[f"eye_outer_{side}"], dtype=np.float64)[:2]
+        columns = lid_columns(neutral_fine, expression_fine, inner, outer, grow_mm)
+        names = [n for pair in LID_LANDMARKS[side] for n in pair]
+        if not columns and all(n in before and n in after for n in names):  # no opening in the neutral
+            columns = lid_columns_from_landmarks(neutral_fine, before, after, side, inner, outer)
+        if not columns or np.median([max(abs(c.upper_motion), abs(c.lower_motion)) for c in columns.values()]
+                                    ) < MIN_MOTION_MM:
+            continue  # this eye's lids did not move (a thin opening at a corner may read as closed): the guess stays
+        yield inner, outer, columns
 
 
 def _corner_line_y(inner: np.ndarray, outer: np.ndarray, x: float) -> float:

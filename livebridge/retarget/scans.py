@@ -35,7 +35,7 @@ from livebridge.errors import InputError
 from livebridge.face.basis import CHOE_KO_BY_NAME, Basis, Muscle
 from livebridge.face.meshio import vertex_normals
 from livebridge.geometry.transforms import apply
-from livebridge.retarget.eyelids import eyelid_guess
+from livebridge.retarget.eyelids import closing_openings, eyelid_guess
 from livebridge.retarget.grid import (
     GAP_SPACINGS,
     GRID_SHAPE,
@@ -185,11 +185,14 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
         return geometric
     spacing = np.nanmax([neutral.point_spacing, expression.point_spacing, 0.0])
     smooth = SMOOTH_SPACINGS * (spacing if spacing > 0 else TYPICAL_SPACING_MM)
+    grow = skin_gap_mm(neutral.grid.spacing)
     guess = eyelid_guess(neutral.skin, expression.skin, neutral.grid, neutral.skin_factor, neutral.skin_margin,
-                         geometric, neutral.landmarks, expression.landmarks, skin_gap_mm(neutral.grid.spacing))
+                         geometric, neutral.landmarks, expression.landmarks, grow)
     seam = _lip_seam(neutral)
     element, trust = skin_motion(neutral.skin, expression.skin, neutral.grid, neutral.skin_factor,
-                                 neutral.skin_margin, guess, smooth, seam)
+                                 neutral.skin_margin, guess, smooth, seam,
+                                 closing_openings(neutral.skin, expression.skin, neutral.landmarks,
+                                                  expression.landmarks, grow))
     # Where the skin was not tracked, the motion of the tracked skin around it is a better guess than the
     # geometric warp: the skin went out of the scanner's view (under an opened jaw's chin, round the face's
     # outline) or into a hole, where the warp snaps it to the wrong, visible, surface.

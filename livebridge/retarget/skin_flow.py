@@ -177,7 +177,8 @@ def _dis(step: float):
 
 
 def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: FaceGrid, factor: int, margin: int,
-                first_guess: np.ndarray, smooth_mm: float = 2.0, seam=None) -> tuple[np.ndarray, np.ndarray]:
+                first_guess: np.ndarray, smooth_mm: float = 2.0, seam=None, not_skin: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """The 3D motion of the ``neutral`` grid's vertices from skin tracking, and its trust.
 
     Parameters
@@ -193,6 +194,9 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
         Gaussian sigma of the smoothing of the tracked motion (see :data:`SMOOTH_SPACINGS`).
     seam : LipSeam, optional
         The smoothing does not reach across it (:mod:`~livebridge.retarget.seams`).
+    not_skin : ndarray of bool, shape of ``neutral_fine``, optional
+        Points whose change in height is not the skin's (a closing eye's opening: see
+        :func:`~livebridge.retarget.eyelids.closing_openings`), left out of the smoothing of the heights.
 
     Returns
     -------
@@ -213,13 +217,13 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
     sigma = smooth_mm / step
     values = np.dstack([xy, np.nan_to_num(dz)])
     if seam is None:
-        smooth = _robust_smooth(values, weight, sigma)
+        smooth = _robust_smooth(values, weight, sigma, z_use=None if not_skin is None else ~not_skin)
         density = cv2.GaussianBlur(weight.astype(np.float32), (0, 0), sigma)
     else:
         def blur(channels, channel_weight):
             return seam.smoothed(neutral_fine.x, neutral_fine.y, channels, channel_weight, sigma)[0]
 
-        smooth = _robust_smooth(values, weight, sigma, blur)
+        smooth = _robust_smooth(values, weight, sigma, blur, None if not_skin is None else ~not_skin)
         density = seam.smoothed(neutral_fine.x, neutral_fine.y, [], weight, sigma)[2]
     start = margin * factor
     coarse = (slice(start, start + (neutral.shape[0] - 1) * factor + 1, factor),
@@ -258,7 +262,8 @@ def shrink_noise(grid: FaceGrid, normals: np.ndarray, motion: np.ndarray, trust:
     return normal_part + factor[:, None] * tangential
 
 
-def _robust_smooth(values: np.ndarray, weight: np.ndarray, sigma: float, blur=None) -> np.ndarray:
+def _robust_smooth(values: np.ndarray, weight: np.ndarray, sigma: float, blur=None,
+                   z_use: np.ndarray | None = None) -> np.ndarray:
     """``values`` (rows, cols, 3: x, y, z motion) Gaussian-smoothed over ``sigma`` pixels with ``weight``
     (rows, cols), the heights' outliers down-weighted, shape (rows, cols, 3); NaN where nothing is near.
 
@@ -269,13 +274,16 @@ def _robust_smooth(values: np.ndarray, weight: np.ndarray, sigma: float, blur=No
     error in the known-slide test of tests/test_scans.py) for no gain on the bench.
 
     ``blur(channels, weight) -> means`` smooths a list of channels with one weight (default: a normalised
-    Gaussian convolution; a lip seam's keeps each lip apart).
+    Gaussian convolution; a lip seam's keeps each lip apart). ``z_use`` (rows, cols) bool: the pixels whose
+    heights count (default: all).
     """
     if blur is None:
         def blur(channels, channel_weight):
             return [_weighted_blur(channel, channel_weight, sigma) for channel in channels]
 
     smooth_xy = np.dstack(blur([values[..., 0], values[..., 1]], weight))
+    if z_use is not None:
+        weight = np.where(z_use, weight, 0.0)
     z_weight = weight
     for _ in range(ROBUST_ROUNDS):
         residual = np.abs(values[..., 2] - blur([values[..., 2]], z_weight)[0])
