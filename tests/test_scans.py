@@ -275,6 +275,35 @@ def test_noise_shrinkage_keeps_still_skin_still_and_moving_skin_moving(rng):
     assert rms(shrunk - slide, moving) < 1.2 * rms(noise, moving)
 
 
+def test_adaptive_smoothing_averages_noise_away_on_flat_motion_and_keeps_a_sharp_bump(rng):
+    """A sharp bump of motion (sigma 4 px) on still skin plus white noise: smoothed at the base width (4 px)
+    the still skin keeps noise that twice the width would halve, and at twice the width the bump loses much
+    of its height. The adaptive smoothing, with the noise level read from the data, does both: less noise
+    on the still skin than the base width, no more bias on the bump."""
+    from livebridge.retarget.skin_flow import WIDTHS, _adaptive_smooth, _weighted_blur
+
+    rows, cols = np.indices((160, 160))
+    bump = 2.0 * np.exp(-((rows - 80) ** 2 + (cols - 80) ** 2) / (2 * 4.0 ** 2))
+    truth = np.dstack([bump, 0.5 * bump])
+    values = truth + rng.normal(0.0, 1.0, truth.shape)
+    weight = np.ones(bump.shape)
+
+    def smoothed(width):
+        return np.dstack([_weighted_blur(values[..., k], weight, width) for k in (0, 1)])
+
+    adaptive = _adaptive_smooth([smoothed(4.0 * factor) for factor in WIDTHS], weight, 4.0)
+    distance = np.hypot(rows - 80, cols - 80)
+    inner = (rows > 20) & (rows < 140) & (cols > 20) & (cols < 140)
+    still, on_bump = inner & (distance > 30), distance < 6
+
+    def rms(field, where):
+        return float(np.sqrt(np.mean(np.sum((field - truth)[where] ** 2, axis=1))))
+
+    assert rms(adaptive, still) < 0.7 * rms(smoothed(4.0), still)
+    assert rms(adaptive, on_bump) < 1.1 * rms(smoothed(4.0), on_bump)
+    assert rms(adaptive, on_bump) < 0.8 * rms(smoothed(4.0 * max(WIDTHS)), on_bump)
+
+
 # ------------------------------------------------------------------------------------------------ bases from scans
 SCAN_MUSCLES = ("frontalis_L", "zygomatic_major_L", "depressor_anguli_oris", "orbicularis_oculi_L")
 """A brow, a smile, a lip corner, an eyelid (the full 16 are in `livebridge bench scans`)."""

@@ -18,7 +18,9 @@ down, each general (no knowledge of the muscle, the person or the scanner's nois
 
 - the motion is smoothed over :data:`SMOOTH_SPACINGS` of the scan's own point spacing, the heights
   robustly (:func:`_robust_smooth`): a skin image's heights have outliers of several mm where two surfaces
-  mix (the nostrils, the scan's rim) that a plain Gaussian spreads over centimetres;
+  mix (the nostrils, the scan's rim) that a plain Gaussian spreads over centimetres; the motion along the
+  face takes twice that width where it is flat enough that the wider window only averages more noise away,
+  the flat places found from the data by Lepski's rule (:func:`_adaptive_smooth`);
 - the rigid slip the shape-only registration leaves is taken out on the skin that did not move
   (:func:`still_skin_correction`);
 - the motion along the skin is shrunk towards zero where it is not above the noise, the noise level read
@@ -78,12 +80,17 @@ the wider window only averages more noise away. Mean relative error of the 8 smo
 points a scan 0.114 with the base alone, 0.108 with (1, 2); (1, 1.5, 2) 0.108, (1, 2, 4) 0.110, (1, 1.5, 2, 3)
 0.109; (0.5, 1, 2) 0.108 (the eyelids 0.304 / 0.252 instead of 0.322 / 0.279 at 60k, but 0.251 instead of
 0.242 at 150k). A fixed twice-wider smoothing is worse (0.138 for 8.5 spacings, above) and half-as-wide
-too (frontalis 0.119 instead of 0.099)."""
+too (frontalis 0.119 instead of 0.099). The heights follow the skin's new place along the surface
+(:func:`_rise`): without that the chosen x-y left the points off the surface (mean surface error of the 16
+elements 0.0709 instead of 0.0695; with it 0.0696)."""
 WIDEN_THRESHOLD = 3.0
 """A place takes the wider smoothing fully while the two widths' local mean square difference is at most
-this times the noise's (2, 3, 5: 0.109 / 0.109 / 0.111 mean relative error of the 8 smooth elements, 60k)."""
-WIDEN_WINDOW = 2.0
-"""Width over which that difference is averaged, in wider widths (0.5, 1, 2: 0.110 / 0.109 / 0.108)."""
+this times the noise's (1, 2, 3, 5: 0.111 / 0.109 / 0.108 / 0.111 mean relative error of the 8 smooth
+elements, 60k points)."""
+WIDEN_WINDOW = 1.0
+"""Width over which that difference is averaged, in wider widths (0.5, 1, 2: 0.110 / 0.109 / 0.108 mean
+relative error of the 8 smooth elements): 2 let a sharp bump (sigma the base width) take a third of the
+wider window's bias in tests/test_scans.py, 1 none."""
 ROBUST_ROUNDS = 3
 """Rounds of re-weighting in the robust smoothing of the heights (none: 0.155 instead of 0.124)."""
 ROBUST_SCALE = 5.0
@@ -237,7 +244,10 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
 
         density = seam.smoothed(neutral_fine.x, neutral_fine.y, [], weight, sigma)[2]
     smooth = _robust_smooth(values, weight, sigma, blur_at(sigma))
-    smooth[..., :2] = _adaptive_smooth(values[..., :2], weight, sigma, blur_at)
+    means = [np.dstack(blur_at(sigma * factor)([xy[..., 0], xy[..., 1]], weight)) for factor in WIDTHS]
+    adaptive = _adaptive_smooth(means, weight, sigma)
+    smooth[..., 2] += _rise(expression_fine.heights, step, smooth[..., :2], adaptive - smooth[..., :2], sigma)
+    smooth[..., :2] = adaptive
     start = margin * factor
     coarse = (slice(start, start + (neutral.shape[0] - 1) * factor + 1, factor),
               slice(start, start + (neutral.shape[1] - 1) * factor + 1, factor))
@@ -302,7 +312,7 @@ def _robust_smooth(values: np.ndarray, weight: np.ndarray, sigma: float, blur=No
     return np.dstack([smooth_xy, blur([values[..., 2]], z_weight)[0]])
 
 
-def _adaptive_smooth(values: np.ndarray, weight: np.ndarray, sigma: float, blur_at) -> np.ndarray:
+def _adaptive_smooth(means: list, weight: np.ndarray, sigma: float) -> np.ndarray:
     """``values`` (rows, cols, 2: x-y motion) smoothed with ``weight`` (rows, cols) over a width chosen per
     place among :data:`WIDTHS` times ``sigma`` pixels, shape (rows, cols, 2); NaN where nothing is near.
 
@@ -314,16 +324,22 @@ def _adaptive_smooth(values: np.ndarray, weight: np.ndarray, sigma: float, blur_
     square exponential, its mean the median over ln 2), so it holds for any scanner. The test is on the
     difference's local mean square (over :data:`WIDEN_WINDOW` times the wider width, so that one noisy
     pixel does not decide): up to :data:`WIDEN_THRESHOLD` times the noise's the place takes the wider
-    smoothing, at twice that none, linearly between, which keeps the blend free of seams.
+    smoothing, at twice that none, linearly between, which keeps the blend free of seams. The widest width
+    a place may take is the first one rejected on the way up, as in Lepski's rule.
 
-    ``blur_at(width)`` gives the ``blur(channels, weight) -> means`` of :func:`_robust_smooth` for a Gaussian
-    sigma of ``width`` pixels.
+    Parameters
+    ----------
+    means : list of ndarray, shape (rows, cols, 2)
+        The motion smoothed at each of :data:`WIDTHS` times ``sigma`` (NaN where nothing is near).
+    weight : ndarray, shape (rows, cols)
+        The smoothing's weights (the flow's trust).
+    sigma : float
+        The base width, pixels.
     """
-    means = [np.dstack(blur_at(sigma * factor)([values[..., 0], values[..., 1]], weight)) for factor in WIDTHS]
     trusted = weight > 0.9
     result = means[-1]
     for k in range(len(WIDTHS) - 2, -1, -1):  # result: the smoothing from width k + 1 up
-        difference = np.sum((means[k + 1] - means[k]) ** 2, axis=2)
+        difference = np.sum((means[k + 1][..., :2] - means[k][..., :2]) ** 2, axis=2)
         usable = trusted & np.isfinite(difference)
         if usable.sum() < 100:
             return means[0]
@@ -334,6 +350,19 @@ def _adaptive_smooth(values: np.ndarray, weight: np.ndarray, sigma: float, blur_
         wider = np.where(np.isfinite(wider), wider, 0.0)[..., None]
         result = means[k] + wider * (np.nan_to_num(result) - means[k])
     return result
+
+
+def _rise(heights: np.ndarray, step: float, motion: np.ndarray, shift: np.ndarray, sigma: float) -> np.ndarray:
+    """How much the surface ``heights`` (rows, cols, mm on pixels of ``step`` mm; NaN: none), smoothed over
+    ``sigma`` pixels, rises along ``shift`` (rows, cols, 2; mm) where ``motion`` (rows, cols, 2; mm, from each
+    pixel) lands, to first order, shape (rows, cols): the height change that keeps a skin point moved along
+    the surface on it."""
+    finite = np.isfinite(heights)
+    level = _weighted_blur(np.nan_to_num(heights), finite.astype(np.float32), sigma)
+    rows, cols = np.indices(heights.shape)
+    at = [rows + np.nan_to_num(motion[..., 1]) / step, cols + np.nan_to_num(motion[..., 0]) / step]
+    slope_y, slope_x = (map_coordinates(np.nan_to_num(g), at, order=1, cval=0.0) for g in np.gradient(level, step))
+    return np.nan_to_num(slope_x * shift[..., 0] + slope_y * shift[..., 1])
 
 
 def _weighted_blur(image: np.ndarray, weight: np.ndarray, sigma: float) -> np.ndarray:
