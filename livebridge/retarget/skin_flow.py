@@ -18,7 +18,9 @@ down, each general (no knowledge of the muscle, the person or the scanner's nois
 
 - the motion is smoothed over :data:`SMOOTH_SPACINGS` of the scan's own point spacing, the heights
   robustly (:func:`_robust_smooth`): a skin image's heights have outliers of several mm where two surfaces
-  mix (the nostrils, the scan's rim) that a plain Gaussian spreads over centimetres;
+  mix (the nostrils, the scan's rim) that a plain Gaussian spreads over centimetres; the motion along the
+  face takes twice that width where it is flat enough that the wider window only averages more noise away,
+  the flat places found from the data by Lepski's rule (:func:`_adaptive_smooth`);
 - the rigid slip the shape-only registration leaves is taken out on the skin that did not move
   (:func:`still_skin_correction`);
 - the motion along the skin is shrunk towards zero where it is not above the noise, the noise level read
@@ -71,6 +73,27 @@ sampled at the grid vertices: the flow's noise grows with the spacing (spacing 0
 scan, 0.23 mm at 150k). With the heights smoothed robustly, outliers no longer ask for a wide window: mean
 relative error of the 8 smooth elements 0.126 / 0.124 / 0.125 / 0.138 at 4 / 5 / 6 / 8.5 spacings (60k
 points), 0.093 / 0.092 at 5 / 7 (150k)."""
+WIDTHS = (1.0, 2.0)
+"""The x-y motion's smoothing chooses per place between these multiples of the base width (see
+:func:`_adaptive_smooth`): the base where the motion curves, twice it where the motion is flat (or zero) and
+the wider window only averages more noise away. Mean relative error of the 8 smooth elements (seed 7) at 60k
+points a scan 0.114 with the base alone, 0.108 with (1, 2); (1, 1.5, 2) 0.108, (1, 2, 4) 0.110, (1, 1.5, 2, 3)
+0.109; (0.5, 1, 2) 0.108 (the eyelids 0.304 / 0.252 instead of 0.322 / 0.279 at 60k, but 0.251 instead of
+0.242 at 150k). A fixed twice-wider smoothing is worse (0.138 for 8.5 spacings, above) and half-as-wide
+too (frontalis 0.119 instead of 0.099). The heights follow the skin's new place along the surface
+(:func:`_rise`): without that the chosen x-y left the points off the surface (mean surface error of the 16
+elements 0.0709 instead of 0.0695; with it 0.0696). Not better: choosing the heights' width the same way
+(orbicularis_oris 0.103 instead of 0.088, mean surface error 0.0739), and narrowing the x-y width where the
+skin is steep so that it spans the same skin as on flat skin (levator_labii 0.101 / 0.096 instead of
+0.098 / 0.094, risorius 0.117 / 0.125 instead of 0.110 / 0.118): the noise, not the bias, rules there."""
+WIDEN_THRESHOLD = 3.0
+"""A place takes the wider smoothing fully while the two widths' local mean square difference is at most
+this times the noise's (1, 2, 3, 5: 0.111 / 0.109 / 0.108 / 0.111 mean relative error of the 8 smooth
+elements, 60k points)."""
+WIDEN_WINDOW = 1.0
+"""Width over which that difference is averaged, in wider widths (0.5, 1, 2: 0.110 / 0.109 / 0.108 mean
+relative error of the 8 smooth elements): 2 let a sharp bump (sigma the base width) take a third of the
+wider window's bias in tests/test_scans.py, 1 none."""
 ROBUST_ROUNDS = 3
 """Rounds of re-weighting in the robust smoothing of the heights (none: 0.155 instead of 0.124)."""
 ROBUST_SCALE = 5.0
@@ -217,14 +240,21 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
     sigma = smooth_mm / step
     values = np.dstack([xy, np.nan_to_num(dz)])
     if seam is None:
-        smooth = _robust_smooth(values, weight, sigma, z_use=None if not_skin is None else ~not_skin)
+        def blur_at(width):
+            return lambda channels, channel_weight: [_weighted_blur(c, channel_weight, width) for c in channels]
+
         density = cv2.GaussianBlur(weight.astype(np.float32), (0, 0), sigma)
     else:
-        def blur(channels, channel_weight):
-            return seam.smoothed(neutral_fine.x, neutral_fine.y, channels, channel_weight, sigma)[0]
+        def blur_at(width):
+            return lambda channels, channel_weight: seam.smoothed(neutral_fine.x, neutral_fine.y, channels,
+                                                                  channel_weight, width)[0]
 
-        smooth = _robust_smooth(values, weight, sigma, blur, None if not_skin is None else ~not_skin)
         density = seam.smoothed(neutral_fine.x, neutral_fine.y, [], weight, sigma)[2]
+    smooth = _robust_smooth(values, weight, sigma, blur_at(sigma), None if not_skin is None else ~not_skin)
+    means = [np.dstack(blur_at(sigma * factor)([xy[..., 0], xy[..., 1]], weight)) for factor in WIDTHS]
+    adaptive = _adaptive_smooth(means, weight, sigma)
+    smooth[..., 2] += _rise(expression_fine.heights, step, smooth[..., :2], adaptive - smooth[..., :2], sigma)
+    smooth[..., :2] = adaptive
     start = margin * factor
     coarse = (slice(start, start + (neutral.shape[0] - 1) * factor + 1, factor),
               slice(start, start + (neutral.shape[1] - 1) * factor + 1, factor))
@@ -291,6 +321,59 @@ def _robust_smooth(values: np.ndarray, weight: np.ndarray, sigma: float, blur=No
         scale = max(float(np.median(residual[usable])) * ROBUST_SCALE, 1e-9) if usable.any() else 1.0
         z_weight = np.where(usable, weight / (1.0 + (residual / scale) ** 2), 0.0)
     return np.dstack([smooth_xy, blur([values[..., 2]], z_weight)[0]])
+
+
+def _adaptive_smooth(means: list, weight: np.ndarray, sigma: float) -> np.ndarray:
+    """``values`` (rows, cols, 2: x-y motion) smoothed with ``weight`` (rows, cols) over a width chosen per
+    place among :data:`WIDTHS` times ``sigma`` pixels, shape (rows, cols, 2); NaN where nothing is near.
+
+    Lepski's rule (the intersection of confidence intervals), from the narrowest width up: a place takes the
+    next wider smoothing while the two differ by no more than the flow's noise makes them differ. Where the
+    motion is flat over the wider window their difference is noise; where it curves, the wider one's bias
+    adds to it. The noise level of each difference is read from the data, as the median over the trusted
+    skin of its squared size (most of a face does not curve at these widths; 2D Gaussian noise makes that
+    square exponential, its mean the median over ln 2), so it holds for any scanner. The test is on the
+    difference's local mean square (over :data:`WIDEN_WINDOW` times the wider width, so that one noisy
+    pixel does not decide): up to :data:`WIDEN_THRESHOLD` times the noise's the place takes the wider
+    smoothing, at twice that none, linearly between, which keeps the blend free of seams. The widest width
+    a place may take is the first one rejected on the way up, as in Lepski's rule.
+
+    Parameters
+    ----------
+    means : list of ndarray, shape (rows, cols, 2)
+        The motion smoothed at each of :data:`WIDTHS` times ``sigma`` (NaN where nothing is near).
+    weight : ndarray, shape (rows, cols)
+        The smoothing's weights (the flow's trust).
+    sigma : float
+        The base width, pixels.
+    """
+    trusted = weight > 0.9
+    result = means[-1]
+    for k in range(len(WIDTHS) - 2, -1, -1):  # result: the smoothing from width k + 1 up
+        difference = np.sum((means[k + 1][..., :2] - means[k][..., :2]) ** 2, axis=2)
+        usable = trusted & np.isfinite(difference)
+        if usable.sum() < 100:
+            return means[0]
+        noise = float(np.median(difference[usable])) / np.log(2.0)
+        local = _weighted_blur(np.where(usable, difference, 0.0), usable.astype(np.float32),
+                               sigma * WIDTHS[k + 1] * WIDEN_WINDOW)
+        wider = np.clip(2.0 - local / max(WIDEN_THRESHOLD * noise, 1e-12), 0.0, 1.0)
+        wider = np.where(np.isfinite(wider), wider, 0.0)[..., None]
+        result = means[k] + wider * (np.nan_to_num(result) - means[k])
+    return result
+
+
+def _rise(heights: np.ndarray, step: float, motion: np.ndarray, shift: np.ndarray, sigma: float) -> np.ndarray:
+    """How much the surface ``heights`` (rows, cols, mm on pixels of ``step`` mm; NaN: none), smoothed over
+    ``sigma`` pixels, rises along ``shift`` (rows, cols, 2; mm) where ``motion`` (rows, cols, 2; mm, from each
+    pixel) lands, to first order, shape (rows, cols): the height change that keeps a skin point moved along
+    the surface on it."""
+    finite = np.isfinite(heights)
+    level = _weighted_blur(np.nan_to_num(heights), finite.astype(np.float32), sigma)
+    rows, cols = np.indices(heights.shape)
+    at = [rows + np.nan_to_num(motion[..., 1]) / step, cols + np.nan_to_num(motion[..., 0]) / step]
+    slope_y, slope_x = (map_coordinates(np.nan_to_num(g), at, order=1, cval=0.0) for g in np.gradient(level, step))
+    return np.nan_to_num(slope_x * shift[..., 0] + slope_y * shift[..., 1])
 
 
 def _weighted_blur(image: np.ndarray, weight: np.ndarray, sigma: float) -> np.ndarray:
