@@ -280,7 +280,8 @@ def test_skin_template_averages_the_scans_into_a_cleaner_neutral_skin(rng):
     with its own sampling and colour noise: the first expression's template (the six others warped back by
     their motion and averaged with the neutral) is nearer the true skin pattern than the neutral scan's own
     image, and that expression's slide tracked against it is nearer the truth than tracked against the
-    neutral."""
+    neutral (measured: 1 - correlation with the true pattern 0.027 against 0.059; RMS error 0.049 against
+    0.057 mm)."""
     import cv2
     from scipy.interpolate import RegularGridInterpolator
 
@@ -326,12 +327,13 @@ def test_skin_template_averages_the_scans_into_a_cleaner_neutral_skin(rng):
 
     assert mismatch(skin_image(template)[0]) < 0.7 * mismatch(skin_image(neutral_skin)[0])
 
-    def tracking_error(reference):
-        motion, _ = skin_motion(reference, skins[0], neutral, factor, margin, np.zeros((len(xy), 3)))
+    def tracking_error(template):
+        motion, _ = skin_motion(neutral_skin, skins[0], neutral, factor, margin, np.zeros((len(xy), 3)),
+                                template=template)
         truth = slide(xy, *moves[0])
         return float(np.sqrt(np.mean(np.sum((motion[:, :2] - truth) ** 2, axis=1))))
 
-    assert tracking_error(template) < 0.9 * tracking_error(neutral_skin)
+    assert tracking_error(template) < 0.9 * tracking_error(None)
 
 
 # ------------------------------------------------------------------------------------------------ bases from scans
