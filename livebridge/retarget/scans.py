@@ -22,7 +22,10 @@ nothing is smoothed or carried from one lip to the other). Around a closing eye 
 the eye openings say the lids went (:mod:`~livebridge.retarget.eyelids`), not from the geometric warp. The
 skin that did not move then corrects the shape-only rigid registration (which can slide a fraction of a mm
 along the face), and tracked motion along the skin that is not above the flow's noise (estimated on that still
-skin) is shrunk towards zero.
+skin) is shrunk towards zero. With more than one coloured expression, the skin is tracked twice: the second
+time against a template of the neutral skin averaged from the neutral and the OTHER expressions' skin images,
+warped back by their first tracked motion (:mod:`~livebridge.retarget.skin_template`), so the neutral scan's
+own noise no longer sits in every element's flow.
 """
 
 from __future__ import annotations
