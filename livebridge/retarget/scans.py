@@ -22,12 +22,15 @@ nothing is smoothed or carried from one lip to the other). Around a closing eye 
 the eye openings say the lids went (:mod:`~livebridge.retarget.eyelids`), not from the geometric warp. The
 skin that did not move then corrects the shape-only rigid registration (which can slide a fraction of a mm
 along the face), and tracked motion along the skin that is not above the flow's noise (estimated on that still
-skin) is shrunk towards zero.
+skin) is shrunk towards zero. With more than one coloured expression, the skin is tracked twice: the second
+time against a template of the neutral skin averaged from the neutral and the OTHER expressions' skin images,
+warped back by their first tracked motion (:mod:`~livebridge.retarget.skin_template`), so the neutral scan's
+own noise no longer sits in every element's flow.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -56,6 +59,7 @@ from livebridge.retarget.skin_flow import (
     skin_motion,
     still_skin_correction,
 )
+from livebridge.retarget.skin_template import skin_templates
 from livebridge.retarget.tps import Kernel, fit_tps
 
 CROP_FACTOR = 1.2
@@ -96,6 +100,9 @@ class FaceScan:
     skin_factor, skin_margin : int
     point_spacing : float
         The scan's median distance between neighbouring points in x-y, mm (NaN when not known).
+    template : FaceGrid or None
+        A neutral's skin image averaged from all of the person's scans, tracked against instead of ``skin``
+        (:mod:`~livebridge.retarget.skin_template`).
     """
 
     grid: FaceGrid
@@ -105,6 +112,7 @@ class FaceScan:
     skin_factor: int = 1
     skin_margin: int = 0
     point_spacing: float = float("nan")
+    template: FaceGrid | None = None
 
     @property
     def vertices(self) -> np.ndarray:
@@ -180,9 +188,20 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
                        kernel: Kernel | str = Kernel.BIHARMONIC, source=None, colour: bool = True) -> np.ndarray:
     """The displacement (n_vertices, 3) of every neutral grid vertex into the expressive surface (§5.5):
     the geometric warp, refined by skin tracking when both scans have colour (and ``colour``)."""
-    geometric = geometric_element(neutral, expression, stride, kernel, source)
     if not (colour and neutral.skin is not None and expression.skin is not None):
-        return geometric
+        return geometric_element(neutral, expression, stride, kernel, source)
+    element, trust = tracked_motion(neutral, expression, stride, kernel, source)
+    correction = still_skin_correction(neutral.vertices, element, trust)
+    element = apply(correction, neutral.vertices + element) - neutral.vertices
+    return shrink_noise(neutral.grid, vertex_normals(neutral.vertices, neutral.triangles), element, trust)
+
+
+def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,
+                   kernel: Kernel | str = Kernel.BIHARMONIC, source=None) -> tuple[np.ndarray, np.ndarray]:
+    """Where each neutral grid vertex's skin went in the (registered) expression scan, (n_vertices, 3), and
+    how much that is trusted (n_vertices,), before the still skin corrects the registration: both scans
+    must have colour."""
+    geometric = geometric_element(neutral, expression, stride, kernel, source)
     spacing = np.nanmax([neutral.point_spacing, expression.point_spacing, 0.0])
     smooth = SMOOTH_SPACINGS * (spacing if spacing > 0 else TYPICAL_SPACING_MM)
     grow = skin_gap_mm(neutral.grid.spacing)
@@ -192,16 +211,15 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
     element, trust = skin_motion(neutral.skin, expression.skin, neutral.grid, neutral.skin_factor,
                                  neutral.skin_margin, guess, smooth, seam,
                                  closing_openings(neutral.skin, expression.skin, neutral.landmarks,
-                                                  expression.landmarks, grow))
+                                                  expression.landmarks, grow),
+                                 neutral.template)
     # Where the skin was not tracked, the motion of the tracked skin around it is a better guess than the
     # geometric warp: the skin went out of the scanner's view (under an opened jaw's chin, round the face's
     # outline) or into a hole, where the warp snaps it to the wrong, visible, surface.
     fallback = _carried(neutral, element, trust, stride, kernel, seam)
     if fallback is not None:
         element = element + (1.0 - trust)[:, None] * (fallback - guess)
-    correction = still_skin_correction(neutral.vertices, element, trust)
-    element = apply(correction, neutral.vertices + element) - neutral.vertices
-    return shrink_noise(neutral.grid, vertex_normals(neutral.vertices, neutral.triangles), element, trust)
+    return element, trust
 
 
 def _lip_seam(neutral: FaceScan) -> LipSeam | None:
@@ -258,12 +276,27 @@ def geometric_element(neutral: FaceScan, expression: FaceScan, stride: int = CON
 def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
                      kernel: Kernel | str = Kernel.BIHARMONIC, colour: bool = True) -> Basis:
     """One element per expression scan (by muscle name) on the neutral's grid mesh (skin tracked where the
-    scans have colour, unless not ``colour``)."""
-    elements = np.stack([expression_element(neutral, face, kernel=kernel, source=name, colour=colour)
-                         for name, face in expressions.items()])
+    scans have colour, unless not ``colour``). With colour, each expression is tracked against a template
+    of the neutral skin averaged from all the scans (:mod:`~livebridge.retarget.skin_template`)."""
+    names = list(expressions)
+    neutrals = [neutral] * len(names)
+    coloured = [face for face in expressions.values() if face.skin is not None]
+    if colour and neutral.skin is not None and len(coloured) == len(names) > 1:
+        neutrals = _with_templates(neutral, expressions, kernel)
+    elements = np.stack([expression_element(own, expressions[name], kernel=kernel, source=name, colour=colour)
+                         for own, name in zip(neutrals, names)])
     muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks)
                     for name, element in zip(expressions, elements))
     return Basis(neutral.vertices, neutral.triangles, elements, muscles)
+
+
+def _with_templates(neutral: FaceScan, expressions: dict[str, FaceScan], kernel: Kernel | str) -> list[FaceScan]:
+    """The neutral once per expression, with the template of the other scans' skin to track against, each
+    expression warped back by its tracked motion (one round of groupwise registration)."""
+    tracked = [(face.skin, *tracked_motion(neutral, face, kernel=kernel, source=name))
+               for name, face in expressions.items()]
+    return [replace(neutral, template=template)
+            for template in skin_templates(neutral.skin, neutral.grid, tracked)]
 
 
 def muscle_for(name: str, element: np.ndarray, vertices: np.ndarray, landmarks: dict[str, np.ndarray]) -> Muscle:

@@ -153,7 +153,8 @@ def _remap(image: np.ndarray, flow_px: np.ndarray, border: float = 0.0) -> np.nd
                      borderValue=border)
 
 
-def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray,
+               template: FaceGrid | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Where each neutral skin point is in the expression, in x-y, and how much that is trusted.
 
     Parameters
@@ -162,6 +163,10 @@ def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray) -> tu
         Coloured grids on the same grid lines (the face frame).
     guess : ndarray, shape (n_rows, n_cols, 2)
         First guess of the x-y motion (mm) of every grid point (finite everywhere).
+    template : FaceGrid, optional
+        A cleaner image of the neutral skin on its grid lines (:mod:`~livebridge.retarget.skin_template`):
+        the flow is found against it, the trust still from the neutral scan's own skin (the residuals'
+        scale :data:`TRUSTED_RESIDUAL` is that of two single scans).
 
     Returns
     -------
@@ -175,7 +180,7 @@ def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray) -> tu
     source, source_valid = skin_image(neutral)
     target, _ = skin_image(expression)
     total = (guess / step).astype(np.float32)
-    source_u8 = _to_u8(source)
+    source_u8 = _to_u8(source if template is None else skin_image(template)[0])
     for _ in range(PASSES):
         warped = _remap(target, total)
         flow = _dis(step).calc(source_u8, _to_u8(warped), None)  # source(p) ~ warped(p + flow)
@@ -200,8 +205,8 @@ def _dis(step: float):
 
 
 def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: FaceGrid, factor: int, margin: int,
-                first_guess: np.ndarray, smooth_mm: float = 2.0, seam=None, not_skin: np.ndarray | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
+                first_guess: np.ndarray, smooth_mm: float = 2.0, seam=None, not_skin: np.ndarray | None = None,
+                template: FaceGrid | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The 3D motion of the ``neutral`` grid's vertices from skin tracking, and its trust.
 
     Parameters
@@ -220,6 +225,8 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
     not_skin : ndarray of bool, shape of ``neutral_fine``, optional
         Points whose change in height is not the skin's (a closing eye's opening: see
         :func:`~livebridge.retarget.eyelids.closing_openings`), left out of the smoothing of the heights.
+    template : FaceGrid, optional
+        See :func:`track_skin`.
 
     Returns
     -------
@@ -229,7 +236,7 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
         In [0, 1]; the motion is ``trust * tracked + (1 - trust) * first_guess``.
     """
     guess = _fine_field(neutral, first_guess[:, :2], neutral_fine)
-    xy, trust = track_skin(neutral_fine, expression_fine, guess)
+    xy, trust = track_skin(neutral_fine, expression_fine, guess, template)
     step = neutral_fine.spacing
     rows, cols = np.indices(neutral_fine.shape)
     landed_z = map_coordinates(expression_fine.heights, [rows + xy[..., 1] / step, cols + xy[..., 0] / step],
