@@ -415,9 +415,9 @@ def test_scan_basis_surface_away_from_the_lips_and_eyelids(ict_scan_figures):
         assert figures.surface[figures.names.index(name)] <= ERROR_LIMIT, name
 
 
-@pytest.mark.xfail(strict=True, reason="open: surface error 0.11 of the element's RMS at the eyelid here (the lip "
-                   "corner 0.093); in `livebridge bench scans` 13 of 16 elements within 0.10 at 60k points a scan "
-                   "(worst 0.111, orbicularis_oculi_R; depressor_anguli_oris 0.109), 16 of 16 at 150k (worst 0.099)")
+@pytest.mark.xfail(strict=True, reason="open: surface error 0.100 (just over) of the element's RMS at the eyelid "
+                   "here (the lip corner 0.091); in `livebridge bench scans` 13 of 16 elements within 0.10 at 60k "
+                   "points a scan (worst 0.111, depressor_anguli_oris), 16 of 16 at 150k (worst 0.097)")
 def test_scan_basis_surface_within_10_percent(ict_scan_figures):
     figures = ict_scan_figures
     assert np.nanmax(figures.surface) <= ERROR_LIMIT, dict(zip(figures.names, np.round(figures.surface, 3)))
@@ -437,11 +437,12 @@ def test_scan_basis_eyelids(ict_scan_figures):
         assert _share_where_ict_moves(figures.with_colour[k], figures.truth[k]) > 0.75, name
 
 
-@pytest.mark.xfail(strict=True, reason="open: with colour 0.059-0.149 relative RMS per element besides the eyelids "
-                   "at 60k points a scan (8 of 16 within 0.10), 0.050-0.114 at 150k (12 of 16), the eyelids "
-                   "0.25-0.30 / 0.23-0.25 (`livebridge bench scans`): the flow's noise (what the skin images resolve; "
-                   "with the true x-y motion the lip corner, lip press and risorius measure 0.055-0.077 at 60k), the "
-                   "lips' and eyelids' occlusions")
+@pytest.mark.xfail(strict=True, reason="open: here 0.068-0.133 relative RMS and the eyelid 0.296; in `livebridge "
+                   "bench scans` with colour 0.059-0.144 per element besides the eyelids at 60k points a scan (10 of "
+                   "16 within 0.10), 0.049-0.110 at 150k (11 of 16; over: jaw 0.100, lip corner 0.103, lip press "
+                   "0.110), the eyelids 0.24-0.29 / 0.22: the flow's noise (what the skin images resolve; with the "
+                   "true x-y motion the lip corner, lip press and risorius measure 0.055-0.077 at 60k), the skin "
+                   "under an opened jaw's chin, the lid's stretched skin")
 def test_scan_basis_reproduces_the_ict_elements_within_10_percent(ict_scan_figures):
     figures = ict_scan_figures
     assert np.nanmax(figures.errors) <= ERROR_LIMIT, dict(zip(figures.names, np.round(figures.errors, 3)))
