@@ -30,6 +30,7 @@ from livebridge.arkit.receiver import Arrival
 from livebridge.devices.url import DeviceURL
 from livebridge.errors import InputError
 from livebridge.take.directory import MANIFEST, load_manifest, read_arkit
+from livebridge.take.replay import wait_until_due
 
 SCHEME = "replay"
 
@@ -130,12 +131,8 @@ class PhoneReplay:
         t_arrival = now
         if self.realtime:
             t_arrival = float(self.track.t[self._index]) + self._lap_s + self._offset
-            wait = t_arrival - now
-            if wait > timeout:
-                time.sleep(max(timeout, 0.0))
+            if not wait_until_due(t_arrival - now, timeout):
                 return None
-            if wait > 0:
-                time.sleep(wait)
         packet = self._packet(self._index)
         self._index += 1
         self.received += 1

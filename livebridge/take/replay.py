@@ -49,6 +49,17 @@ log = logging.getLogger(__name__)
 SKIP_LOG_EVERY = 100  # a damaged take logs its 1st, 101st, 201st, ... skipped frame, not every one
 
 
+
+def wait_until_due(wait: float, timeout: float | None) -> bool:
+    """Sleep until a paced replay's next item is due, ``wait`` seconds from now: True then; False (after
+    sleeping ``timeout`` seconds) when it is not due within ``timeout`` (None: no limit)."""
+    if timeout is not None and wait > timeout:
+        time.sleep(max(timeout, 0.0))
+        return False
+    if wait > 0:
+        time.sleep(wait)
+    return True
+
 class _Clock:
     """Shared by the cameras of one take: maps recorded times onto host time."""
 
@@ -264,12 +275,8 @@ class ReplaySource(SourceBase):
             t_capture = recorded
             if self.realtime:
                 t_capture = self._clock.host_time(recorded)
-                wait = t_capture - time.monotonic()
-                if timeout is not None and wait > timeout:
-                    time.sleep(max(timeout, 0.0))
+                if not wait_until_due(t_capture - time.monotonic(), timeout):
                     return None
-                if wait > 0:
-                    time.sleep(wait)
             image = self._image(self._index)
             self._index += 1
             if image is None:
