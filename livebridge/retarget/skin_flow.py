@@ -17,7 +17,7 @@ The tracked motion is noisy, and its noise is what limits a basis built from sca
 down, each general (no knowledge of the muscle, the person or the scanner's noise):
 
 - the motion is smoothed over :data:`SMOOTH_SPACINGS` of the scan's own point spacing, the heights
-  robustly (:func:`_robust_smooth`): a skin image's heights have outliers of several mm where two surfaces
+  robustly (:func:`_robust_heights`): a skin image's heights have outliers of several mm where two surfaces
   mix (the nostrils, the scan's rim) that a plain Gaussian spreads over centimetres; the motion along the
   face takes twice that width where it is flat enough that the wider window only averages more noise away,
   the flat places found from the data by Lepski's rule (:func:`_adaptive_smooth`);
@@ -245,7 +245,6 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
     good = (trust > 0) & np.isfinite(dz)
     weight = np.where(good, trust, 0.0)
     sigma = smooth_mm / step
-    values = np.dstack([xy, np.nan_to_num(dz)])
     if seam is None:
         def blur_at(width):
             return lambda channels, channel_weight: [_weighted_blur(c, channel_weight, width) for c in channels]
@@ -257,11 +256,12 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
                                                                   channel_weight, width)[0]
 
         density = seam.smoothed(neutral_fine.x, neutral_fine.y, [], weight, sigma)[2]
-    smooth = _robust_smooth(values, weight, sigma, blur_at(sigma), None if not_skin is None else ~not_skin)
+    # the heights at the base width; the x-y motion at each of WIDTHS (the first is the base width)
+    height = _robust_heights(np.nan_to_num(dz), weight, blur_at(sigma), None if not_skin is None else ~not_skin)
     means = [np.dstack(blur_at(sigma * factor)([xy[..., 0], xy[..., 1]], weight)) for factor in WIDTHS]
     adaptive = _adaptive_smooth(means, weight, sigma)
-    smooth[..., 2] += _rise(expression_fine.heights, step, smooth[..., :2], adaptive - smooth[..., :2], sigma)
-    smooth[..., :2] = adaptive
+    height = height + _rise(expression_fine.heights, step, means[0], adaptive - means[0], sigma)
+    smooth = np.dstack([adaptive, height])
     start = margin * factor
     coarse = (slice(start, start + (neutral.shape[0] - 1) * factor + 1, factor),
               slice(start, start + (neutral.shape[1] - 1) * factor + 1, factor))
@@ -299,35 +299,29 @@ def shrink_noise(grid: FaceGrid, normals: np.ndarray, motion: np.ndarray, trust:
     return normal_part + factor[:, None] * tangential
 
 
-def _robust_smooth(values: np.ndarray, weight: np.ndarray, sigma: float, blur=None,
-                   z_use: np.ndarray | None = None) -> np.ndarray:
-    """``values`` (rows, cols, 3: x, y, z motion) Gaussian-smoothed over ``sigma`` pixels with ``weight``
-    (rows, cols), the heights' outliers down-weighted, shape (rows, cols, 3); NaN where nothing is near.
+def _robust_heights(dz: np.ndarray, weight: np.ndarray, blur, z_use: np.ndarray | None = None) -> np.ndarray:
+    """The height change ``dz`` (rows, cols) smoothed by ``blur`` with ``weight`` (rows, cols), its outliers
+    down-weighted; NaN where nothing is near.
 
-    z is smoothed with iteratively re-weighted weights: each of :data:`ROBUST_ROUNDS` rounds weights every
-    pixel by the Cauchy function of its distance from the last smooth z, the scale :data:`ROBUST_SCALE` times
-    the median distance. x-y are not: their residual from the smooth field is mostly the flow's correlated
-    noise and the motion's own curvature, and down-weighting that biased a clean flow (0.07 -> 0.17 relative
-    error in the known-slide test of tests/test_scans.py) for no gain on the bench.
+    Iteratively re-weighted: each of :data:`ROBUST_ROUNDS` rounds weights every pixel by the Cauchy function
+    of its distance from the last smooth ``dz``, the scale :data:`ROBUST_SCALE` times the median distance.
+    The x-y motion is not smoothed this way: its residual from the smooth field is mostly the flow's
+    correlated noise and the motion's own curvature, and down-weighting that biased a clean flow (0.07 -> 0.17
+    relative error in the known-slide test of tests/test_scans.py) for no gain on the bench.
 
-    ``blur(channels, weight) -> means`` smooths a list of channels with one weight (default: a normalised
-    Gaussian convolution; a lip seam's keeps each lip apart). ``z_use`` (rows, cols) bool: the pixels whose
+    ``blur(channels, weight) -> means`` smooths a list of channels with one weight (a normalised Gaussian
+    convolution, or a lip seam's that keeps each lip apart). ``z_use`` (rows, cols) bool: the pixels whose
     heights count (default: all).
     """
-    if blur is None:
-        def blur(channels, channel_weight):
-            return [_weighted_blur(channel, channel_weight, sigma) for channel in channels]
-
-    smooth_xy = np.dstack(blur([values[..., 0], values[..., 1]], weight))
     if z_use is not None:
         weight = np.where(z_use, weight, 0.0)
     z_weight = weight
     for _ in range(ROBUST_ROUNDS):
-        residual = np.abs(values[..., 2] - blur([values[..., 2]], z_weight)[0])
+        residual = np.abs(dz - blur([dz], z_weight)[0])
         usable = (weight > 0) & np.isfinite(residual)
         scale = max(float(np.median(residual[usable])) * ROBUST_SCALE, 1e-9) if usable.any() else 1.0
         z_weight = np.where(usable, weight / (1.0 + (residual / scale) ** 2), 0.0)
-    return np.dstack([smooth_xy, blur([values[..., 2]], z_weight)[0]])
+    return blur([dz], z_weight)[0]
 
 
 def _adaptive_smooth(means: list, weight: np.ndarray, sigma: float) -> np.ndarray:
