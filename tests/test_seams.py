@@ -90,8 +90,7 @@ def test_smoothing_does_not_reach_across_the_seam():
     weight = np.ones_like(drop)
     weight[:, :10] = 0.0  # no skin at the image's left edge
     seam = LipSeam.from_landmarks(MOUTH)
-    sums, density, cover = seam.smoothed(x, y, [drop], weight, sigma=6.0)
-    smoothed = sums[0] / density
+    (smoothed,), cover = seam.smoother(x, y)([drop], weight, 6.0)
     above, strength = seam.sides(points[:, :2])
     between = (strength == 1.0).reshape(xx.shape) & (np.abs(xx) < 12)
     np.testing.assert_allclose(smoothed[between], drop[between], atol=0.05)

@@ -173,53 +173,42 @@ class LipSeam:
 
         return warp
 
-    def smoothed(self, x: np.ndarray, y: np.ndarray, channels: list[np.ndarray], weight: np.ndarray,
-                 sigma: float) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
-        """Weighted Gaussian smoothing of image channels that does not reach across the seam.
+    def smoother(self, x: np.ndarray, y: np.ndarray
+                 ) -> Callable[[list[np.ndarray], np.ndarray, float], tuple[list[np.ndarray], np.ndarray]]:
+        """Weighted Gaussian smoothing of images on the grid lines ``x`` (n_cols,), ``y`` (n_rows,) (mm) that
+        does not reach across the seam; which side each pixel is on is found once, here.
 
-        Parameters
-        ----------
-        x, y : ndarray, shape (n_cols,), (n_rows,)
-            The images' grid lines, mm.
-        channels : list of ndarray, shape (n_rows, n_cols)
-            Values (finite where ``weight`` > 0).
-        weight : ndarray, shape (n_rows, n_cols)
-            In [0, 1] (0: no value).
-        sigma : float
-            Gaussian sigma in pixels.
-
-        Returns
-        -------
-        sums : list of ndarray, shape (n_rows, n_cols)
-            Each channel's smoothed value times ``density``.
-        density : ndarray, shape (n_rows, n_cols)
-            The smoothed weight that ``sums`` are relative to.
-        cover : ndarray, shape (n_rows, n_cols)
-            How much of a pixel's neighbourhood (on its own side between the corners) had a value, in [0, 1].
+        The returned ``smooth(channels, weight, sigma) -> (means, cover)`` takes ``channels``, a list of
+        (n_rows, n_cols) values (finite where ``weight`` > 0), ``weight`` (n_rows, n_cols) in [0, 1] (0: no
+        value) and ``sigma`` (Gaussian sigma in pixels); ``means`` are the channels smoothed, ``cover``
+        (n_rows, n_cols) how much of a pixel's neighbourhood (on its own side between the corners) had a
+        value, in [0, 1].
         """
         xx, yy = np.meshgrid(x, y)
         upper, strength = self.sides(np.stack([xx.ravel(), yy.ravel()], axis=1))
         upper, strength = upper.reshape(xx.shape), strength.reshape(xx.shape)
+        pieces = [(upper == side).astype(np.float64) for side in (True, False)]
 
-        def blur(image):
-            return cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma).astype(np.float64)
+        def smooth(channels: list[np.ndarray], weight: np.ndarray, sigma: float):
+            def blur(image):
+                return cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma).astype(np.float64)
 
-        weight = np.where(weight > 0, weight, 0.0)
-        values = [np.where(weight > 0, channel, 0.0) for channel in channels]
-        density_all = blur(weight)
-        mean = [blur(v * weight) / np.maximum(density_all, 1e-9) for v in values]
-        cover = density_all.copy()
-        own_mean = [np.zeros_like(density_all) for _ in values]
-        own_cover = np.zeros_like(density_all)
-        for side in (True, False):
-            piece = (upper == side).astype(np.float64)
-            density = blur(weight * piece)
-            area = blur(piece)
-            at = upper == side
-            for k, v in enumerate(values):
-                own_mean[k][at] = (blur(v * weight * piece) / np.maximum(density, 1e-9))[at]
-            own_cover[at] = (density / np.maximum(area, 1e-9))[at]
-        blend = strength  # no skin of its own side around: not tracked (nothing taken from the other lip)
-        sums = [blend * o + (1.0 - blend) * m for o, m in zip(own_mean, mean)]
-        cover = np.clip(blend * own_cover + (1.0 - blend) * cover, 0.0, 1.0)
-        return sums, np.ones_like(cover), cover
+            weight = np.where(weight > 0, weight, 0.0)
+            values = [np.where(weight > 0, channel, 0.0) for channel in channels]
+            density_all = blur(weight)
+            mean = [blur(v * weight) / np.maximum(density_all, 1e-9) for v in values]
+            own_mean = [np.zeros_like(density_all) for _ in values]
+            own_cover = np.zeros_like(density_all)
+            for piece in pieces:
+                density = blur(weight * piece)
+                area = blur(piece)
+                at = piece > 0
+                for k, v in enumerate(values):
+                    own_mean[k][at] = (blur(v * weight * piece) / np.maximum(density, 1e-9))[at]
+                own_cover[at] = (density / np.maximum(area, 1e-9))[at]
+            # no skin of its own side around: not tracked (nothing taken from the other lip)
+            means = [strength * o + (1.0 - strength) * m for o, m in zip(own_mean, mean)]
+            cover = np.clip(strength * own_cover + (1.0 - strength) * density_all, 0.0, 1.0)
+            return means, cover
+
+        return smooth

@@ -251,11 +251,12 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
 
         density = cv2.GaussianBlur(weight.astype(np.float32), (0, 0), sigma)
     else:
-        def blur_at(width):
-            return lambda channels, channel_weight: seam.smoothed(neutral_fine.x, neutral_fine.y, channels,
-                                                                  channel_weight, width)[0]
+        smooth_apart = seam.smoother(neutral_fine.x, neutral_fine.y)
 
-        density = seam.smoothed(neutral_fine.x, neutral_fine.y, [], weight, sigma)[2]
+        def blur_at(width):
+            return lambda channels, channel_weight: smooth_apart(channels, channel_weight, width)[0]
+
+        density = smooth_apart([], weight, sigma)[1]
     # the heights at the base width; the x-y motion at each of WIDTHS (the first is the base width)
     height = _robust_heights(np.nan_to_num(dz), weight, blur_at(sigma), None if not_skin is None else ~not_skin)
     means = [np.dstack(blur_at(sigma * factor)([xy[..., 0], xy[..., 1]], weight)) for factor in WIDTHS]
