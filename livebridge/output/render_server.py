@@ -326,22 +326,12 @@ class RenderServer:
     def publish(self, frame: RenderFrame) -> None:
         """Hand the newest frame to every client; never blocks, never waits for a client."""
         self.frames_published += 1
-        with self._lock:
-            self._pending_frame = frame
-            schedule = not self._wake_scheduled
-            self._wake_scheduled = True
-        if schedule:
-            self._call_soon(self._distribute)
+        self._hand_over("_pending_frame", frame)
 
     def publish_status(self, status: dict) -> None:
         """Send the runtime's live status (a JSON-able dict) to every client, newest wins."""
         text = json.dumps({"type": "status", **status}, default=float)
-        with self._lock:
-            self._pending_status = text
-            schedule = not self._wake_scheduled
-            self._wake_scheduled = True
-        if schedule:
-            self._call_soon(self._distribute)
+        self._hand_over("_pending_status", text)
 
     def show_character(self, init_text: str, samples: bytes) -> None:
         """Show a 2D character in the page: its init text and samples message go to every client that
@@ -350,8 +340,12 @@ class RenderServer:
 
     def publish_character(self, states: bytes) -> None:
         """Hand the newest character states message to every client; never blocks (as :meth:`publish`)."""
+        self._hand_over("_pending_character", states)
+
+    def _hand_over(self, pending: str, value) -> None:
+        """Leave ``value`` in the ``pending`` slot (newest wins) and wake the server loop's distribution once."""
         with self._lock:
-            self._pending_character = states
+            setattr(self, pending, value)
             schedule = not self._wake_scheduled
             self._wake_scheduled = True
         if schedule:
