@@ -110,16 +110,16 @@ PASSES = 2
 STILL_FRACTION = 0.4
 """The fraction of the face taken as not moved by an expression when the registration is corrected."""
 BEHIND_MM = 4.0
-"""A skin-image point this far behind the front surface around it (see :func:`behind_front`) is another
-surface showing through a gap of the front one (a nostril's inside, the neck under the chin), not skin: its
-height is left out of the heights' smoothing. Skin itself never falls that far within :data:`FRONT_WINDOW_MM`
-below the window's upper fifth: on the steepest skin a frontal scanner keeps (|normal z| ~ 0.2, a slope of
-~5) the upper fifth of a 2 mm window is ~2.5 mm above its middle; the surfaces showing through lie 10-30 mm
-behind. Measured in `livebridge bench scans` (seed 7, 150k points, single-pass elements):
-depressor_anguli_oris 0.110 without, 0.099 / 0.097 / 0.097 with 3 / 4 / 5 mm; lips_pressor 0.113 without,
-0.102 / 0.104 / 0.107. The nostrils had carried 29 % of depressor_anguli_oris's error^2 (RMS 0.47 mm
-against 0.17 mm on the rest; 0.20 mm with this): the robust smoothing's three rounds do not escape from a
-start spoiled by 20-50 % of points 25 mm off."""
+"""A skin-image point this far behind the front surface around it (beyond what the front's own slope falls
+over the window: see :func:`behind_front`) is another surface showing through gaps of the front one (a
+nostril's inside), not skin: its height is left out of the heights' smoothing. The surfaces showing through
+a nostril lie 10-30 mm behind; 3 / 4 / 5 mm measured alike (single-pass elements at 150k points a scan:
+depressor_anguli_oris 0.099 / 0.097 / 0.097, lips_pressor 0.102 / 0.104 / 0.107; 0.110 and 0.113 without).
+The nostrils had carried 29 % of depressor_anguli_oris's error^2 at 150k points (RMS 0.47 mm against 0.17 mm
+on the rest; 0.20 mm with this): the robust smoothing's three rounds do not escape from a start spoiled by
+20-50 % of points 25 mm off (8 rounds instead: 0.31 mm). In `livebridge bench scans` (seed 7; 60k / 150k
+points): depressor_anguli_oris 0.144 / 0.103 -> 0.139 / 0.098, lips_pressor 0.138 / 0.110 -> 0.140 / 0.105
+(with the lips' seam of :mod:`~livebridge.retarget.seams` on the groove's gentler flank)."""
 FRONT_WINDOW_MM = 2.0
 """Width of the square window whose upper fifth of heights is the front surface for :func:`behind_front`."""
 
@@ -296,16 +296,22 @@ def behind_front(heights: np.ndarray, step: float, gap_mm: float = BEHIND_MM,
     NaN: no surface) more than ``gap_mm`` behind the front surface around them: the 80th percentile of the
     heights in a square window ``window_mm`` wide.
 
-    A resampled scan mixes two surfaces where the front one has gaps the scanner saw through (a nostril, the
-    neck below the chin): its points there are sometimes the skin, sometimes 10-30 mm deeper, a speckle whose
-    height changes between two scans are no skin's motion. The upper fifth, not the median, is the front:
-    where the deeper surface shows through at most points, the skin's points are still the front ones."""
-    from scipy.ndimage import percentile_filter
+    A resampled scan mixes two surfaces where the front one has gaps the scanner saw through (a nostril): its
+    points there are sometimes the skin, sometimes 10-30 mm deeper, a speckle whose height changes between
+    two scans are no skin's motion. The upper fifth, not the median, is the front: where the deeper surface
+    shows through at most points, the skin's points are still the front ones. Where the front itself is
+    steep (the face's side curving away, slopes up to ~15 at its outline) the gap grows by what the front
+    falls over half the window at its least steep nearby (the least, so that a cliff of mixed points does
+    not excuse itself): without that, the side of the face was taken for another surface
+    (zygomatic_major 0.050 -> 0.052 at 150k points)."""
+    from scipy.ndimage import minimum_filter, percentile_filter
 
     finite = np.isfinite(heights)
     size = max(3, int(round(window_mm / step)) | 1)
     front = percentile_filter(np.where(finite, heights, -np.inf), 80, size=size)
-    return finite & (heights < front - gap_mm)
+    slope = np.nan_to_num(np.hypot(*np.gradient(np.where(np.isfinite(front), front, np.nan), step)), nan=np.inf)
+    rise = minimum_filter(slope, size=size) * window_mm / 2  # how far a steep front itself falls in the window
+    return finite & (heights < front - gap_mm - rise)
 
 
 def _landed(mask: np.ndarray, xy: np.ndarray, step: float) -> np.ndarray:
