@@ -131,3 +131,25 @@ def test_the_seam_moves_onto_the_groove_between_the_lips(degrees):
             points = _on_seam(landmarks, probe_u, offset)
             assert (refined.sides(points)[0] == expected).all(), (apart, offset)
         assert not seam.sides(_on_seam(landmarks, probe_u, 0.3))[0].any()  # the landmarks alone: 1 mm off
+
+
+@pytest.mark.parametrize("upper_steeper", [True, False])
+def test_the_grooves_bottom_is_on_the_lip_of_the_gentler_flank(upper_steeper):
+    """Closed lips meeting on a straight line at a row of the skin image, one lip overhanging the other (its
+    flank rising 4 mm per mm, the other's 1.5): the points at the groove's bottom go with the lip whose flank
+    the frontal scanner sees face-on, the points a pixel off it with their own lip."""
+    from livebridge.retarget.grid import FaceGrid
+
+    straight = {"mouth_corner_R": np.array([-25.0, -38.0, -28.0]), "mouth_corner_L": np.array([25.0, -38.0, -28.0]),
+                "lip_upper_inner": np.array([0.0, -38.0, -17.0]), "lip_lower_inner": np.array([0.0, -38.0, -17.0])}
+    x = np.arange(-60.0, 60.01, 0.5)
+    y = np.arange(-80.0, 0.01, 0.5)
+    xx, yy = np.meshgrid(x, y)
+    above = yy + 38.0
+    steep, gentle = (4.0, 1.5) if upper_steeper else (1.5, 4.0)
+    heights = -np.abs(xx) / 10.0 - 3.0 + np.minimum(np.where(above > 0, steep * above, -gentle * above), 3.0)
+    seam = LipSeam.from_landmarks(straight).along_groove(FaceGrid(x, y, heights))
+    u = np.linspace(-15.0, 15.0, 31)
+    for dy, expected in ((0.0, not upper_steeper), (0.5, True), (-0.5, False)):
+        upper, _ = seam.sides(np.column_stack([u, np.full_like(u, -38.0 + dy)]))
+        assert (upper == expected).all(), dy
