@@ -285,8 +285,9 @@ def shrink_noise(grid: FaceGrid, normals: np.ndarray, motion: np.ndarray, trust:
     (local Wiener) factor ``max(0, 1 - 2 sigma^2 / P)``, with ``P`` its local mean square over ``window_mm``
     (Gaussian sigma). The motion along the normal is left as it is: shrunk the same way, with its own noise
     level read the same way, it changed the mean relative error of the 16 elements by 0.0001-0.0002 (60k
-    and 150k points a scan, also with the still skin's true noise levels): the heights' errors on barely moved skin are few large ones (a scan's occluded or mixed
-    surface), not noise a local gain can tell from motion.
+    and 150k points a scan, also with the still skin's true noise levels): the heights' errors on barely
+    moved skin are few large ones (a scan's occluded or mixed surface), not noise a local gain can tell
+    from motion.
     """
     normal_part = np.sum(motion * normals, axis=1)[:, None] * normals
     tangential = motion - normal_part
