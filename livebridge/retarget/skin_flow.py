@@ -104,8 +104,8 @@ SHRINK_WINDOW_MM = 8.0
 motion: wide enough that a muscle's own motion is not mistaken for noise, narrow enough that still skin
 next to a moving region is still found still (4 mm: 0.143, 8 mm: 0.140, 15 mm: 0.141 mean relative error,
 measured with the former 4 mm patches; stronger shrinkage, 2 or 4 times the estimated noise variance, was
-worse: 0.150 / 0.176). Now 4 mm gives 0.1150 instead of 0.1153 mean relative error of the 16 elements at
-60k points a scan, 0.0925 instead of 0.0926 at 150k: no difference."""
+worse: 0.150 / 0.176). Now (mean relative error of the 16 elements at 60k / 150k points a scan) 4 mm gives
+0.1138 / 0.0916, 8 mm 0.1137 / 0.0914, 12 mm 0.1142 / 0.0919."""
 EDGE_ON = 0.1
 """The smallest ``|n_z|`` (surface normal's z) by which the flow's x-y noise is lifted onto the slope in
 :func:`shrink_noise`: skin steeper than that is nearly edge-on to the skin images. 0.05, 0.1 and 0.2 give
