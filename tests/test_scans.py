@@ -212,7 +212,7 @@ def test_skin_tracking_recovers_a_known_slide_of_the_skin(rng):
     import cv2
     from scipy.interpolate import RegularGridInterpolator
 
-    from livebridge.retarget.skin_flow import fine_axes, skin_motion
+    from livebridge.retarget.skin_flow import fine_axes, pixels_of, skin_motion
 
     texel = 0.25
     axis = np.arange(-42, 42 + texel, texel)
@@ -235,12 +235,12 @@ def test_skin_tracking_recovers_a_known_slide_of_the_skin(rng):
     margin = 4
     step = x[1] - x[0]
     wide = np.linspace(-30 - margin * step, 30 + margin * step, 41 + 2 * margin)
-    fine_x, fine_y, factor = fine_axes(wide, wide)
+    fine_x, fine_y, _ = fine_axes(wide, wide)
     (neutral_points, neutral_colours), (points, colours) = scan(False), scan(True)
     neutral = resample(neutral_points, x, y)
-    motion, trust = skin_motion(resample(neutral_points, fine_x, fine_y, colours=neutral_colours),
-                                resample(points, fine_x, fine_y, colours=colours), neutral, factor, margin,
-                                np.zeros((len(neutral.vertices), 3)))
+    neutral_skin = resample(neutral_points, fine_x, fine_y, colours=neutral_colours)
+    motion, trust = skin_motion(neutral_skin, resample(points, fine_x, fine_y, colours=colours),
+                                pixels_of(neutral_skin, neutral.vertices[:, :2]), np.zeros((len(neutral.vertices), 3)))
     truth = slide(neutral.vertices[:, :2])  # the neutral skin at each vertex moves by d
     error = np.linalg.norm(motion[:, :2] - truth, axis=1)
     assert trust.mean() > 0.9
@@ -316,7 +316,7 @@ def test_skin_template_averages_the_scans_into_a_cleaner_neutral_skin(rng):
     from scipy.interpolate import RegularGridInterpolator
 
     from livebridge.retarget.grid import FaceGrid
-    from livebridge.retarget.skin_flow import fine_axes, skin_image, skin_motion
+    from livebridge.retarget.skin_flow import fine_axes, pixels_of, skin_image, skin_motion
     from livebridge.retarget.skin_template import skin_templates
 
     texel = 0.25
@@ -338,14 +338,15 @@ def test_skin_template_averages_the_scans_into_a_cleaner_neutral_skin(rng):
     margin = 4
     step = x[1] - x[0]
     wide = np.linspace(-30 - margin * step, 30 + margin * step, 41 + 2 * margin)
-    fine_x, fine_y, factor = fine_axes(wide, wide)
+    fine_x, fine_y, _ = fine_axes(wide, wide)
     points, colours = scan([0.0, 0.0], 0.0)
     neutral, neutral_skin = resample(points, x, y), resample(points, fine_x, fine_y, colours=colours)
     moves = [(rng.uniform(-15, 15, 2), rng.uniform(1.0, 3.0)) for _ in range(7)]
     skins = [resample(p, fine_x, fine_y, colours=c) for p, c in (scan(centre, size) for centre, size in moves)]
     xy = neutral.vertices[:, :2]
     ones = np.ones(len(xy))
-    template = skin_templates(neutral_skin, neutral, [(skin, np.column_stack([slide(xy, *m), 0 * ones]), ones)
+    at = pixels_of(neutral_skin, xy)
+    template = skin_templates(neutral_skin, at, [(skin, np.column_stack([slide(xy, *m), 0 * ones]), ones)
                                                       for skin, m in zip(skins, moves)])[0]  # all but skins[0]
     rows, cols = np.meshgrid(fine_y, fine_x, indexing="ij")
     grey = texture(np.stack([rows, cols], axis=-1))
@@ -358,8 +359,7 @@ def test_skin_template_averages_the_scans_into_a_cleaner_neutral_skin(rng):
     assert mismatch(skin_image(template)[0]) < 0.7 * mismatch(skin_image(neutral_skin)[0])
 
     def tracking_error(template):
-        motion, _ = skin_motion(neutral_skin, skins[0], neutral, factor, margin, np.zeros((len(xy), 3)),
-                                template=template)
+        motion, _ = skin_motion(neutral_skin, skins[0], at, np.zeros((len(xy), 3)), template=template)
         truth = slide(xy, *moves[0])
         return float(np.sqrt(np.mean(np.sum((motion[:, :2] - truth) ** 2, axis=1))))
 
