@@ -1,16 +1,28 @@
 """A chart of the face for its skin images: coordinates in which the face's sides are not compressed.
 
 A face scan resampled on x-y grid lines (the face looking along +z) is an x-y projection of the skin: where
-the skin turns away from the scanner (the cheeks' and jaw's sides, the chin's underside, |normal z| 0.2-0.45
-within 6 mm of a face grid's outline) its pattern is compressed by |normal z| (3-5x), fine detail is lost to
-the resampling, and an error of the x-y flow there becomes ``1 / |normal z|`` times larger along the slope.
-A chart that follows the face's roundness keeps the pattern near its true size all over: here the azimuthal
-equidistant projection about a sphere fitted to the face (its centre behind it): a point's ``u, v`` are its
-angle from the sphere's forward axis times the sphere's radius, in the direction of the point about that
-axis (so near the front they are mm of skin and match x, y), and its height ``h`` is its distance from the
-centre less the radius (the face's sphere at 0; the skin's "height" in the chart, growing towards the
-scanner like z). Skin images built on regular ``u, v`` grid lines (:mod:`~livebridge.retarget.scans`) then
-see the sides at their true scale. The planar chart (``u, v, h = x, y, z``) is the x-y projection itself.
+the skin turns away from the scanner (the cheeks' and jaw's sides, |normal z| 0.2-0.45 within 6 mm of the
+face grid's outline) its pattern is compressed by |normal z| (3-5x) and an error of the x-y flow there
+becomes ``1 / |normal z|`` times larger along the slope. A chart that follows the face's roundness keeps the
+pattern near its true size: the skin images (:mod:`~livebridge.retarget.scans`) are built on regular
+``(u, v)`` grid lines with the chart's height ``h`` as their heights, the skin tracked there
+(:mod:`~livebridge.retarget.skin_flow`), and each output vertex's motion read back at its own ``(u, v)``
+and mapped back to the face frame.
+
+:func:`face_chart` fits the chart to the neutral's own grid (least squares): a cylinder about a vertical
+axis (``u`` the angle about the axis times the face's median distance from it, ``v = y``, ``h`` the distance
+from the axis less that median) or a sphere (azimuthal equidistant about the forward axis). On the bench's
+face (ICT, 150 x 150 grid) the cylinder fits better (RMS distance from it 6.8 mm, the sphere 12.4 mm: a face
+is rounder across than up and down) and tracks better: `livebridge bench scans` (seed 7, 60k / 150k points a
+scan) 10 / 13 of 16 elements within 0.10 relative RMS with the cylinder against 10 / 11 in x-y, mean 0.116 /
+0.085 against 0.116 / 0.094; depressor_anguli_oris 0.123 / 0.081 (x-y 0.144 / 0.103), lips_pressor 0.123 /
+0.085 (0.138 / 0.110), frontalis 0.078-0.082 / 0.056 (0.088 / 0.071-0.083), risorius 0.093-0.096 / 0.063-0.070
+(0.100-0.107 / 0.080-0.087); worse: zygomatic_major_R at 60k 0.092 (0.059: a bad first guess at the crop's
+corner the flow no longer recovers from), the eyelids at 60k 0.30 / 0.29 (0.29 / 0.24). With single elements
+(no template, 60k; centres as fitted) the sphere measured jaw 0.225, lips_pressor 0.148, depressor 0.147
+against the cylinder's 0.181, 0.143, 0.135 and x-y's 0.136, 0.153, 0.154. The planar chart (``u, v, h = x, y,
+z``) is the x-y projection itself (its bench figures within 0.002 of the former x-y code for 13 of 16
+elements; jaw 0.122 against 0.114 at 60k, the eyelids within 0.015).
 """
 
 from __future__ import annotations
@@ -22,8 +34,10 @@ import numpy as np
 MIN_DISTANCE_FRACTION = 0.6
 """No point of the face may be nearer the chart's centre (axis) than this times the face's median distance
 from it: the fitted centre is moved back along the view until none is. Near the centre the chart stretches
-without bound (a small angle is many mm of u): the skin under the chin, 15-30 mm from the fitted axis of the
-bench's face, took 2-4 mm errors (zygomatic_major_R 0.110 instead of 0.064 relative RMS, 60k points)."""
+without bound (a small angle is many mm of u): the skin under the bench face's chin lies 15-30 mm from the
+fitted axis, where the flow took 2-4 mm errors. `livebridge bench scans` (60k / 150k points) with the fitted
+axis: zygomatic_major_R 0.116 / 0.091, mean of the 16 elements 0.120 / 0.088; moved back (80 -> 120 mm
+behind the nose tip): 0.092 / 0.041, 0.116 / 0.082-0.085."""
 MAX_RADIUS_FACTOR = 20.0
 """A fitted sphere this many times larger than the face's extent is taken as a flat face: the planar chart."""
 
