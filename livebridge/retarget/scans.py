@@ -15,17 +15,19 @@ is the muscle's element.
 That geometry fixes the motion normal to the skin; the motion ALONG the skin (most of a brow raise, a smile)
 it knows only at the landmarks. When the scans carry colour, the skin's pattern is tracked from the neutral
 to each expression (:mod:`~livebridge.retarget.skin_flow`, starting from the geometric warp) on a finer
-image of both scans, and each grid vertex moves to the expressive surface where its skin went. Where the skin
-cannot be tracked (occluded, a hole, no pattern, gone out of the frontal scanner's view) the tracked skin's
-motion is carried over by a spline through it, with the lips' seam cut (:mod:`~livebridge.retarget.seams`:
-nothing is smoothed or carried from one lip to the other). Around a closing eye the flow starts from where
-the eye openings say the lids went (:mod:`~livebridge.retarget.eyelids`), not from the geometric warp. The
-skin that did not move then corrects the shape-only rigid registration (which can slide a fraction of a mm
-along the face), and tracked motion along the skin that is not above the flow's noise (estimated on that still
-skin) is shrunk towards zero. With more than one coloured expression, the skin is tracked twice: the second
-time against a template of the neutral skin averaged from the neutral and the OTHER expressions' skin images,
-warped back by their first tracked motion (:mod:`~livebridge.retarget.skin_template`), so the neutral scan's
-own noise no longer sits in every element's flow.
+image of both scans (in a chart of the face that does not compress its sides,
+:mod:`~livebridge.retarget.chart`), and each grid vertex moves to the expressive surface where its skin
+went. Where the skin cannot be tracked (occluded, a hole, no pattern, gone out of the frontal scanner's
+view) the tracked skin's motion is carried over by a spline through it, with the lips' seam cut
+(:mod:`~livebridge.retarget.seams`: nothing is smoothed or carried from one lip to the other). Around a
+closing eye the flow starts from where the eye openings say the lids went
+(:mod:`~livebridge.retarget.eyelids`), not from the geometric warp. The skin that did not move then corrects
+the shape-only rigid registration (which can slide a fraction of a mm along the face), and tracked motion
+along the skin that is not above the flow's noise (estimated on that still skin) is shrunk towards zero.
+With more than one coloured expression, the skin is tracked twice: the second time against a template of the
+neutral skin averaged from the neutral and the OTHER expressions' skin images, warped back by their first
+tracked motion (:mod:`~livebridge.retarget.skin_template`), so the neutral scan's own noise no longer sits
+in every element's flow.
 """
 
 from __future__ import annotations

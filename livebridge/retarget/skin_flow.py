@@ -3,7 +3,8 @@
 Geometry tells how far a face moved along its normal; how far the skin slid ALONG the surface it cannot
 see (a raised brow slides the forehead's skin up a surface of almost the same shape). The skin's own
 pattern (pores, freckles, brows, lips) moves with it, so a coloured scanner sees that motion: resampled on
-a fine regular x-y grid (:mod:`~livebridge.retarget.grid`), a face scan is an image of its skin, and where
+a fine regular grid (:mod:`~livebridge.retarget.grid`) of a chart of the face
+(:mod:`~livebridge.retarget.chart`; its heights the chart's), a face scan is an image of its skin, and where
 a neutral skin point went in an expression is where its pattern went between the two images.
 
 Both images are contrast-normalised (the local mean subtracted and divided by the local spread, over
