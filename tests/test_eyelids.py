@@ -11,6 +11,7 @@ from livebridge.retarget.eyelids import (
 )
 from livebridge.retarget.grid import FaceGrid, resample
 from livebridge.retarget.scans import skin_gap_mm
+from livebridge.retarget.skin_flow import pixels_of
 
 HALF_WIDTH = 12.0  # the eye's corners at x = -12 and +12 mm, the opening an ellipse between them
 COARSE_STEP = 1.4  # the skin images of a 150 x 150 grid: holes shrink by 2.1 mm a side
@@ -70,7 +71,8 @@ def test_an_eye_that_did_not_move_keeps_the_first_guess(rng):
     coarse = FaceGrid(FINE[::4], FINE[::4], np.zeros((len(FINE[::4]),) * 2))
     guess = rng.normal(0.0, 0.3, (int(coarse.valid.sum()), 3))
     landmarks = {"eye_inner_L": np.r_[CORNERS[0], 0.0], "eye_outer_L": np.r_[CORNERS[1], 0.0]}
-    out = eyelid_guess(neutral, expression, coarse, 4, 0, guess, landmarks, landmarks, skin_gap_mm(COARSE_STEP))
+    out = eyelid_guess(neutral, expression, pixels_of(neutral, coarse.vertices[:, :2]), guess, landmarks, landmarks,
+                       skin_gap_mm(COARSE_STEP))
     np.testing.assert_array_equal(out, guess)
 
 
@@ -79,7 +81,8 @@ def test_a_closing_lid_moves_the_guess_down_above_the_eye(rng):
     coarse = FaceGrid(FINE[::4], FINE[::4], np.zeros((len(FINE[::4]),) * 2))
     guess = np.zeros((int(coarse.valid.sum()), 3))
     landmarks = {"eye_inner_L": np.r_[CORNERS[0], 0.0], "eye_outer_L": np.r_[CORNERS[1], 0.0]}
-    out = eyelid_guess(neutral, expression, coarse, 4, 0, guess, landmarks, landmarks, skin_gap_mm(COARSE_STEP))
+    out = eyelid_guess(neutral, expression, pixels_of(neutral, coarse.vertices[:, :2]), guess, landmarks, landmarks,
+                       skin_gap_mm(COARSE_STEP))
     xy = np.stack(np.meshgrid(coarse.x, coarse.y), axis=-1)[coarse.valid]
     above = (np.abs(xy[:, 0]) < 2.5) & (xy[:, 1] > 4.0) & (xy[:, 1] < 6.5)  # the upper lid by its margin
     assert above.any() and np.all(out[above, 1] < -4.0)

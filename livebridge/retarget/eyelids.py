@@ -155,37 +155,34 @@ def lid_motion(neutral: FaceGrid, columns: dict[int, LidColumn], reach_mm: float
     return dy, touched
 
 
-def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: FaceGrid, factor: int, margin: int,
-                 first_guess: np.ndarray, before: dict, after: dict, grow_mm: float) -> np.ndarray:
-    """``first_guess`` (n_vertices, 3) of ``neutral``'s vertices with the lids' motion (y from
+def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarray, first_guess: np.ndarray,
+                 before: dict, after: dict, grow_mm: float) -> np.ndarray:
+    """``first_guess`` (n_vertices, 3) of a mesh's vertices with the lids' motion (y from
     :func:`lid_motion`, z onto the expressive surface there) wherever an eye's lids are found.
 
-    ``neutral_fine``, ``expression_fine``, ``factor``, ``margin`` as in
-    :func:`~livebridge.retarget.skin_flow.skin_motion`; ``before``, ``after``: the neutral's and the
-    expression's landmarks in the face frame (the eye corners ``eye_inner_L`` ... name the eyes; an eye
-    without both corners is left alone; lid landmarks :data:`LID_LANDMARKS` in both are used when there);
-    ``grow_mm``: see :func:`lid_columns`.
+    ``neutral_fine``, ``expression_fine``, ``at`` (the vertices on the skin images) as in
+    :func:`~livebridge.retarget.skin_flow.skin_motion`, ``first_guess`` in the skin images' chart (x, y, z
+    here: the chart's u, v, height); ``before``, ``after``: the neutral's and the expression's landmarks in
+    that chart (the eye corners ``eye_inner_L`` ... name the eyes; an eye without both corners is left alone;
+    lid landmarks :data:`LID_LANDMARKS` in both are used when there); ``grow_mm``: see :func:`lid_columns`.
     """
     from scipy.ndimage import map_coordinates
 
-    from livebridge.retarget.skin_flow import _fine_field
+    from livebridge.retarget.skin_flow import at_vertices, vertex_field
 
-    guess = _fine_field(neutral, first_guess[:, :2], neutral_fine)[..., 1]
+    guess = vertex_field(at, first_guess[:, 1:2], neutral_fine.shape)[..., 0]
     dy, touched = guess, np.zeros(neutral_fine.shape, bool)
     for inner, outer, columns in _moving_lids(neutral_fine, expression_fine, before, after, grow_mm):
         reach = REACH_EYE_WIDTHS * float(np.linalg.norm(outer - inner))
         dy, hit = lid_motion(neutral_fine, columns, reach, dy)
         touched |= hit
-    start = margin * factor
-    rows, cols = np.nonzero(neutral.valid)
-    fine_r, fine_c = start + rows * factor, start + cols * factor
-    hit = touched[fine_r, fine_c]
+    hit = at_vertices(touched.astype(np.float64), at) > 0.5
     out = first_guess.copy()
-    out[hit, 1] = dy[fine_r[hit], fine_c[hit]]
+    out[hit, 1] = at_vertices(dy, at[hit])
     step = neutral_fine.spacing
-    landed = map_coordinates(expression_fine.heights, [fine_r[hit] + out[hit, 1] / step,
-                                                       fine_c[hit] + out[hit, 0] / step], order=1, cval=np.nan)
-    dz = landed - neutral_fine.heights[fine_r[hit], fine_c[hit]]
+    landed = map_coordinates(expression_fine.heights, [at[hit, 0] + out[hit, 1] / step,
+                                                       at[hit, 1] + out[hit, 0] / step], order=1, cval=np.nan)
+    dz = landed - at_vertices(neutral_fine.heights, at[hit])
     out[hit, 2] = np.where(np.isfinite(dz), dz, out[hit, 2])
     return out
 

@@ -3,7 +3,8 @@
 Geometry tells how far a face moved along its normal; how far the skin slid ALONG the surface it cannot
 see (a raised brow slides the forehead's skin up a surface of almost the same shape). The skin's own
 pattern (pores, freckles, brows, lips) moves with it, so a coloured scanner sees that motion: resampled on
-a fine regular x-y grid (:mod:`~livebridge.retarget.grid`), a face scan is an image of its skin, and where
+a fine regular grid (:mod:`~livebridge.retarget.grid`) of a chart of the face
+(:mod:`~livebridge.retarget.chart`; its heights the chart's), a face scan is an image of its skin, and where
 a neutral skin point went in an expression is where its pattern went between the two images.
 
 Both images are contrast-normalised (the local mean subtracted and divided by the local spread, over
@@ -42,10 +43,11 @@ worse (0.158-0.187 against 0.159), so the finest pattern still carries motion.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import cv2
 import numpy as np
-from scipy.interpolate import RegularGridInterpolator
-from scipy.ndimage import distance_transform_edt, map_coordinates
+from scipy.ndimage import map_coordinates
 
 from livebridge.retarget.grid import FaceGrid
 
@@ -223,20 +225,21 @@ def _dis(step: float):
     return dis
 
 
-def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: FaceGrid, factor: int, margin: int,
+def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarray,
                 first_guess: np.ndarray, smooth_mm: float = 2.0, seam=None, not_skin: np.ndarray | None = None,
                 template: FaceGrid | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The 3D motion of the ``neutral`` grid's vertices from skin tracking, and its trust.
+    """The 3D motion of the output mesh's vertices from skin tracking, and its trust.
 
     Parameters
     ----------
     neutral_fine, expression_fine : FaceGrid
-        Coloured grids ``factor`` times finer than ``neutral`` (see :func:`fine_axes`), reaching ``margin``
-        cells of ``neutral`` beyond it on every side.
-    neutral : FaceGrid
-        The output grid.
+        Coloured grids (skin images) on the same grid lines of a chart of the face
+        (:mod:`~livebridge.retarget.chart`; the planar one: x, y with z as heights), reaching beyond the
+        output mesh on every side.
+    at : ndarray, shape (n_vertices, 2)
+        The output mesh's vertices on the skin images, (row, column) pixels (see :func:`pixels_of`).
     first_guess : ndarray, shape (n_vertices, 3)
-        The geometric estimate of the motion of ``neutral``'s vertices.
+        The geometric estimate of the vertices' motion, in the chart (u, v, height).
     smooth_mm : float
         Gaussian sigma of the smoothing of the tracked motion (see :data:`SMOOTH_SPACINGS`).
     seam : LipSeam, optional
@@ -251,11 +254,11 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
     Returns
     -------
     motion : ndarray, shape (n_vertices, 3)
-        To the expressive surface at the tracked skin point; the first guess where not trusted.
+        In the chart, to the expressive surface at the tracked skin point; the first guess where not trusted.
     trust : ndarray, shape (n_vertices,)
         In [0, 1]; the motion is ``trust * tracked + (1 - trust) * first_guess``.
     """
-    guess = _fine_field(neutral, first_guess[:, :2], neutral_fine)
+    guess = vertex_field(at, first_guess[:, :2], neutral_fine.shape)
     xy, trust = track_skin(neutral_fine, expression_fine, guess, template)
     step = neutral_fine.spacing
     rows, cols = np.indices(neutral_fine.shape)
@@ -285,12 +288,8 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, neutral: Face
     adaptive = _adaptive_smooth(means, weight, sigma)
     height = height + _rise(expression_fine.heights, step, means[0], adaptive - means[0], sigma)
     smooth = np.dstack([adaptive, height])
-    start = margin * factor
-    coarse = (slice(start, start + (neutral.shape[0] - 1) * factor + 1, factor),
-              slice(start, start + (neutral.shape[1] - 1) * factor + 1, factor))
-    valid = neutral.valid
-    tracked = smooth[coarse][valid]
-    trust_out = np.clip(density[coarse][valid], 0.0, 1.0)
+    tracked = at_vertices(smooth, at)
+    trust_out = np.clip(np.nan_to_num(at_vertices(density, at)), 0.0, 1.0)
     trust_out = np.where(np.isfinite(tracked).all(axis=1), trust_out, 0.0)
     motion = trust_out[:, None] * np.nan_to_num(tracked) + (1.0 - trust_out[:, None]) * first_guess
     return motion, trust_out
@@ -534,14 +533,60 @@ def still_skin_correction(vertices: np.ndarray, motion: np.ndarray, trust: np.nd
     return correction
 
 
-def _fine_field(grid: FaceGrid, values: np.ndarray, fine: FaceGrid) -> np.ndarray:
-    """Per-vertex ``values`` (n_vertices, k) of ``grid`` as a field on ``fine``'s grid lines (n_rows, n_cols, k):
-    masked grid points take their nearest vertex's value, then linear interpolation."""
-    field = np.zeros(grid.shape + (values.shape[1],))
-    field[grid.valid] = values
-    _, (near_r, near_c) = distance_transform_edt(~grid.valid, return_indices=True)
-    field = field[near_r, near_c]
-    interpolate = RegularGridInterpolator((grid.y, grid.x), field)
-    yy, xx = np.meshgrid(np.clip(fine.y, grid.y[0], grid.y[-1]), np.clip(fine.x, grid.x[0], grid.x[-1]),
-                         indexing="ij")
-    return interpolate(np.stack([yy, xx], axis=-1))
+def pixels_of(fine: FaceGrid, uv: np.ndarray) -> np.ndarray:
+    """Points ``uv`` (n, 2) on the grid lines of ``fine`` as (row, column) pixel positions, shape (n, 2)."""
+    uv = np.asarray(uv, dtype=np.float64)
+    return np.column_stack([(uv[:, 1] - fine.y[0]) / (fine.y[1] - fine.y[0]),
+                            (uv[:, 0] - fine.x[0]) / (fine.x[1] - fine.x[0])])
+
+
+def vertex_field(at: np.ndarray, values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Values (n, k) given at pixel positions ``at`` (n, 2: row, column; a mesh's vertices on a skin image)
+    as a field on the image's pixels, shape (``shape``, k): linear over their Delaunay triangulation within
+    a mesh cell (the vertices' median spacing) of a vertex, the nearest vertex's value farther away (across
+    a hole, an eye's opening, and beyond the mesh) as the vertices' nearest-filled grid gave it."""
+    corners, weights = _vertex_weights(np.ascontiguousarray(at, dtype=np.float64).tobytes(), len(at), shape)
+    values = np.asarray(values, dtype=np.float64)
+    return np.einsum("pc,pck->pk", weights, values[corners]).reshape(shape + (values.shape[1],))
+
+
+@lru_cache(maxsize=4)
+def _vertex_weights(at_bytes: bytes, n: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel's vertices (n_pixels, 3) and weights (n_pixels, 3) for :func:`vertex_field`, kept for the
+    few vertex sets in use (one neutral's vertices serve its eyelids' guess, every flow and the template:
+    0.23 s each to find for 19k vertices on a 490 x 490 image)."""
+    from scipy.spatial import Delaunay, cKDTree
+    from threadpoolctl import threadpool_limits
+
+    at = np.frombuffer(at_bytes, dtype=np.float64).reshape(n, 2)
+    rows, cols = np.indices(shape)
+    pixels = np.column_stack([rows.ravel(), cols.ravel()]).astype(np.float64)
+    tree = cKDTree(at)
+    cell = float(np.median(tree.query(at, k=2)[0][:, 1]))
+    distance, nearest = tree.query(pixels)
+    corners = np.repeat(nearest[:, None], 3, axis=1)
+    weights = np.zeros((len(pixels), 3))
+    weights[:, 0] = 1.0
+    near = np.flatnonzero(distance < cell)
+    triangulation = Delaunay(at)
+    with threadpool_limits(limits=1, user_api="blas"):  # see grid._linear
+        simplex = triangulation.find_simplex(pixels[near])
+    near, simplex = near[simplex >= 0], simplex[simplex >= 0]
+    transform = triangulation.transform[simplex]
+    partial = np.einsum("kij,kj->ki", transform[:, :2], pixels[near] - transform[:, 2])
+    weights[near] = np.hstack([partial, 1 - partial.sum(axis=1, keepdims=True)])
+    corners[near] = triangulation.simplices[simplex]
+    return corners, weights
+
+
+def at_vertices(field: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """``field`` (rows, cols[, k]) read bilinearly at pixel positions ``at`` (n, 2: row, column), shape
+    (n[, k]); over its finite pixels only, NaN where those weigh less than half."""
+    channels = field.reshape(field.shape[:2] + (-1,))
+    finite = np.isfinite(channels).all(axis=2)
+    coords = [at[:, 0], at[:, 1]]
+    weight = map_coordinates(finite.astype(np.float64), coords, order=1, cval=0.0)
+    out = np.column_stack([map_coordinates(np.where(finite, channels[..., c], 0.0), coords, order=1, cval=0.0)
+                           for c in range(channels.shape[2])])
+    out = np.where(weight[:, None] > 0.5, out / np.maximum(weight, 1e-12)[:, None], np.nan)
+    return out if field.ndim == 3 else out[:, 0]

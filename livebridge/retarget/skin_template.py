@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from livebridge.retarget.grid import FaceGrid
-from livebridge.retarget.skin_flow import _fine_field, _remap, skin_image
+from livebridge.retarget.skin_flow import _remap, skin_image, vertex_field
 
 TEMPLATE_TRUST = 0.5
 """Only skin whose tracking was trusted at least this much is averaged into the template. Measured in
@@ -25,7 +25,7 @@ TEMPLATE_TRUST = 0.5
 (local residual at most 0.8) was worse (frontalis_L 0.101 against 0.090)."""
 
 
-def skin_templates(neutral_skin: FaceGrid, neutral: FaceGrid,
+def skin_templates(neutral_skin: FaceGrid, at: np.ndarray,
                    expressions: list[tuple[FaceGrid, np.ndarray, np.ndarray]]) -> list[FaceGrid]:
     """For each expression, the neutral skin image with its colours replaced by the average of its own and
     the OTHER expressions' skin images warped back onto it (grey, contrast-normalised: each scan's exposure
@@ -36,12 +36,12 @@ def skin_templates(neutral_skin: FaceGrid, neutral: FaceGrid,
     ----------
     neutral_skin : FaceGrid
         The neutral's coloured fine grid (the skin image).
-    neutral : FaceGrid
-        The neutral's grid, whose vertices the motions are given at (``neutral_skin``'s grid lines include
-        its own, see :func:`~livebridge.retarget.skin_flow.fine_axes`).
+    at : ndarray, shape (n_vertices, 2)
+        The mesh vertices the motions are given at, as (row, column) pixels of ``neutral_skin`` (see
+        :func:`~livebridge.retarget.skin_flow.pixels_of`).
     expressions : list of (FaceGrid, ndarray (n_vertices, 3), ndarray (n_vertices,))
-        Each expression's skin image on the same grid lines as ``neutral_skin``, the motion of ``neutral``'s
-        vertices into it, and how much that motion is trusted.
+        Each expression's skin image on the same grid lines as ``neutral_skin``, the motion of the vertices
+        into it in the skin images' chart (u, v, height), and how much that motion is trusted.
 
     Returns
     -------
@@ -49,7 +49,7 @@ def skin_templates(neutral_skin: FaceGrid, neutral: FaceGrid,
         One per expression: ``neutral_skin`` with a template as its (grey) colours, its heights unchanged.
     """
     image, valid = skin_image(neutral_skin)
-    warped = [_warped_back(neutral_skin, neutral, valid, *expression) for expression in expressions]
+    warped = [_warped_back(neutral_skin, at, valid, *expression) for expression in expressions]
     total = np.where(valid, image, 0.0) + sum(w * values for values, w in warped)
     weight = valid + sum(w for _, w in warped)
 
@@ -60,12 +60,12 @@ def skin_templates(neutral_skin: FaceGrid, neutral: FaceGrid,
     return [template(values, w) for values, w in warped]
 
 
-def _warped_back(neutral_skin: FaceGrid, neutral: FaceGrid, valid: np.ndarray, skin: FaceGrid, motion: np.ndarray,
+def _warped_back(neutral_skin: FaceGrid, at: np.ndarray, valid: np.ndarray, skin: FaceGrid, motion: np.ndarray,
                  trust: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """An expression's skin image at where each neutral skin pixel went, and its weight (1 where that is
     trusted, on both skins), both (n_rows, n_cols)."""
     target, target_valid = skin_image(skin)
-    field = _fine_field(neutral, np.column_stack([motion[:, :2], trust]), neutral_skin)
+    field = vertex_field(at, np.column_stack([motion[:, :2], trust]), neutral_skin.shape)
     flow = (field[..., :2] / neutral_skin.spacing).astype(np.float32)
     landed = _remap(target_valid.astype(np.float32), flow) > 0.999
     weight = np.where(valid & landed & (field[..., 2] >= TEMPLATE_TRUST), 1.0, 0.0)
