@@ -225,23 +225,26 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
 
 
 def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,
-                       kernel: Kernel | str = Kernel.BIHARMONIC, source=None, colour: bool = True) -> np.ndarray:
+                       kernel: Kernel | str = Kernel.BIHARMONIC, source=None, colour: bool = True,
+                       start: np.ndarray | None = None) -> np.ndarray:
     """The displacement (n_vertices, 3) of every neutral grid vertex into the expressive surface (§5.5):
-    the geometric warp, refined by skin tracking when both scans have colour (and ``colour``)."""
+    the geometric warp, refined by skin tracking when both scans have colour (and ``colour``), from
+    ``start`` (see :func:`tracked_motion`) when given."""
     if not (colour and neutral.skin is not None and expression.skin is not None):
         return geometric_element(neutral, expression, stride, kernel, source)
-    element, trust = tracked_motion(neutral, expression, stride, kernel, source)
+    element, trust = tracked_motion(neutral, expression, stride, kernel, source, start)
     correction = still_skin_correction(neutral.vertices, element, trust)
     element = apply(correction, neutral.vertices + element) - neutral.vertices
     return shrink_noise(neutral.grid, vertex_normals(neutral.vertices, neutral.triangles), element, trust)
 
 
 def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,
-                   kernel: Kernel | str = Kernel.BIHARMONIC, source=None) -> tuple[np.ndarray, np.ndarray]:
+                   kernel: Kernel | str = Kernel.BIHARMONIC, source=None, start: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Where each neutral grid vertex's skin went in the (registered) expression scan, (n_vertices, 3), and
     how much that is trusted (n_vertices,), before the still skin corrects the registration: both scans
-    must have colour."""
-    geometric = geometric_element(neutral, expression, stride, kernel, source)
+    must have colour. The flow starts from ``start`` (n_vertices, 3; an earlier tracking's motion) when
+    given, else from the geometric warp with the eyelids' guess."""
     spacing = np.nanmax([neutral.point_spacing, expression.point_spacing, 0.0])
     smooth = SMOOTH_SPACINGS * (spacing if spacing > 0 else TYPICAL_SPACING_MM)
     grow = skin_gap_mm(neutral.grid.spacing)
@@ -249,8 +252,12 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     charted = chart.to_chart(vertices)
     at = pixels_of(neutral.skin, charted[:, :2])
     before, after = chart.landmarks(neutral.landmarks), chart.landmarks(expression.landmarks)
-    guess = eyelid_guess(neutral.skin, expression.skin, at, chart.motion_to_chart(vertices, geometric), before,
-                         after, grow)
+    if start is None:
+        geometric = geometric_element(neutral, expression, stride, kernel, source)
+        guess = eyelid_guess(neutral.skin, expression.skin, at, chart.motion_to_chart(vertices, geometric), before,
+                             after, grow)
+    else:
+        guess = chart.motion_to_chart(vertices, start)
     seam = _lip_seam(before, neutral.skin)
     motion, trust = skin_motion(neutral.skin, expression.skin, at, guess, smooth, seam,
                                 closing_openings(neutral.skin, expression.skin, before, after, grow),
@@ -328,25 +335,29 @@ def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
     names = list(expressions)
     neutrals = [neutral] * len(names)
     coloured = [face for face in expressions.values() if face.skin is not None]
+    starts = [None] * len(names)
     if colour and neutral.skin is not None and len(coloured) == len(names) > 1:
-        neutrals = _with_templates(neutral, expressions, kernel)
-    elements = np.stack([expression_element(own, expressions[name], kernel=kernel, source=name, colour=colour)
-                         for own, name in zip(neutrals, names)])
+        neutrals, starts = _with_templates(neutral, expressions, kernel)
+    elements = np.stack([expression_element(own, expressions[name], kernel=kernel, source=name, colour=colour,
+                                            start=start) for own, name, start in zip(neutrals, names, starts)])
     muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks)
                     for name, element in zip(expressions, elements))
     return Basis(neutral.vertices, neutral.triangles, elements, muscles)
 
 
-def _with_templates(neutral: FaceScan, expressions: dict[str, FaceScan], kernel: Kernel | str) -> list[FaceScan]:
+def _with_templates(neutral: FaceScan, expressions: dict[str, FaceScan], kernel: Kernel | str
+                    ) -> tuple[list[FaceScan], list[np.ndarray]]:
     """The neutral once per expression, with the template of the other scans' skin to track against, each
-    expression warped back by its tracked motion (one round of groupwise registration)."""
+    expression warped back by its tracked motion (one round of groupwise registration); and each
+    expression's tracked motion (n_vertices, 3), where its second tracking starts."""
     vertices, chart = neutral.vertices, neutral.chart
-    tracked = []
+    tracked, motions = [], []
     for name, face in expressions.items():
         motion, trust = tracked_motion(neutral, face, kernel=kernel, source=name)
         tracked.append((face.skin, chart.motion_to_chart(vertices, motion), trust))
+        motions.append(motion)
     at = pixels_of(neutral.skin, chart.to_chart(vertices)[:, :2])
-    return [replace(neutral, template=template) for template in skin_templates(neutral.skin, at, tracked)]
+    return [replace(neutral, template=template) for template in skin_templates(neutral.skin, at, tracked)], motions
 
 
 def muscle_for(name: str, element: np.ndarray, vertices: np.ndarray, landmarks: dict[str, np.ndarray]) -> Muscle:

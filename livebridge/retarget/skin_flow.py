@@ -112,6 +112,8 @@ EDGE_ON = 0.1
 """The smallest ``|n_z|`` (surface normal's z) by which the flow's x-y noise is lifted onto the slope in
 :func:`shrink_noise`: skin steeper than that is nearly edge-on to the skin images. 0.05, 0.1 and 0.2 give
 the same bench figures (mean relative error 0.1137 at 60k points a scan), 0.3 0.1139."""
+COARSE_FACTOR = 2
+"""Before the full-resolution passes, one flow on images this many times coarser (see :func:`_coarse_flow`)."""
 PASSES = 2
 """Flow passes, each starting from the last one's motion (the first from the geometric warp)."""
 STILL_FRACTION = 0.4
@@ -202,6 +204,7 @@ def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray,
     target, _ = skin_image(expression)
     total = (guess / step).astype(np.float32)
     source_u8 = _to_u8(source if template is None else skin_image(template)[0])
+    total = total + _coarse_flow(source_u8, _to_u8(_remap(target, total)), step, total)
     for _ in range(PASSES):
         warped = _remap(target, total)
         flow = _dis(step).calc(source_u8, _to_u8(warped), None)  # source(p) ~ warped(p + flow)
@@ -213,6 +216,19 @@ def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray,
     landed = _remap(np.isfinite(expression.heights).astype(np.float32), total) > 0.999
     trust = np.where(source_valid & landed, trust, 0.0)
     return total * step, trust
+
+
+def _coarse_flow(source_u8: np.ndarray, warped_u8: np.ndarray, step: float, total: np.ndarray) -> np.ndarray:
+    """The change (rows, cols, 2; pixels) to ``total`` that a flow between the two images at
+    :data:`COARSE_FACTOR` times coarser pixels finds (the same patches in mm): where the first guess is
+    several mm off (a landmark warp extrapolated to the face's outline), the full-resolution pyramid starting
+    from it settles on a wrong match; the coarse flow brings it within the fine one's reach."""
+    rows, cols = source_u8.shape
+    small = (cols // COARSE_FACTOR, rows // COARSE_FACTOR)
+    flow = _dis(step * COARSE_FACTOR).calc(cv2.resize(source_u8, small, interpolation=cv2.INTER_AREA),
+                                           cv2.resize(warped_u8, small, interpolation=cv2.INTER_AREA), None)
+    flow = cv2.resize(flow, (cols, rows), interpolation=cv2.INTER_LINEAR) * COARSE_FACTOR
+    return flow + _remap(total, flow) - total
 
 
 def _dis(step: float):
