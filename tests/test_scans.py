@@ -205,10 +205,10 @@ def test_crop_sphere(rng):
 
 
 # ------------------------------------------------------------------------------------------------ skin tracking
-def test_skin_tracking_recovers_a_known_slide_of_the_skin(rng):
-    """A textured, gently curved surface whose skin slides by a known smooth field ``d`` (3 mm peak) in an
-    expression scan with other sampling and noise: the tracked motion matches ``d`` from a zero first guess
-    (measured 0.074 of its RMS)."""
+def _tracked_slide(rng, peak_mm: float, width_mm: float = 12.0) -> tuple[float, float]:
+    """A textured, gently curved surface whose skin slides by a known smooth field ``d`` (``peak_mm`` at its
+    peak, Gaussian of ``width_mm``) in an expression scan with other sampling and noise, tracked from a zero
+    first guess: (the tracked motion's RMS error relative to ``d``'s RMS, the mean trust)."""
     import cv2
     from scipy.interpolate import RegularGridInterpolator
 
@@ -223,12 +223,13 @@ def test_skin_tracking_recovers_a_known_slide_of_the_skin(rng):
         return np.column_stack([xy, 20 * np.exp(-(xy ** 2).sum(axis=1) / 40.0 ** 2)])
 
     def slide(xy):
-        return 3.0 * np.exp(-((xy - [5.0, -5.0]) ** 2).sum(axis=1) / 12.0 ** 2)[:, None] * np.array([[0.8, 0.6]])
+        bump = np.exp(-((xy - [5.0, -5.0]) ** 2).sum(axis=1) / width_mm ** 2)
+        return peak_mm * bump[:, None] * np.array([[0.8, 0.6]])
 
     def scan(moved: bool):
         skin = rng.uniform(-38, 38, (30_000, 2))  # where each point's skin is on the neutral
         at = skin + slide(skin) if moved else skin
-        grey = texture(skin[:, ::-1]) + rng.normal(0, 0.01, len(skin))
+        grey = texture(np.clip(skin[:, ::-1], -42, 42)) + rng.normal(0, 0.01, len(skin))
         return surface(at) + rng.normal(0, 0.1, (len(skin), 3)), np.repeat(grey[:, None], 3, axis=1)
 
     x, y = square_axes(30.0, (41, 41))
@@ -243,9 +244,27 @@ def test_skin_tracking_recovers_a_known_slide_of_the_skin(rng):
                                 pixels_of(neutral_skin, neutral.vertices[:, :2]), np.zeros((len(neutral.vertices), 3)))
     truth = slide(neutral.vertices[:, :2])  # the neutral skin at each vertex moves by d
     error = np.linalg.norm(motion[:, :2] - truth, axis=1)
-    assert trust.mean() > 0.9
-    relative = np.sqrt(np.mean(error ** 2) / np.mean((truth ** 2).sum(axis=1)))
+    return float(np.sqrt(np.mean(error ** 2) / np.mean((truth ** 2).sum(axis=1)))), float(trust.mean())
+
+
+def test_skin_tracking_recovers_a_known_slide_of_the_skin(rng):
+    """A 3 mm slide is tracked from a zero first guess (measured 0.074 of its RMS)."""
+    relative, trust = _tracked_slide(rng, 3.0)
+    assert trust > 0.9
     assert relative < 0.1, relative
+
+
+def test_skin_tracking_reaches_a_slide_far_from_the_first_guess(rng, monkeypatch):
+    """A 12 mm slide of a 20 mm wide patch from a zero first guess (a landmark warp extrapolated to the
+    face's outline is that far off): the coarse flow before the full-resolution passes brings it within their
+    reach (measured 0.060 of its RMS; 0.218 with a third full-resolution pass in its place)."""
+    from livebridge.retarget import skin_flow
+
+    with_coarse, _ = _tracked_slide(np.random.default_rng(5), 12.0, 20.0)
+    monkeypatch.setattr(skin_flow, "COARSE_FACTOR", 1)
+    without, _ = _tracked_slide(np.random.default_rng(5), 12.0, 20.0)
+    assert with_coarse < 0.1, with_coarse
+    assert with_coarse < 0.5 * without, (with_coarse, without)
 
 
 def test_points_behind_the_front_surface_are_found_on_a_steep_face():
@@ -274,7 +293,7 @@ def test_heights_ignore_another_surface_showing_through_a_gap(rng):
     import cv2
     from scipy.interpolate import RegularGridInterpolator
 
-    from livebridge.retarget.skin_flow import fine_axes, skin_motion
+    from livebridge.retarget.skin_flow import fine_axes, pixels_of, skin_motion
 
     texel = 0.25
     axis = np.arange(-42, 42 + texel, texel)
@@ -305,9 +324,9 @@ def test_heights_ignore_another_surface_showing_through_a_gap(rng):
     (neutral_points, neutral_colours), (points, colours) = scan(False), scan(True)
     skin = neutral_points[:, 2] > surface(neutral_points[:, :2])[:, 2] - 10.0
     neutral = resample(neutral_points[skin], x, y)  # the grid's own heights are the skin's
-    motion, _ = skin_motion(resample(neutral_points, fine_x, fine_y, colours=neutral_colours),
-                            resample(points, fine_x, fine_y, colours=colours), neutral, factor, margin,
-                            np.zeros((len(neutral.vertices), 3)))
+    neutral_skin = resample(neutral_points, fine_x, fine_y, colours=neutral_colours)
+    motion, _ = skin_motion(neutral_skin, resample(points, fine_x, fine_y, colours=colours),
+                            pixels_of(neutral_skin, neutral.vertices[:, :2]), np.zeros((len(neutral.vertices), 3)))
     xy = neutral.vertices[:, :2]
     truth = surface(xy + slide(xy)) - surface(xy)
     near = np.linalg.norm(xy - nostril, axis=1) < 7.0
