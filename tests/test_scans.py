@@ -205,6 +205,19 @@ def test_crop_sphere(rng):
 
 
 # ------------------------------------------------------------------------------------------------ skin tracking
+def _skin_axes() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The grid lines (x, y) of a 41x41 grid over 60 mm and the skin image's finer lines (fine x, fine y)
+    reaching 4 cells beyond it, as :func:`~livebridge.retarget.scans.prepare_neutral` lays them out."""
+    from livebridge.retarget.skin_flow import fine_axes
+
+    x, y = square_axes(30.0, (41, 41))
+    margin = 4
+    step = x[1] - x[0]
+    wide = np.linspace(-30 - margin * step, 30 + margin * step, 41 + 2 * margin)
+    fine_x, fine_y, _ = fine_axes(wide, wide)
+    return x, y, fine_x, fine_y
+
+
 def _tracked_slide(rng, peak_mm: float, width_mm: float = 12.0) -> tuple[float, float]:
     """A textured, gently curved surface whose skin slides by a known smooth field ``d`` (``peak_mm`` at its
     peak, Gaussian of ``width_mm``) in an expression scan with other sampling and noise, tracked from a zero
@@ -212,7 +225,7 @@ def _tracked_slide(rng, peak_mm: float, width_mm: float = 12.0) -> tuple[float, 
     import cv2
     from scipy.interpolate import RegularGridInterpolator
 
-    from livebridge.retarget.skin_flow import fine_axes, pixels_of, skin_motion
+    from livebridge.retarget.skin_flow import pixels_of, skin_motion
 
     texel = 0.25
     axis = np.arange(-42, 42 + texel, texel)
@@ -232,11 +245,7 @@ def _tracked_slide(rng, peak_mm: float, width_mm: float = 12.0) -> tuple[float, 
         grey = texture(np.clip(skin[:, ::-1], -42, 42)) + rng.normal(0, 0.01, len(skin))
         return surface(at) + rng.normal(0, 0.1, (len(skin), 3)), np.repeat(grey[:, None], 3, axis=1)
 
-    x, y = square_axes(30.0, (41, 41))
-    margin = 4
-    step = x[1] - x[0]
-    wide = np.linspace(-30 - margin * step, 30 + margin * step, 41 + 2 * margin)
-    fine_x, fine_y, _ = fine_axes(wide, wide)
+    x, y, fine_x, fine_y = _skin_axes()
     (neutral_points, neutral_colours), (points, colours) = scan(False), scan(True)
     neutral = resample(neutral_points, x, y)
     neutral_skin = resample(neutral_points, fine_x, fine_y, colours=neutral_colours)
@@ -293,7 +302,7 @@ def test_heights_ignore_another_surface_showing_through_a_gap(rng):
     import cv2
     from scipy.interpolate import RegularGridInterpolator
 
-    from livebridge.retarget.skin_flow import fine_axes, pixels_of, skin_motion
+    from livebridge.retarget.skin_flow import pixels_of, skin_motion
 
     texel = 0.25
     axis = np.arange(-42, 42 + texel, texel)
@@ -316,11 +325,7 @@ def test_heights_ignore_another_surface_showing_through_a_gap(rng):
         points[inside, 2] -= 25.0
         return points, np.repeat(grey[:, None], 3, axis=1)
 
-    x, y = square_axes(30.0, (41, 41))
-    margin = 4
-    step = x[1] - x[0]
-    wide = np.linspace(-30 - margin * step, 30 + margin * step, 41 + 2 * margin)
-    fine_x, fine_y, factor = fine_axes(wide, wide)
+    x, y, fine_x, fine_y = _skin_axes()
     (neutral_points, neutral_colours), (points, colours) = scan(False), scan(True)
     skin = neutral_points[:, 2] > surface(neutral_points[:, :2])[:, 2] - 10.0
     neutral = resample(neutral_points[skin], x, y)  # the grid's own heights are the skin's
@@ -485,7 +490,7 @@ def test_skin_template_averages_the_scans_into_a_cleaner_neutral_skin(rng):
     from scipy.interpolate import RegularGridInterpolator
 
     from livebridge.retarget.grid import FaceGrid
-    from livebridge.retarget.skin_flow import fine_axes, pixels_of, skin_image, skin_motion
+    from livebridge.retarget.skin_flow import pixels_of, skin_image, skin_motion
     from livebridge.retarget.skin_template import skin_templates
 
     texel = 0.25
@@ -503,11 +508,7 @@ def test_skin_template_averages_the_scans_into_a_cleaner_neutral_skin(rng):
         points = np.column_stack([at, 10 * np.exp(-(at ** 2).sum(axis=1) / 40.0 ** 2)]) + rng.normal(0, 0.1, (n, 3))
         return points, np.repeat(grey[:, None], 3, axis=1)
 
-    x, y = square_axes(30.0, (41, 41))
-    margin = 4
-    step = x[1] - x[0]
-    wide = np.linspace(-30 - margin * step, 30 + margin * step, 41 + 2 * margin)
-    fine_x, fine_y, _ = fine_axes(wide, wide)
+    x, y, fine_x, fine_y = _skin_axes()
     points, colours = scan([0.0, 0.0], 0.0)
     neutral, neutral_skin = resample(points, x, y), resample(points, fine_x, fine_y, colours=colours)
     moves = [(rng.uniform(-15, 15, 2), rng.uniform(1.0, 3.0)) for _ in range(7)]
