@@ -138,6 +138,11 @@ class FaceScan:
     def triangles(self) -> np.ndarray:
         return self.grid.triangles
 
+    def skin_pixels(self) -> np.ndarray:
+        """The grid's vertices on the skin image, (row, column) pixels (n_vertices, 2): where the tracked
+        motion is read back and the first guesses are given."""
+        return pixels_of(self.skin, self.chart.to_chart(self.vertices)[:, :2])
+
     def landmark_set(self, source=None) -> LandmarkSet:
         """The landmarks at their closest points of the grid mesh (an error names any farther than
         :data:`LANDMARK_MAX_DISTANCE_MM`: off the crop or in a hole)."""
@@ -252,8 +257,7 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     smooth = SMOOTH_SPACINGS * (spacing if spacing > 0 else TYPICAL_SPACING_MM)
     grow = skin_gap_mm(neutral.grid.spacing)
     chart, vertices = neutral.chart, neutral.vertices
-    charted = chart.to_chart(vertices)
-    at = pixels_of(neutral.skin, charted[:, :2])
+    at = neutral.skin_pixels()
     before, after = chart.landmarks(neutral.landmarks), chart.landmarks(expression.landmarks)
     if start is None:
         geometric = geometric_element(neutral, expression, stride, kernel, source)
@@ -359,8 +363,8 @@ def _with_templates(neutral: FaceScan, expressions: dict[str, FaceScan], kernel:
         motion, trust = tracked_motion(neutral, face, kernel=kernel, source=name)
         tracked.append((face.skin, chart.motion_to_chart(vertices, motion), trust))
         motions.append(motion)
-    at = pixels_of(neutral.skin, chart.to_chart(vertices)[:, :2])
-    return [replace(neutral, template=template) for template in skin_templates(neutral.skin, at, tracked)], motions
+    templates = skin_templates(neutral.skin, neutral.skin_pixels(), tracked)
+    return [replace(neutral, template=template) for template in templates], motions
 
 
 def muscle_for(name: str, element: np.ndarray, vertices: np.ndarray, landmarks: dict[str, np.ndarray]) -> Muscle:
