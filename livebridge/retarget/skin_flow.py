@@ -113,7 +113,7 @@ EDGE_ON = 0.1
 :func:`shrink_noise`: skin steeper than that is nearly edge-on to the skin images. 0.05, 0.1 and 0.2 give
 the same bench figures (mean relative error 0.1137 at 60k points a scan), 0.3 0.1139."""
 COARSE_FACTOR = 2
-"""Before the full-resolution passes, one flow on images this many times coarser (see :func:`_coarse_flow`).
+"""Before the full-resolution passes, one flow on images this many times coarser (see :func:`_flow`).
 Without it, zygomatic_major_R's smile at 60k points a scan measured 0.165 (seed 7) and 0.230 (seed 8) in
 the cylinder chart: the landmark warp was 5-10 mm off at the face's lower outline and the full-resolution
 flow settled on a wrong match there (trusted 0.97); with it 0.057 / 0.054, nothing else worse by more than
@@ -208,10 +208,8 @@ def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray,
     target, _ = skin_image(expression)
     total = (guess / step).astype(np.float32)
     source_u8 = _to_u8(source if template is None else skin_image(template)[0])
-    total = total + _coarse_flow(source_u8, _to_u8(_remap(target, total)), step, total)
-    for _ in range(PASSES):
-        warped = _remap(target, total)
-        flow = _dis(step).calc(source_u8, _to_u8(warped), None)  # source(p) ~ warped(p + flow)
+    for factor in (COARSE_FACTOR,) + (1,) * PASSES:
+        flow = _flow(source_u8, _to_u8(_remap(target, total)), step, factor)  # source(p) ~ warped(p + flow)
         total = flow + _remap(total, flow)  # the previous motion where the flow lands
     matched = _remap(target, total)
     residual = np.where(source_valid, (source - matched) ** 2, 0.0)
@@ -222,17 +220,19 @@ def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray,
     return total * step, trust
 
 
-def _coarse_flow(source_u8: np.ndarray, warped_u8: np.ndarray, step: float, total: np.ndarray) -> np.ndarray:
-    """The change (rows, cols, 2; pixels) to ``total`` that a flow between the two images at
-    :data:`COARSE_FACTOR` times coarser pixels finds (the same patches in mm): where the first guess is
-    several mm off (a landmark warp extrapolated to the face's outline), the full-resolution pyramid starting
-    from it settles on a wrong match; the coarse flow brings it within the fine one's reach."""
+def _flow(source_u8: np.ndarray, warped_u8: np.ndarray, step: float, factor: int = 1) -> np.ndarray:
+    """The DIS flow (rows, cols, 2; pixels) between two skin images of ``step`` mm pixels, found on images
+    ``factor`` times coarser (the same patches in mm) when ``factor`` > 1 (see :data:`COARSE_FACTOR`: where
+    the first guess is several mm off, a landmark warp extrapolated to the face's outline, the
+    full-resolution pyramid starting from it settles on a wrong match; the coarse flow brings it within the
+    fine one's reach)."""
+    if factor == 1:
+        return _dis(step).calc(source_u8, warped_u8, None)
     rows, cols = source_u8.shape
-    small = (cols // COARSE_FACTOR, rows // COARSE_FACTOR)
-    flow = _dis(step * COARSE_FACTOR).calc(cv2.resize(source_u8, small, interpolation=cv2.INTER_AREA),
-                                           cv2.resize(warped_u8, small, interpolation=cv2.INTER_AREA), None)
-    flow = cv2.resize(flow, (cols, rows), interpolation=cv2.INTER_LINEAR) * COARSE_FACTOR
-    return flow + _remap(total, flow) - total
+    small = (cols // factor, rows // factor)
+    flow = _dis(step * factor).calc(cv2.resize(source_u8, small, interpolation=cv2.INTER_AREA),
+                                    cv2.resize(warped_u8, small, interpolation=cv2.INTER_AREA), None)
+    return cv2.resize(flow, (cols, rows), interpolation=cv2.INTER_LINEAR) * factor
 
 
 def _dis(step: float):
@@ -351,8 +351,10 @@ def shrink_noise(grid: FaceGrid, normals: np.ndarray, motion: np.ndarray, trust:
                  window_mm: float = SHRINK_WINDOW_MM) -> np.ndarray:
     """``motion`` (n_vertices, 3) with its motion along the skin shrunk where it is not above the noise.
 
-    The skin images are x-y projections, so the flow's error is the same in x and y everywhere, of a
-    variance per axis read from the data (:func:`still_noise_variance` of the x-y motion's sizes on the
+    The noise model is that of x-y skin images (the planar chart; it was measured before the cylinder
+    chart, whose height runs radially, became the default: there the lift below overstates the noise on
+    the face's sides): the flow's error is the same in x and y everywhere, of a variance per axis read from
+    the data (:func:`still_noise_variance` of the x-y motion's sizes on the
     trusted skin). Lifted onto the surface, it stays that along the skin's level line but grows by
     ``1 / |n_z|`` along its steepest direction (an x-y step ``d`` on a slope is a step ``d / |n_z|`` along
     the skin). Each of the two components of the tangential motion is scaled by the positive-part
