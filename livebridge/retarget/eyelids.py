@@ -18,7 +18,11 @@ to no motion at the corner. The skin flow refines that guess.
 
 The opening of a resampled scan is smaller than the eye's: a grid point counts as surface when a scan point
 lies within the resampling's gap distance (:data:`~livebridge.retarget.grid.GAP_SPACINGS`), so every edge of
-a hole moves that far in; the margins are put back by it.
+a hole moves that far in; the margins are put back by it. The skin images' gap (2.2 mm on the bench's grid)
+fills a squint's slit up to twice that tall, which then reads as a closed eye (a synthetic squint's 2.5 mm
+margin motion taken for 8 mm); the expression's opening is therefore read from its holes at the scan's own
+point spacing (:func:`~livebridge.retarget.scans.opening_gap_mm`: 1.4 mm at 60k points a scan), keeping only
+holes long along the eye (:data:`MIN_OPENING_EYE_WIDTHS`: a stray gap between scan points is none).
 
 When the neutral shows no opening (a scanner that fills holes, a mesh closed over the eye) and the landmark
 files also name the lids' points of the 68-point iBUG layout (37, 38, 40, 41 on the subject's right eye, 43,
@@ -49,6 +53,13 @@ muscle moves the skin past the corners too; on the bench scans at 60k points 0.1
 the two eyelids, 0 gave 0.363 and 0.386, 0.2 gave 0.376 and 0.392)."""
 COLUMN_MEDIAN_MM = 2.0
 """The margins' motion is the median over columns this wide."""
+MIN_OPENING_EYE_WIDTHS = 0.3
+"""A hole of the expression's skin image is an eye opening only where it spans at least this many eye widths
+along the eye: an opening (a squint's slit too) runs along most of the eye, where a gap between scan points
+the mask's gap distance wide is a blob of a mm or two (at the scan's own point spacing, a closed eye of
+`livebridge bench scans` showed one, which read as an opening and moved the upper margin 4.3 mm instead of 9.4
+over a few columns, the lower one 1.8 mm up). With this, the bench's figures are those of the skin image's own
+holes."""
 LID_LANDMARKS = {"L": (("lm_43", "lm_44"), ("lm_47", "lm_46")), "R": (("lm_38", "lm_37"), ("lm_40", "lm_41"))}
 """Per side, the iBUG landmarks of the upper lid and of the lower lid, each from the inner corner outwards."""
 
@@ -64,7 +75,7 @@ class LidColumn:
 
 
 def lid_columns(neutral: FaceGrid, expression: FaceGrid, inner: np.ndarray, outer: np.ndarray,
-                grow_mm: float) -> dict[int, LidColumn]:
+                grow_mm: float, seen_grow_mm: float | None = None) -> dict[int, LidColumn]:
     """The margins and their motion along every column of one eye, from the openings of both skin grids.
 
     Parameters
@@ -75,6 +86,9 @@ def lid_columns(neutral: FaceGrid, expression: FaceGrid, inner: np.ndarray, oute
         The eye's corners in x-y (neutral).
     grow_mm : float
         How far each edge of a hole of the grids lies inside the true edge (the resampling's gap distance).
+    seen_grow_mm : float, optional
+        The same for ``expression``'s holes when they were masked with another gap (default ``grow_mm``): a
+        gap at the scan's own point spacing shows a squinting eye's slit that the skin image's wider one fills.
 
     Returns
     -------
@@ -82,10 +96,12 @@ def lid_columns(neutral: FaceGrid, expression: FaceGrid, inner: np.ndarray, oute
         By column index; columns between the opening and a corner taper to the corner.
     """
     step = neutral.spacing
+    seen_grow = grow_mm if seen_grow_mm is None else seen_grow_mm
     has_n, has_e = np.isfinite(neutral.heights), np.isfinite(expression.heights)
     rows = np.arange(neutral.shape[0])
     left, right = sorted((inner[0], outer[0]))
     width = float(np.linalg.norm(outer - inner))
+    has_e = ~_long_holes(~has_e, MIN_OPENING_EYE_WIDTHS * width / step)  # no stray gap between scan points
     columns: dict[int, LidColumn] = {}
     for col in np.flatnonzero((neutral.x > left) & (neutral.x < right)):
         centre = int(round(np.interp(_corner_line_y(inner, outer, neutral.x[col]), neutral.y, rows)))
@@ -96,8 +112,8 @@ def lid_columns(neutral: FaceGrid, expression: FaceGrid, inner: np.ndarray, oute
         upper, lower = high + 1 + grow_mm / step, low - 1 - grow_mm / step
         seen = _run_around(~has_e[:, col], centre, int(round(0.25 * width / step)))
         if seen is not None:  # an opening still: each margin goes to its edge (grown back like the neutral's)
-            up = (seen[1] + 1 + grow_mm / step - upper) * step
-            down = (seen[0] - 1 - grow_mm / step - lower) * step
+            up = (seen[1] + 1 + seen_grow / step - upper) * step
+            down = (seen[0] - 1 - seen_grow / step - lower) * step
         else:  # closed: the upper lid comes down onto the lower one
             up, down = (lower - upper) * step, 0.0
         columns[int(col)] = LidColumn(upper, lower, up, down)
@@ -156,7 +172,7 @@ def lid_motion(neutral: FaceGrid, columns: dict[int, LidColumn], reach_mm: float
 
 
 def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarray, first_guess: np.ndarray,
-                 before: dict, after: dict, grow_mm: float) -> np.ndarray:
+                 before: dict, after: dict, grow_mm: float, seen_grow_mm: float | None = None) -> np.ndarray:
     """``first_guess`` (n_vertices, 3) of a mesh's vertices with the lids' motion (y from
     :func:`lid_motion`, z onto the expressive surface there) wherever an eye's lids are found.
 
@@ -164,7 +180,8 @@ def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarr
     :func:`~livebridge.retarget.skin_flow.skin_motion`, ``first_guess`` in the skin images' chart (x, y, z
     here: the chart's u, v, height); ``before``, ``after``: the neutral's and the expression's landmarks in
     that chart (the eye corners ``eye_inner_L`` ... name the eyes; an eye without both corners is left alone;
-    lid landmarks :data:`LID_LANDMARKS` in both are used when there); ``grow_mm``: see :func:`lid_columns`.
+    lid landmarks :data:`LID_LANDMARKS` in both are used when there); ``grow_mm``, ``seen_grow_mm``: see
+    :func:`lid_columns`.
     """
     from scipy.ndimage import map_coordinates
 
@@ -172,7 +189,7 @@ def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarr
 
     guess = vertex_field(at, first_guess[:, 1:2], neutral_fine.shape)[..., 0]
     dy, touched = guess, np.zeros(neutral_fine.shape, bool)
-    for inner, outer, columns in _moving_lids(neutral_fine, expression_fine, before, after, grow_mm):
+    for inner, outer, columns in _moving_lids(neutral_fine, expression_fine, before, after, grow_mm, seen_grow_mm):
         reach = REACH_EYE_WIDTHS * float(np.linalg.norm(outer - inner))
         dy, hit = lid_motion(neutral_fine, columns, reach, dy)
         touched |= hit
@@ -188,7 +205,7 @@ def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarr
 
 
 def closing_openings(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict, after: dict,
-                     grow_mm: float) -> np.ndarray | None:
+                     grow_mm: float, seen_grow_mm: float | None = None) -> np.ndarray | None:
     """The neutral's eye openings whose lids moved, between the lids' margins (n_rows, n_cols) bool on
     ``neutral_fine``'s grid; None when no eye's lids moved. Arguments as in :func:`eyelid_guess`.
 
@@ -205,20 +222,21 @@ def closing_openings(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: 
     """
     opening = np.zeros(neutral_fine.shape, bool)
     rows = np.arange(neutral_fine.shape[0])
-    for _, _, columns in _moving_lids(neutral_fine, expression_fine, before, after, grow_mm):
+    for _, _, columns in _moving_lids(neutral_fine, expression_fine, before, after, grow_mm, seen_grow_mm):
         for col, lid in columns.items():
             opening[:, col] |= (rows >= lid.lower) & (rows <= lid.upper)
     return opening if opening.any() else None
 
 
-def _moving_lids(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict, after: dict, grow_mm: float):
+def _moving_lids(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict, after: dict, grow_mm: float,
+                 seen_grow_mm: float | None = None):
     """(inner corner, outer corner, lid columns) of every eye whose lids moved (see :func:`eyelid_guess`)."""
     for side in ("L", "R"):
         if f"eye_inner_{side}" not in before or f"eye_outer_{side}" not in before:
             continue
         inner = np.asarray(before[f"eye_inner_{side}"], dtype=np.float64)[:2]
         outer = np.asarray(before[f"eye_outer_{side}"], dtype=np.float64)[:2]
-        columns = lid_columns(neutral_fine, expression_fine, inner, outer, grow_mm)
+        columns = lid_columns(neutral_fine, expression_fine, inner, outer, grow_mm, seen_grow_mm)
         names = [n for pair in LID_LANDMARKS[side] for n in pair]
         if not columns and all(n in before and n in after for n in names):  # no opening in the neutral
             columns = lid_columns_from_landmarks(neutral_fine, before, after, side, inner, outer)
@@ -226,6 +244,17 @@ def _moving_lids(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict
                                     ) < MIN_MOTION_MM:
             continue  # this eye's lids did not move (a thin opening at a corner may read as closed): the guess stays
         yield inner, outer, columns
+
+
+def _long_holes(hole: np.ndarray, length: float) -> np.ndarray:
+    """The points of ``hole`` (rows, cols) bool in connected pieces spanning at least ``length`` columns."""
+    from scipy.ndimage import find_objects, label
+
+    labels, _ = label(hole)
+    keep = np.zeros(labels.max() + 1, bool)
+    for k, box in enumerate(find_objects(labels), start=1):
+        keep[k] = box is not None and box[1].stop - box[1].start >= length
+    return keep[labels]
 
 
 def _corner_line_y(inner: np.ndarray, outer: np.ndarray, x: float) -> float:

@@ -149,6 +149,16 @@ def front_surface(points: np.ndarray, cell: float, depth: float = FRONT_DEPTH_MM
     return points[:, 2] >= front[which] - depth
 
 
+def holes(points: np.ndarray, x: np.ndarray, y: np.ndarray, max_gap: float) -> np.ndarray:
+    """The grid points (n_rows, n_cols) bool with no point of the front surface of ``points`` (n, 3) within
+    ``max_gap`` in x-y (the mask :func:`resample` leaves NaN, here for any gap)."""
+    points = np.asarray(points, dtype=np.float64)
+    points = points[front_surface(points, float(max(np.diff(x).max(), np.diff(y).max())))]
+    xx, yy = np.meshgrid(x, y)
+    gap, _ = cKDTree(points[:, :2]).query(np.stack([xx.ravel(), yy.ravel()], axis=1), distance_upper_bound=max_gap)
+    return ~np.isfinite(gap).reshape(xx.shape)
+
+
 def point_spacing(points_xy: np.ndarray) -> float:
     """The median distance from each point (n, 2) to its nearest neighbour."""
     distance, _ = cKDTree(points_xy).query(points_xy, k=2)

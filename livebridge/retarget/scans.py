@@ -30,7 +30,19 @@ tracked motion (:mod:`~livebridge.retarget.skin_template`), so the neutral scan'
 in every element's flow. The second tracking starts from the first one's motion, not from the geometric warp
 again: the template's averaged skin is softer than one scan's, and from the warp's first guess the opened
 jaw's chin was lost in it (jaw 0.073 after the first tracking, 0.115 after the second from the warp, 0.054
-from the first's motion; 150k points a scan, cylinder chart).
+from the first's motion; 150k points a scan, cylinder chart). Around a closing eye the second tracking's start
+has the lids' margins pinned again where the eye openings say they went (:mod:`~livebridge.retarget.eyelids`,
+on top of the first motion): the first tracking's smoothing pulls a margin's motion back towards the still skin
+around it (the upper margin's grid vertices of the bench's closed eyes moved 4.7 mm instead of 6.5, their skin
+pixels' flow 5.7), and a flow started there lands between its start and the skin's true place again. In
+`livebridge bench scans` (seed 7) the eyelid elements went from 0.302 / 0.319 to 0.294 / 0.271 at 60k points a
+scan, from 0.238 / 0.241 to 0.217 / 0.233 at 150k (every other element unchanged); with the two eyelid scans
+alone, seed 8 at 60k, 0.337 / 0.339 -> 0.293 / 0.321. Starting the lids' skin from the first tracking's own
+guess instead (the eyelids' guess on the shape warp, not on the first motion) gained less (the two alone, seed
+7: 0.302 / 0.326 at 60k, 0.205 / 0.247 at 150k, against 0.294 / 0.335 and 0.210 / 0.235). The pin needs the
+openings read right: a squint's slit narrower than the skin image's gap reads as a closed eye, and pinned there
+the synthetic squint's lid of tests/test_eyelids.py was tracked to 0.43-0.52 of its motion instead of 0.06
+(the openings are read at the scan's own point spacing: :func:`opening_gap_mm`).
 """
 
 from __future__ import annotations
@@ -50,6 +62,7 @@ from livebridge.retarget.grid import (
     GRID_SHAPE,
     FaceGrid,
     crop_sphere,
+    holes,
     point_spacing,
     resample,
     square_axes,
@@ -118,6 +131,9 @@ class FaceScan:
     chart : SkinChart
         The chart of ``skin`` (:mod:`~livebridge.retarget.chart`; fitted to the neutral, shared by its
         expressions).
+    skin_holes : ndarray of bool, shape of ``skin``'s heights, or None
+        The skin image's points with no scan point within :func:`opening_gap_mm` (the scan's own holes at its
+        resolution: a squinting eye's slit, which the skin image's wider gap fills); None without colour.
     """
 
     grid: FaceGrid
@@ -129,6 +145,7 @@ class FaceScan:
     point_spacing: float = float("nan")
     template: FaceGrid | None = None
     chart: SkinChart = PLANAR
+    skin_holes: np.ndarray | None = None
 
     @property
     def vertices(self) -> np.ndarray:
@@ -191,7 +208,8 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
     fine_x, fine_y, factor, margin = skin_axes
     wider = crop_sphere(points, np.zeros(3), radius + SKIN_MARGIN_MM)
     skin = resample(chart.to_chart(points[wider]), fine_x, fine_y, skin_gap_mm(step), source, scan.colours[wider])
-    return FaceScan(grid, landmarks, scan2face, skin, factor, margin, spacing, chart=chart)
+    skin_holes = holes(chart.to_chart(points[wider]), fine_x, fine_y, opening_gap_mm(spacing, step))
+    return FaceScan(grid, landmarks, scan2face, skin, factor, margin, spacing, chart=chart, skin_holes=skin_holes)
 
 
 def _skin_axes(chart: SkinChart, x: np.ndarray, y: np.ndarray, points: np.ndarray
@@ -218,6 +236,15 @@ def skin_gap_mm(step: float) -> float:
     """A skin-image point farther than this from any scan point is a hole (``step``: the grid's cell, mm): so
     every hole of a skin image (an eye's opening) lies this far inside the scan's."""
     return step * GAP_SPACINGS / 2
+
+
+def opening_gap_mm(spacing: float, step: float) -> float:
+    """A skin-image point farther than this from any scan point is in one of the scan's holes at its own
+    resolution (``spacing``: its median point spacing; ``step``: the grid's cell, mm): the gap by which
+    :func:`~livebridge.retarget.grid.resample` masks holes by default (:data:`~livebridge.retarget.grid.GAP_SPACINGS`
+    point spacings), at most the skin image's own (:func:`skin_gap_mm`)."""
+    gap = skin_gap_mm(step)
+    return float(min(GAP_SPACINGS * spacing, gap)) if np.isfinite(spacing) and spacing > 0 else gap
 
 
 def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: FaceScan, source=None) -> FaceScan:
@@ -252,22 +279,22 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     """Where each neutral grid vertex's skin went in the (registered) expression scan, (n_vertices, 3), and
     how much that is trusted (n_vertices,), before the still skin corrects the registration: both scans
     must have colour. The flow starts from ``start`` (n_vertices, 3; an earlier tracking's motion) when
-    given, else from the geometric warp with the eyelids' guess."""
+    given, else from the geometric warp; either way with the eyelids' guess (:func:`eyelid_guess`: each lid
+    margin's motion from the openings, falling off over the lid) on top."""
     spacing = np.nanmax([neutral.point_spacing, expression.point_spacing, 0.0])
     smooth = SMOOTH_SPACINGS * (spacing if spacing > 0 else TYPICAL_SPACING_MM)
     grow = skin_gap_mm(neutral.grid.spacing)
     chart, vertices = neutral.chart, neutral.vertices
     at = neutral.skin_pixels()
     before, after = chart.landmarks(neutral.landmarks), chart.landmarks(expression.landmarks)
-    if start is None:
-        geometric = geometric_element(neutral, expression, stride, kernel, source)
-        guess = eyelid_guess(neutral.skin, expression.skin, at, chart.motion_to_chart(vertices, geometric), before,
-                             after, grow)
-    else:
-        guess = chart.motion_to_chart(vertices, start)
+    seen, seen_grow = _seen_openings(expression)
+    base = geometric_element(neutral, expression, stride, kernel, source) if start is None else start
+    # with a start too, the lids' margins are pinned again where the openings say: see the module's docstring
+    guess = eyelid_guess(neutral.skin, seen, at, chart.motion_to_chart(vertices, base), before, after, grow,
+                         seen_grow)
     seam = _lip_seam(before, neutral.skin)
     motion, trust = skin_motion(neutral.skin, expression.skin, at, guess, smooth, seam,
-                                closing_openings(neutral.skin, expression.skin, before, after, grow),
+                                closing_openings(neutral.skin, seen, before, after, grow, seen_grow),
                                 neutral.template)
     # Where the skin was not tracked, the motion of the tracked skin around it is a better guess than the
     # geometric warp: the skin went out of the scanner's view (under an opened jaw's chin, round the face's
@@ -276,6 +303,17 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     if fallback is not None:
         motion = motion + (1.0 - trust)[:, None] * (fallback - guess)
     return chart.motion_from_chart(vertices, motion), trust
+
+
+def _seen_openings(expression: FaceScan) -> tuple[FaceGrid, float]:
+    """The expression's skin image with its holes at the scan's own resolution masked (``skin_holes``: a
+    squinting eye's slit), and how far inside the true edges those holes lie, mm (see :func:`opening_gap_mm`);
+    the skin image itself and its gap when the scan has no such mask."""
+    skin, gap = expression.skin, skin_gap_mm(expression.grid.spacing)
+    if expression.skin_holes is None:
+        return skin, gap
+    return (replace(skin, heights=np.where(expression.skin_holes, np.nan, skin.heights)),
+            opening_gap_mm(expression.point_spacing, expression.grid.spacing))
 
 
 def _lip_seam(landmarks: dict, skin: FaceGrid) -> LipSeam | None:
