@@ -102,6 +102,19 @@ MIN_CARRIERS = 20
 CHART_KIND = "cylinder"
 """The skin images' chart (:mod:`~livebridge.retarget.chart`): a cylinder about a vertical axis fitted to the
 neutral face (``"planar"``: the x-y projection, ``"sphere"``); see the chart module for the figures."""
+LIDS_NOT_CARRIED = True
+"""Untracked skin of a closing eye's lids (the vertices whose first guess the eye openings set,
+:func:`~livebridge.retarget.eyelids.eyelid_guess`: the lids up to their reach beyond the margins) keeps that
+guess instead of the carried motion of the tracked skin: the spline through the tracked skin is smooth over
+the whole face, and across an eye it averages the upper lid's ~6-10 mm slide with the lower lid's stillness (the
+margins' skin, trusted 0.87-0.95, took 5-13 % of that average). In `livebridge bench scans` (seed 7) the eyelid
+elements went from 0.294 / 0.271 to 0.258 / 0.283 at 60k points a scan, from 0.217 / 0.233 to 0.210 / 0.226 at
+150k, every other element within 0.0006 (they share the template); their surface errors 0.118 / 0.114 -> 0.107 /
+0.117 at 60k, but 0.096 / 0.097 -> 0.100 / 0.100 at 150k. Seed 8 at 60k (all 16 elements): 0.289 / 0.311 ->
+0.249 / 0.282, the others within 0.0003. Keeping the guess only inside the openings (between the margins)
+gained less (the two eyelid scans alone, seed 8 at 60k: 0.267 / 0.298 against 0.251 / 0.280); carrying nothing
+for these two elements gained as much as this (0.253 / 0.278) but the carrying is what keeps an opened jaw's
+chin."""
 LANDMARK_MAX_DISTANCE_MM = 5.0
 """A landmark farther than this from the resampled surface is an error (off the face, or in a hole)."""
 
@@ -290,18 +303,20 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     seen, seen_grow = _seen_openings(expression)
     base = geometric_element(neutral, expression, stride, kernel, source) if start is None else start
     # with a start too, the lids' margins are pinned again where the openings say: see the module's docstring
-    guess = eyelid_guess(neutral.skin, seen, at, chart.motion_to_chart(vertices, base), before, after, grow,
-                         seen_grow)
+    guess, lids = eyelid_guess(neutral.skin, seen, at, chart.motion_to_chart(vertices, base), before, after, grow,
+                               seen_grow, with_lids=True)
     seam = _lip_seam(before, neutral.skin)
     motion, trust = skin_motion(neutral.skin, expression.skin, at, guess, smooth, seam,
                                 closing_openings(neutral.skin, seen, before, after, grow, seen_grow),
                                 neutral.template)
     # Where the skin was not tracked, the motion of the tracked skin around it is a better guess than the
     # geometric warp: the skin went out of the scanner's view (under an opened jaw's chin, round the face's
-    # outline) or into a hole, where the warp snaps it to the wrong, visible, surface.
+    # outline) or into a hole, where the warp snaps it to the wrong, visible, surface. Not around a closing
+    # eye, where the eyelids' guess stands: see :data:`LIDS_NOT_CARRIED`.
     fallback = _carried(neutral.grid, chart, motion, trust, stride, kernel, seam)
     if fallback is not None:
-        motion = motion + (1.0 - trust)[:, None] * (fallback - guess)
+        carried = np.where(lids, 0.0, 1.0 - trust) if LIDS_NOT_CARRIED else 1.0 - trust
+        motion = motion + carried[:, None] * (fallback - guess)
     return chart.motion_from_chart(vertices, motion), trust
 
 
