@@ -110,8 +110,10 @@ width's Gaussian, 0.026 / 0.025 unsmoothed (true heights), 0.155 / 0.159 with th
 (`livebridge bench scans`, eyelids L / R): 0.302 / 0.319 -> 0.251 / 0.251 at 60k points, 0.238 / 0.241 -> 0.205 /
 0.208 at 150k, seed 8 at 60k 0.355 / 0.335 -> 0.270 / 0.290; no other element worse by more than 0.001 at 60k
 (jaw), 0.003 at 150k (levator_labii_L 0.049 -> 0.053), and frontalis 0.074 / 0.076 -> 0.067 / 0.070 (60k),
-jaw 0.072 -> 0.058 (150k). This times 1 instead (6 of the elements, 60k): eyelids 0.247 / 0.262 but jaw
-0.081 -> 0.095."""
+jaw 0.072 -> 0.058 (150k); seed 8 at 150k 0.244 / 0.243 -> 0.221 / 0.218, nothing else worse by more than
+0.0013. Other values (60k, seed 7): 5 gave the eyelids 0.242 / 0.245 but zygomatic_major_R 0.057 -> 0.072 (a
+noisy stretch taken for curving motion); 20 gave 0.258 / 0.259, nothing else worse by more than 0.001; 1 (6 of
+the elements) 0.247 / 0.262 but jaw 0.081 -> 0.095."""
 ROBUST_ROUNDS = 3
 """Rounds of re-weighting in the robust smoothing of the heights (none: 0.155 instead of 0.124)."""
 ROBUST_SCALE = 5.0
