@@ -21,7 +21,9 @@ down, each general (no knowledge of the muscle, the person or the scanner's nois
   robustly (:func:`_robust_heights`): a skin image's heights have outliers of several mm where two surfaces
   mix (the nostrils, the scan's rim) that a plain Gaussian spreads over centimetres; the motion along the
   face takes twice that width where it is flat enough that the wider window only averages more noise away,
-  the flat places found from the data by Lepski's rule (:func:`_adaptive_smooth`);
+  the flat places found from the data by Lepski's rule (:func:`_adaptive_smooth`), and a less biased
+  smoothing than the base width's (twicing, :func:`_twiced`) where the motion curves far more than the noise
+  explains (a closing lid's skin: its ~9 mm slide falls to none within a few mm at the lid's crease);
 - the rigid slip the shape-only registration leaves is taken out on the skin that did not move
   (:func:`still_skin_correction`);
 - the motion along the skin is shrunk towards zero where it is not above the noise, the noise level read
@@ -96,6 +98,22 @@ WIDEN_WINDOW = 1.0
 """Width over which that difference is averaged, in wider widths (0.5, 1, 2: 0.110 / 0.109 / 0.108 mean
 relative error of the 8 smooth elements): 2 let a sharp bump (sigma the base width) take a third of the
 wider window's bias in tests/test_scans.py, 1 none."""
+SHARP_THRESHOLD = 10.0
+"""Where the motion curves more than even the base width follows, the adaptive smoothing takes the base width
+twiced (:func:`_twiced`: its curvature bias cancelled) instead, where the two differ by more than this times
+what lets a place take a wider width (:data:`WIDEN_THRESHOLD` times the noise's mean square): the twiced
+smoothing keeps about 1.8 times the base width's noise variance, and the flow's noise is heavier than its
+median in places (the lips, the chin) that the plain threshold took for curving motion. The noise-free
+flow (the true motion along the skin put through the rest of the pipeline) showed the smoothing as most of
+what kept the eyelids over the bar: 0.240 / 0.243 relative RMS at 60k points a scan (seed 7) with the base
+width's Gaussian, 0.026 / 0.025 unsmoothed (true heights), 0.155 / 0.159 with this. With the real flow
+(`livebridge bench scans`, eyelids L / R): 0.302 / 0.319 -> 0.251 / 0.251 at 60k points, 0.238 / 0.241 -> 0.205 /
+0.208 at 150k, seed 8 at 60k 0.355 / 0.335 -> 0.270 / 0.290; no other element worse by more than 0.001 at 60k
+(jaw), 0.003 at 150k (levator_labii_L 0.049 -> 0.053), and frontalis 0.074 / 0.076 -> 0.067 / 0.070 (60k),
+jaw 0.072 -> 0.058 (150k); seed 8 at 150k 0.244 / 0.243 -> 0.221 / 0.218, nothing else worse by more than
+0.0013. Other values (60k, seed 7): 5 gave the eyelids 0.242 / 0.245 but zygomatic_major_R 0.057 -> 0.072 (a
+noisy stretch taken for curving motion); 20 gave 0.258 / 0.259, nothing else worse by more than 0.001; 1 (6 of
+the elements) 0.247 / 0.262 but jaw 0.081 -> 0.095."""
 ROBUST_ROUNDS = 3
 """Rounds of re-weighting in the robust smoothing of the heights (none: 0.155 instead of 0.124)."""
 ROBUST_SCALE = 5.0
@@ -305,7 +323,8 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarra
     # the heights at the base width; the x-y motion at each of WIDTHS (the first is the base width)
     height = _robust_heights(np.nan_to_num(dz), weight, blur_at(sigma), ~not_skin)
     means = [np.dstack(blur_at(sigma * factor)([xy[..., 0], xy[..., 1]], weight)) for factor in WIDTHS]
-    adaptive = _adaptive_smooth(means, weight, sigma)
+    sharp = np.dstack(_twiced(blur_at(sigma), [xy[..., 0], xy[..., 1]], weight))
+    adaptive = _adaptive_smooth(means, weight, sigma, sharp)
     height = height + _rise(expression_fine.heights, step, means[0], adaptive - means[0], sigma)
     smooth = np.dstack([adaptive, height])
     tracked = at_vertices(smooth, at)
@@ -466,7 +485,21 @@ def _robust_heights(dz: np.ndarray, weight: np.ndarray, blur, z_use: np.ndarray 
     return blur([dz], z_weight)[0]
 
 
-def _adaptive_smooth(means: list, weight: np.ndarray, sigma: float) -> np.ndarray:
+def _twiced(blur, channels: list, weight: np.ndarray) -> list:
+    """Tukey's twicing of a smoothing: the channels' smooth plus the smooth of what it left, ``s + B(f - s)``
+    with ``s = B(f)``, a list like ``channels`` (each (rows, cols)); NaN where nothing is near.
+
+    ``blur(channels, weight) -> means`` is a normalised smoothing (as in :func:`_robust_heights`). A Gaussian
+    of width ``sigma`` moves a curving motion ``f`` by about ``sigma^2 / 2`` times its Laplacian; twicing
+    takes that back to fourth order (its kernel ``2 G_sigma - G_sigma*G_sigma``) for ~1.8 times the noise
+    variance, far less than halving the width (4 times).
+    """
+    first = blur(channels, weight)
+    left = [np.where(weight > 0, channel - np.nan_to_num(smooth), 0.0) for channel, smooth in zip(channels, first)]
+    return [smooth + more for smooth, more in zip(first, blur(left, weight))]
+
+
+def _adaptive_smooth(means: list, weight: np.ndarray, sigma: float, sharp: np.ndarray | None = None) -> np.ndarray:
     """``values`` (rows, cols, 2: x-y motion) smoothed with ``weight`` (rows, cols) over a width chosen per
     place among :data:`WIDTHS` times ``sigma`` pixels, shape (rows, cols, 2); NaN where nothing is near.
 
@@ -479,7 +512,9 @@ def _adaptive_smooth(means: list, weight: np.ndarray, sigma: float) -> np.ndarra
     difference's local mean square (over :data:`WIDEN_WINDOW` times the wider width, so that one noisy
     pixel does not decide): up to :data:`WIDEN_THRESHOLD` times the noise's the place takes the wider
     smoothing, at twice that none, linearly between, which keeps the blend free of seams. The widest width
-    a place may take is the first one rejected on the way up, as in Lepski's rule.
+    a place may take is the first one rejected on the way up, as in Lepski's rule. Below the base width
+    comes ``sharp`` when given (less biased, noisier): a place keeps the base width's smoothing unless the
+    two differ by :data:`SHARP_THRESHOLD` times more than a wider width may.
 
     Parameters
     ----------
@@ -489,20 +524,26 @@ def _adaptive_smooth(means: list, weight: np.ndarray, sigma: float) -> np.ndarra
         The smoothing's weights (the flow's trust).
     sigma : float
         The base width, pixels.
+    sharp : ndarray, shape (rows, cols, 2), optional
+        A less biased smoothing at the base width (:func:`_twiced`).
     """
     trusted = weight > 0.9
-    result = means[-1]
-    for k in range(len(WIDTHS) - 2, -1, -1):  # result: the smoothing from width k + 1 up
-        difference = np.sum((means[k + 1][..., :2] - means[k][..., :2]) ** 2, axis=2)
+    candidates, widths, thresholds = list(means), list(WIDTHS), [WIDEN_THRESHOLD] * len(WIDTHS)
+    if sharp is not None:  # its window the base width's
+        candidates, widths, thresholds = [sharp] + candidates, [WIDTHS[0]] + widths, [
+            SHARP_THRESHOLD * WIDEN_THRESHOLD] + thresholds
+    result = candidates[-1]
+    for k in range(len(candidates) - 2, -1, -1):  # result: the smoothing from candidate k + 1 up
+        difference = np.sum((candidates[k + 1][..., :2] - candidates[k][..., :2]) ** 2, axis=2)
         usable = trusted & np.isfinite(difference)
         if usable.sum() < 100:
             return means[0]
         noise = float(np.median(difference[usable])) / np.log(2.0)
         local = _weighted_blur(np.where(usable, difference, 0.0), usable.astype(np.float32),
-                               sigma * WIDTHS[k + 1] * WIDEN_WINDOW)
-        wider = np.clip(2.0 - local / max(WIDEN_THRESHOLD * noise, 1e-12), 0.0, 1.0)
+                               sigma * widths[k + 1] * WIDEN_WINDOW)
+        wider = np.clip(2.0 - local / max(thresholds[k] * noise, 1e-12), 0.0, 1.0)
         wider = np.where(np.isfinite(wider), wider, 0.0)[..., None]
-        result = means[k] + wider * (np.nan_to_num(result) - means[k])
+        result = candidates[k] + wider * (np.nan_to_num(result) - candidates[k])
     return result
 
 
