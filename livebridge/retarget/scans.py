@@ -243,7 +243,8 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
     element, trust = tracked_motion(neutral, expression, stride, kernel, source, start)
     correction = still_skin_correction(neutral.vertices, element, trust)
     element = apply(correction, neutral.vertices + element) - neutral.vertices
-    return shrink_noise(neutral.grid, vertex_normals(neutral.vertices, neutral.triangles), element, trust)
+    return shrink_noise(neutral.grid, vertex_normals(neutral.vertices, neutral.triangles), element, trust,
+                        view=neutral.chart.view_directions(neutral.vertices))  # the noise is the chart's images'
 
 
 def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,
