@@ -109,9 +109,11 @@ measured with the former 4 mm patches; stronger shrinkage, 2 or 4 times the esti
 worse: 0.150 / 0.176). Now (mean relative error of the 16 elements at 60k / 150k points a scan) 4 mm gives
 0.1138 / 0.0916, 8 mm 0.1137 / 0.0914, 12 mm 0.1142 / 0.0919."""
 EDGE_ON = 0.1
-"""The smallest ``|n_z|`` (surface normal's z) by which the flow's x-y noise is lifted onto the slope in
-:func:`shrink_noise`: skin steeper than that is nearly edge-on to the skin images. 0.05, 0.1 and 0.2 give
-the same bench figures (mean relative error 0.1137 at 60k points a scan), 0.3 0.1139."""
+"""The smallest ``|n . view|`` (the surface normal along the skin images' view) by which the flow's noise is
+lifted onto the slope in :func:`shrink_noise`: skin turned further away is nearly edge-on to the skin images.
+With x-y images 0.05, 0.1 and 0.2 gave the same bench figures (mean relative error 0.1137 at 60k points a
+scan), 0.3 0.1139. With the cylinder chart's view (60k / 150k points, seed 7) 0.2 and 0.3 traded
+lips_pressor (0.121 -> 0.120 / 0.119 at 60k) against risorius_L (0.059 -> 0.060 / 0.062 at 150k)."""
 COARSE_FACTOR = 2
 """Before the full-resolution passes, one flow on images this many times coarser (see :func:`_flow`).
 Without it, zygomatic_major_R's smile at 60k points a scan measured 0.165 (seed 7) and 0.230 (seed 8) in
