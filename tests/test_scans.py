@@ -294,6 +294,48 @@ def test_points_behind_the_front_surface_are_found_on_a_steep_face():
     assert not found[~speckle].any()
 
 
+def test_skin_images_leave_out_points_seen_past_the_skin(rng):
+    """A front surface (flat, then curving away to a slope of 5) with a nostril-like gap, and a surface 7 mm
+    behind it (nearer than the resampling's own occlusion test reaches): all of the back one's points in the
+    gap, and 3 % of them everywhere else (hidden points a scanner's occlusion test let through), with their
+    own colour. The back's points outside the gap on the flat skin are left out of the skin image (on the
+    slope 7 mm is within what the front itself falls), the front's kept (the steep ones too, but for the odd
+    noisy one), and the image there is the front's colour again; the gap's inside stays (it is all there is
+    to see)."""
+    from livebridge.retarget.skin_flow import fine_axes, in_front
+
+    def surface(xy):
+        out = np.maximum(xy[:, 0] - 5.0, 0.0)
+        return -5.0 * out ** 2 / (2 * 15.0)  # slope 5 at x = 20
+
+    n = 40_000
+    front = rng.uniform(-20, 20, (n, 2))
+    gap = np.linalg.norm(front - [-8.0, 0.0], axis=1) < 3.0
+    front = front[~gap]
+    back = rng.uniform(-20, 20, (n, 2))
+    in_gap = np.linalg.norm(back - [-8.0, 0.0], axis=1) < 3.0
+    back = back[in_gap | (rng.random(n) < 0.03)]
+    points = np.vstack([np.column_stack([front, surface(front)]), np.column_stack([back, surface(back) - 7.0])])
+    points += rng.normal(0.0, 0.2, points.shape)
+    colours = np.vstack([np.full((len(front), 3), 0.8), np.full((len(back), 3), 0.2)])
+    x, y, _ = fine_axes(np.linspace(-18, 18, 19), np.linspace(-18, 18, 19))
+    image = resample(points, x, y, colours=colours)
+    kept = in_front(image, points)
+    is_back = np.arange(len(points)) >= len(front)
+    away = (np.linalg.norm(points[:, :2] - [-8.0, 0.0], axis=1) > 5.0) & (np.abs(points[:, :2]) < 18.0).all(axis=1)
+    away &= points[:, 0] < 5.0  # on the flat skin (on the slope 7 mm is within what the front itself falls)
+    assert kept[~is_back].mean() > 0.999  # a few noisy points on the steep skin may go: their neighbours fill in
+    assert kept[~is_back & (points[:, 0] > 15.0)].mean() > 0.99  # the steep part (slope 3.3-5)
+    assert not kept[is_back & away].any()
+    inside = is_back & (np.linalg.norm(points[:, :2] - [-8.0, 0.0], axis=1) < 2.0)
+    assert kept[inside].mean() > 0.5  # inside the gap: the only surface there
+    clean = resample(points[kept], x, y, colours=colours[kept])
+    xx, yy = np.meshgrid(x, y)
+    outside = (np.hypot(xx + 8.0, yy) > 5.0) & (np.abs(yy) < 17.0) & (xx > -17.0) & (xx < 4.0)
+    assert np.nanmin(clean.colours[outside][:, 0]) > 0.79
+    assert np.nanmin(image.colours[outside][:, 0]) < 0.5  # what the back's points had mixed in
+
+
 def test_heights_ignore_another_surface_showing_through_a_gap(rng):
     """The known slide of the skin over a curved face, with a patch (a nostril) where 60 % of each scan's
     points are on a surface 25 mm behind the skin, different points in each scan: the tracked motion along

@@ -61,6 +61,7 @@ from livebridge.retarget.seams import LipSeam
 from livebridge.retarget.skin_flow import (
     SMOOTH_SPACINGS,
     fine_axes,
+    in_front,
     pixels_of,
     shrink_noise,
     skin_motion,
@@ -190,7 +191,11 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
         skin_axes = _skin_axes(chart, x, y, points[inside])
     fine_x, fine_y, factor, margin = skin_axes
     wider = crop_sphere(points, np.zeros(3), radius + SKIN_MARGIN_MM)
-    skin = resample(chart.to_chart(points[wider]), fine_x, fine_y, skin_gap_mm(step), source, scan.colours[wider])
+    on_chart, colours = chart.to_chart(points[wider]), scan.colours[wider]
+    skin = resample(on_chart, fine_x, fine_y, skin_gap_mm(step), source, colours)
+    visible = in_front(skin, on_chart)  # not another surface seen through a gap of the skin (a nostril)
+    if not visible.all():
+        skin = resample(on_chart[visible], fine_x, fine_y, skin_gap_mm(step), source, colours[visible])
     return FaceScan(grid, landmarks, scan2face, skin, factor, margin, spacing, chart=chart)
 
 
