@@ -19,6 +19,19 @@ def test_chart_round_trips_points(rng, kind):
                                atol=1e-9)
 
 
+@pytest.mark.parametrize("kind", ["planar", "sphere", "cylinder"])
+def test_view_directions_are_where_the_height_grows(rng, kind):
+    """The chart's view at a point is the unit direction in which its height ``h`` grows fastest (by 1 mm a
+    mm), u and v staying put: the direction its skin images look at the skin from."""
+    chart = PLANAR if kind == "planar" else SkinChart(kind, np.array([3.0, -5.0, -80.0]), 75.0)
+    points = rng.normal(0.0, 30.0, (500, 3))
+    view = chart.view_directions(points)
+    np.testing.assert_allclose(np.linalg.norm(view, axis=1), 1.0, atol=1e-12)
+    step = 1e-4
+    change = (chart.to_chart(points + step * view) - chart.to_chart(points)) / step
+    np.testing.assert_allclose(change, np.tile([0.0, 0.0, 1.0], (len(points), 1)), atol=1e-4)
+
+
 def test_chart_is_mm_of_skin_near_the_front(rng):
     """Near the face's front the chart's u, v are x, y (to first order) and its height grows with z."""
     step = 1e-3

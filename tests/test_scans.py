@@ -294,6 +294,48 @@ def test_points_behind_the_front_surface_are_found_on_a_steep_face():
     assert not found[~speckle].any()
 
 
+def test_skin_images_leave_out_points_seen_past_the_skin(rng):
+    """A front surface (flat, then curving away to a slope of 5) with a nostril-like gap, and a surface 7 mm
+    behind it (nearer than the resampling's own occlusion test reaches): all of the back one's points in the
+    gap, and 3 % of them everywhere else (hidden points a scanner's occlusion test let through), with their
+    own colour. The back's points outside the gap on the flat skin are left out of the skin image (on the
+    slope 7 mm is within what the front itself falls), the front's kept (the steep ones too, but for the odd
+    noisy one), and the image there is the front's colour again; the gap's inside stays (it is all there is
+    to see)."""
+    from livebridge.retarget.skin_flow import fine_axes, in_front
+
+    def surface(xy):
+        out = np.maximum(xy[:, 0] - 5.0, 0.0)
+        return -5.0 * out ** 2 / (2 * 15.0)  # slope 5 at x = 20
+
+    n = 40_000
+    front = rng.uniform(-20, 20, (n, 2))
+    gap = np.linalg.norm(front - [-8.0, 0.0], axis=1) < 3.0
+    front = front[~gap]
+    back = rng.uniform(-20, 20, (n, 2))
+    in_gap = np.linalg.norm(back - [-8.0, 0.0], axis=1) < 3.0
+    back = back[in_gap | (rng.random(n) < 0.03)]
+    points = np.vstack([np.column_stack([front, surface(front)]), np.column_stack([back, surface(back) - 7.0])])
+    points += rng.normal(0.0, 0.2, points.shape)
+    colours = np.vstack([np.full((len(front), 3), 0.8), np.full((len(back), 3), 0.2)])
+    x, y, _ = fine_axes(np.linspace(-18, 18, 19), np.linspace(-18, 18, 19))
+    image = resample(points, x, y, colours=colours)
+    kept = in_front(image, points)
+    is_back = np.arange(len(points)) >= len(front)
+    away = (np.linalg.norm(points[:, :2] - [-8.0, 0.0], axis=1) > 5.0) & (np.abs(points[:, :2]) < 18.0).all(axis=1)
+    away &= points[:, 0] < 5.0  # on the flat skin (on the slope 7 mm is within what the front itself falls)
+    assert kept[~is_back].mean() > 0.999  # a few noisy points on the steep skin may go: their neighbours fill in
+    assert kept[~is_back & (points[:, 0] > 15.0)].mean() > 0.99  # the steep part (slope 3.3-5)
+    assert not kept[is_back & away].any()
+    inside = is_back & (np.linalg.norm(points[:, :2] - [-8.0, 0.0], axis=1) < 2.0)
+    assert kept[inside].mean() > 0.5  # inside the gap: the only surface there
+    clean = resample(points[kept], x, y, colours=colours[kept])
+    xx, yy = np.meshgrid(x, y)
+    outside = (np.hypot(xx + 8.0, yy) > 5.0) & (np.abs(yy) < 17.0) & (xx > -17.0) & (xx < 4.0)
+    assert np.nanmin(clean.colours[outside][:, 0]) > 0.79
+    assert np.nanmin(image.colours[outside][:, 0]) < 0.5  # what the back's points had mixed in
+
+
 def test_heights_ignore_another_surface_showing_through_a_gap(rng):
     """The known slide of the skin over a curved face, with a patch (a nostril) where 60 % of each scan's
     points are on a surface 25 mm behind the skin, different points in each scan: the tracked motion along
@@ -447,6 +489,50 @@ def test_noise_shrinkage_on_steep_skin_takes_the_flow_noise_lifted_onto_the_slop
         moving_left.append(rms(shrunk - slide, moving) / rms(noise, moving))
     assert np.mean(steep_left) < 0.25, steep_left
     assert np.mean(moving_left) < 1.2, moving_left
+
+
+def test_noise_shrinkage_lifts_the_noise_by_the_chart_view_not_by_z():
+    """A face that is half a cylinder (|n_z| about 0.44 on its sides), skin images in the cylinder chart about
+    its axis (they face the skin everywhere), the flow's noise the same in both axes of those images (0.2 mm,
+    correlated over millimetres) and a 0.5 mm slide round the cylinder on one side. Lifted by the chart's
+    view the noise is not grown there, and the shrinkage leaves the slide's skin nearer the truth than
+    unshrunk (0.74-0.85 of the noise's RMS, 4 draws); lifted by ``1 / |n_z|`` (the x-y images' model) it
+    took the slide for noise and shrank it (1.21-1.49: worse than no shrinkage). The still front is shrunk
+    towards still either way (0.14-0.34)."""
+    from scipy.ndimage import gaussian_filter
+
+    from livebridge.face.meshio import vertex_normals
+    from livebridge.retarget.chart import SkinChart
+    from livebridge.retarget.skin_flow import shrink_noise
+
+    def rms(values, where):
+        return float(np.sqrt(np.mean(np.sum(values[where] ** 2, axis=1))))
+
+    chart = SkinChart("cylinder", np.array([0.0, 0.0, -60.0]), 60.0)
+    x, y = square_axes(58.0, (97, 97))
+    kept, z_lifted, still_left = [], [], []
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        angle, height = rng.uniform(-1.3, 1.3, 60_000), rng.uniform(-56, 56, 60_000)
+        grid = resample(chart.from_chart(np.column_stack([60.0 * angle, height, np.zeros(len(angle))])), x, y)
+        points = grid.vertices
+        normals = vertex_normals(points, grid.triangles)
+        theta = chart.to_chart(points)[:, 0] / 60.0
+        around = np.column_stack([np.cos(theta), np.zeros(len(theta)), -np.sin(theta)])
+        slide = (0.5 / (1.0 + np.exp(-(theta - 0.85) / 0.05)))[:, None] * around
+        flow = np.stack([gaussian_filter(rng.normal(0, 1, grid.shape), 2.0)[grid.valid] for _ in range(2)], axis=1)
+        flow *= 0.2 / flow.std()
+        noise = flow[:, :1] * around + flow[:, 1:] * np.array([0.0, 1.0, 0.0])  # (u, v) of the chart's images
+        moving, still = theta > 1.0, np.abs(theta) < 0.5
+        assert abs(normals[moving, 2]).mean() < 0.5
+        for view, left in ((chart.view_directions(points), kept), (None, z_lifted)):
+            shrunk = shrink_noise(grid, normals, slide + noise, np.ones(len(points)), view=view)
+            left.append(rms(shrunk - slide, moving) / rms(noise, moving))
+            if view is not None:
+                still_left.append(rms(shrunk - slide, still) / rms(noise, still))
+    assert np.mean(kept) < 0.95, kept
+    assert np.mean(z_lifted) > 1.1, z_lifted  # the x-y model's lift: the reason for the view
+    assert np.mean(still_left) < 0.4, still_left
 
 
 def test_adaptive_smoothing_averages_noise_away_on_flat_motion_and_keeps_a_sharp_bump(rng):

@@ -104,6 +104,22 @@ class SkinChart:
         """Motions in the chart (n, 3) of ``points`` (n, 3, face frame) as motions in the face frame (n, 3)."""
         return self.from_chart(self.to_chart(points) + chart_motion) - np.asarray(points, dtype=np.float64)
 
+    def view_directions(self, points: np.ndarray) -> np.ndarray:
+        """Unit vectors (n, 3) along which the chart's height ``h`` grows at ``points`` (n, 3; face frame): the
+        direction a skin image made in this chart looks at the skin from (``+z`` for the planar chart, away
+        from the axis, level, for the cylinder, away from the centre for the sphere). Skin turned away from
+        it is compressed in the skin image (see
+        :func:`~livebridge.retarget.skin_flow.shrink_noise`)."""
+        points = np.asarray(points, dtype=np.float64)
+        if self.planar:
+            return np.tile([0.0, 0.0, 1.0], (len(points), 1))
+        d = points - self.centre
+        if self.kind == "cylinder":
+            d[:, 1] = 0.0
+        size = np.linalg.norm(d, axis=1, keepdims=True)
+        # the centre (axis) itself: looking along +z, as the planar chart (no face point is that near it)
+        return np.where(size > 1e-12, d / np.maximum(size, 1e-300), [0.0, 0.0, 1.0])
+
     def landmarks(self, landmarks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Landmarks (name to (3,)) in the chart."""
         if not landmarks:

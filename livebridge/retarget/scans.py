@@ -74,6 +74,7 @@ from livebridge.retarget.seams import LipSeam
 from livebridge.retarget.skin_flow import (
     SMOOTH_SPACINGS,
     fine_axes,
+    in_front,
     pixels_of,
     shrink_noise,
     skin_motion,
@@ -220,8 +221,13 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
         skin_axes = _skin_axes(chart, x, y, points[inside])
     fine_x, fine_y, factor, margin = skin_axes
     wider = crop_sphere(points, np.zeros(3), radius + SKIN_MARGIN_MM)
-    skin = resample(chart.to_chart(points[wider]), fine_x, fine_y, skin_gap_mm(step), source, scan.colours[wider])
-    skin_holes = holes(chart.to_chart(points[wider]), fine_x, fine_y, opening_gap_mm(spacing, step))
+    on_chart, colours = chart.to_chart(points[wider]), scan.colours[wider]
+    skin = resample(on_chart, fine_x, fine_y, skin_gap_mm(step), source, colours)
+    visible = in_front(skin, on_chart)  # not another surface seen through a gap of the skin (a nostril)
+    if not visible.all():
+        on_chart, colours = on_chart[visible], colours[visible]
+        skin = resample(on_chart, fine_x, fine_y, skin_gap_mm(step), source, colours)
+    skin_holes = holes(on_chart, fine_x, fine_y, opening_gap_mm(spacing, step))
     return FaceScan(grid, landmarks, scan2face, skin, factor, margin, spacing, chart=chart, skin_holes=skin_holes)
 
 
@@ -283,7 +289,8 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
     element, trust = tracked_motion(neutral, expression, stride, kernel, source, start)
     correction = still_skin_correction(neutral.vertices, element, trust)
     element = apply(correction, neutral.vertices + element) - neutral.vertices
-    return shrink_noise(neutral.grid, vertex_normals(neutral.vertices, neutral.triangles), element, trust)
+    return shrink_noise(neutral.grid, vertex_normals(neutral.vertices, neutral.triangles), element, trust,
+                        view=neutral.chart.view_directions(neutral.vertices))  # the noise is the chart's images'
 
 
 def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,

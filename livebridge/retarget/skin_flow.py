@@ -127,9 +127,11 @@ measured with the former 4 mm patches; stronger shrinkage, 2 or 4 times the esti
 worse: 0.150 / 0.176). Now (mean relative error of the 16 elements at 60k / 150k points a scan) 4 mm gives
 0.1138 / 0.0916, 8 mm 0.1137 / 0.0914, 12 mm 0.1142 / 0.0919."""
 EDGE_ON = 0.1
-"""The smallest ``|n_z|`` (surface normal's z) by which the flow's x-y noise is lifted onto the slope in
-:func:`shrink_noise`: skin steeper than that is nearly edge-on to the skin images. 0.05, 0.1 and 0.2 give
-the same bench figures (mean relative error 0.1137 at 60k points a scan), 0.3 0.1139."""
+"""The smallest ``|n . view|`` (the surface normal along the skin images' view) by which the flow's noise is
+lifted onto the slope in :func:`shrink_noise`: skin turned further away is nearly edge-on to the skin images.
+With x-y images 0.05, 0.1 and 0.2 gave the same bench figures (mean relative error 0.1137 at 60k points a
+scan), 0.3 0.1139. With the cylinder chart's view (60k / 150k points, seed 7) 0.2 and 0.3 traded
+lips_pressor (0.121 -> 0.120 / 0.119 at 60k) against risorius_L (0.059 -> 0.060 / 0.062 at 150k)."""
 COARSE_FACTOR = 2
 """Before the full-resolution passes, one flow on images this many times coarser (see :func:`_flow`).
 Without it, zygomatic_major_R's smile at 60k points a scan measured 0.165 (seed 7) and 0.230 (seed 8) in
@@ -348,6 +350,13 @@ def behind_front(heights: np.ndarray, step: float, gap_mm: float = BEHIND_MM,
     falls over half the window at its least steep nearby (the least, so that a cliff of mixed points does
     not excuse itself): without that, the side of the face was taken for another surface
     (zygomatic_major 0.050 -> 0.052 at 150k points)."""
+    return np.isfinite(heights) & (heights < _behind_limit(heights, step, gap_mm, window_mm))
+
+
+def _behind_limit(heights: np.ndarray, step: float, gap_mm: float = BEHIND_MM,
+                  window_mm: float = FRONT_WINDOW_MM) -> np.ndarray:
+    """The height (rows, cols) below which a point of the skin image ``heights`` is behind its front (see
+    :func:`behind_front`); -inf where no front is near."""
     from scipy.ndimage import minimum_filter, percentile_filter
 
     finite = np.isfinite(heights)
@@ -355,7 +364,33 @@ def behind_front(heights: np.ndarray, step: float, gap_mm: float = BEHIND_MM,
     front = percentile_filter(np.where(finite, heights, -np.inf), 80, size=size)
     slope = np.nan_to_num(np.hypot(*np.gradient(np.where(np.isfinite(front), front, np.nan), step)), nan=np.inf)
     rise = minimum_filter(slope, size=size) * window_mm / 2  # how far a steep front itself falls in the window
-    return finite & (heights < front - gap_mm - rise)
+    limit = front - gap_mm - rise
+    return np.where(np.isfinite(limit), limit, -np.inf)
+
+
+def in_front(image: FaceGrid, points: np.ndarray) -> np.ndarray:
+    """Mask (n,) of the ``points`` (n, 3; in the chart of the skin ``image``: u, v, height) not behind the
+    image's front surface by more than :data:`BEHIND_MM` at their nearest pixel (as :func:`behind_front`
+    judges the image's own points): the rest are another surface seen through a gap of the front one.
+    Points beyond the image's pixels are kept.
+
+    A scanner sees past the skin at its gaps and edges (into a nostril, under the chin); resampled with the
+    skin, those points mix their colour and height into the skin image, which the flow then follows (the
+    resampling's own occlusion test is per pixel and 10 mm deep: a point with no front point in its pixel,
+    or less than 10 mm behind it, stays). On the bench's neutral scan at 60k points 425 of 57k points go,
+    395 of them within 15 mm of the nose tip, the rest under the chin. Left out of every scan's skin images
+    (:mod:`~livebridge.retarget.scans`), in `livebridge bench scans` (seed 7, 60k points a scan):
+    lips_pressor 0.121 -> 0.115 (its nose's share of the error^2 2.5 -> 1.5 x 1e-3 of the element's RMS^2,
+    unshrunk), depressor_anguli_oris 0.118 -> 0.117, orbicularis_oris 0.074 -> 0.071,
+    zygomatic_major_R 0.057 -> 0.052."""
+    points = np.asarray(points, dtype=np.float64)
+    limit = _behind_limit(image.heights, image.spacing)
+    at = pixels_of(image, points[:, :2])
+    inside = ((at >= 0) & (at <= np.array(limit.shape) - 1)).all(axis=1)  # beyond the image: not judged
+    pixel = np.rint(np.where(inside[:, None], at, 0.0)).astype(np.int64)
+    below = np.full(len(points), -np.inf)
+    below[inside] = limit[pixel[inside, 0], pixel[inside, 1]]
+    return points[:, 2] >= below
 
 
 def _landed(mask: np.ndarray, xy: np.ndarray, step: float) -> np.ndarray:
@@ -367,26 +402,46 @@ def _landed(mask: np.ndarray, xy: np.ndarray, step: float) -> np.ndarray:
 
 
 def shrink_noise(grid: FaceGrid, normals: np.ndarray, motion: np.ndarray, trust: np.ndarray,
-                 window_mm: float = SHRINK_WINDOW_MM) -> np.ndarray:
+                 window_mm: float = SHRINK_WINDOW_MM, view: np.ndarray | None = None) -> np.ndarray:
     """``motion`` (n_vertices, 3) with its motion along the skin shrunk where it is not above the noise.
 
-    The noise model is that of x-y skin images (the planar chart; it was measured before the cylinder
-    chart, whose height runs radially, became the default: there the lift below overstates the noise on
-    the face's sides): the flow's error is the same in x and y everywhere, of a variance per axis read from
-    the data (:func:`still_noise_variance` of the x-y motion's sizes on the
-    trusted skin). Lifted onto the surface, it stays that along the skin's level line but grows by
-    ``1 / |n_z|`` along its steepest direction (an x-y step ``d`` on a slope is a step ``d / |n_z|`` along
-    the skin). Each of the two components of the tangential motion is scaled by the positive-part
-    James-Stein (local Wiener) factor ``max(0, 1 - v / P)``, with ``v`` its noise variance and ``P`` its
-    local mean square over ``window_mm`` (Gaussian sigma).
+    Parameters
+    ----------
+    grid : FaceGrid
+        The output mesh's grid (``motion``'s vertices are its valid points).
+    normals, motion : ndarray, shape (n_vertices, 3)
+    trust : ndarray, shape (n_vertices,)
+        The tracking's trust (:func:`skin_motion`): the noise level is read on the trusted skin, and
+        untrusted vertices (the geometric warp's motion) are left as they are.
+    window_mm : float
+        Width (Gaussian sigma) of the local mean square of the motion (see :data:`SHRINK_WINDOW_MM`).
+    view : ndarray, shape (n_vertices, 3), optional
+        Unit vectors the skin images looked at each vertex's skin from
+        (:meth:`~livebridge.retarget.chart.SkinChart.view_directions` of their chart); default ``+z`` (the
+        x-y images of the planar chart).
 
-    Measured in `livebridge bench scans` (mean relative error of the 16 elements, 60k / 150k points a
+    The noise model: the flow's error is the same in both axes of the skin image everywhere, of a variance
+    per axis read from the data (:func:`still_noise_variance` of the x-y motion's sizes on the trusted
+    skin). Lifted onto the surface, it stays that along the skin's level line (level with respect to the
+    ``view``) but grows by ``1 / |n . view|`` along its steepest direction (an image step ``d`` on skin
+    turned away from the view is a step ``d / |n . view|`` along the skin). Each of the two components of
+    the tangential motion is scaled by the positive-part James-Stein (local Wiener) factor
+    ``max(0, 1 - v / P)``, with ``v`` its noise variance and ``P`` its local mean square over
+    ``window_mm`` (Gaussian sigma).
+
+    The lift must follow the chart the skin was tracked in. Measured (x-y images) with the lift by
+    ``1 / |n_z|``, in `livebridge bench scans` (mean relative error of the 16 elements, 60k / 150k points a
     scan): no shrinkage 0.1159 / 0.0928; one noise level for both directions 0.1153 / 0.0926 (the same
     with a gain per direction, 0.1152 / 0.0925); the level grown along the slope 0.1137 / 0.0914, every
     element better than with the one level or within 0.0005 (depressor_anguli_oris 0.145 -> 0.136 /
     0.101 -> 0.096, risorius_R 0.107 -> 0.103; lips_pressor 0.1288 -> 0.1293 at 60k): near the face's
     outline the skin is steep (|n_z| 0.2-0.45) and its flow error 2-3 times larger, which one level left
-    as motion. A level grown by the slope but the same in both directions gave 0.1144 / 0.0920.
+    as motion. A level grown by the slope but the same in both directions gave 0.1144 / 0.0920. In the
+    cylinder chart the face's sides face the images and the lift by ``1 / |n_z|`` took real motion for
+    noise: depressor_anguli_oris 0.121 / 0.081 unshrunk, 0.126 / 0.086 shrunk so (seed 7, 60k / 150k),
+    lips_pressor 0.117 / 0.077 and 0.122 / 0.078 (a third of that at the nose's flanks, whose motion back
+    was shrunk by up to half); lifted by the chart's view 0.119 / 0.080 and 0.121 / 0.077, no element worse
+    by more than 0.0005 (seed 8, 60k: depressor 0.127 -> 0.120, lips_pressor 0.126 -> 0.125).
 
     The motion along the normal is left as it is: shrunk the same way, with its own noise level, it changed
     those means by 0.0001-0.0002 (also with the still skin's true noise levels): the heights' errors on
@@ -398,9 +453,11 @@ def shrink_noise(grid: FaceGrid, normals: np.ndarray, motion: np.ndarray, trust:
     trusted = trust > 0.9
     if trusted.sum() < 100:
         return motion
+    if view is None:
+        view = np.tile([0.0, 0.0, 1.0], (len(normals), 1))
     variance = still_noise_variance(np.linalg.norm(motion[trusted, :2], axis=1))
-    steepest, level = _slope_directions(normals)
-    lift = 1.0 / np.maximum(np.abs(normals[:, 2]), EDGE_ON)
+    steepest, level = _slope_directions(normals, view)
+    lift = 1.0 / np.maximum(np.abs(np.sum(normals * view, axis=1)), EDGE_ON)
     shrunk = normal[:, None] * normals
     for direction, noise in ((steepest, variance * lift ** 2), (level, np.full(len(lift), variance))):
         along = np.sum(tangential * direction, axis=1)
@@ -413,14 +470,17 @@ def shrink_noise(grid: FaceGrid, normals: np.ndarray, motion: np.ndarray, trust:
     return shrunk
 
 
-def _slope_directions(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit tangents (n, 3) along the surface's steepest direction (towards +z) and along its level line, at
-    vertices of ``normals`` (n, 3); on level skin, +x and the level line's perpendicular."""
-    up = np.array([0.0, 0.0, 1.0]) - normals[:, 2:3] * normals
+def _slope_directions(normals: np.ndarray, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit tangents (n, 3) along the surface's steepest direction (towards the ``view``, unit vectors (n, 3))
+    and along its level line, at vertices of ``normals`` (n, 3); on skin facing the view squarely, any
+    tangent (the first of +x, +y not along the normal) and its perpendicular."""
+    up = view - np.sum(view * normals, axis=1, keepdims=True) * normals
     size = np.linalg.norm(up, axis=1, keepdims=True)
     flat = size[:, 0] < 1e-9
     steepest = np.where(flat[:, None], np.array([1.0, 0.0, 0.0]), up / np.maximum(size, 1e-12))
     steepest[flat] -= np.sum(steepest[flat] * normals[flat], axis=1)[:, None] * normals[flat]
+    degenerate = flat & (np.linalg.norm(steepest, axis=1) < 1e-6)  # the normal along +x
+    steepest[degenerate] = np.array([0.0, 1.0, 0.0]) - normals[degenerate, 1:2] * normals[degenerate]
     steepest /= np.linalg.norm(steepest, axis=1, keepdims=True)
     return steepest, np.cross(normals, steepest)
 
