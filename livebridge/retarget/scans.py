@@ -30,7 +30,9 @@ tracked motion (:mod:`~livebridge.retarget.skin_template`), so the neutral scan'
 in every element's flow. The second tracking starts from the first one's motion, not from the geometric warp
 again: the template's averaged skin is softer than one scan's, and from the warp's first guess the opened
 jaw's chin was lost in it (jaw 0.073 after the first tracking, 0.115 after the second from the warp, 0.054
-from the first's motion; 150k points a scan, cylinder chart). Around a closing eye the second tracking's start
+from the first's motion; 150k points a scan, cylinder chart); and it trusts no skin more than the first
+tracking did (:data:`WITHIN_FIRST`: the chin's underside, seen from below the neutral's view, was claimed by
+wrong flows against the template). Around a closing eye the second tracking's start
 has the lids' margins pinned again where the eye openings say they went (:mod:`~livebridge.retarget.eyelids`,
 on top of the first motion): the first tracking's smoothing pulls a margin's motion back towards the still skin
 around it (the upper margin's grid vertices of the bench's closed eyes moved 4.7 mm instead of 6.5, their skin
@@ -116,6 +118,18 @@ elements went from 0.294 / 0.271 to 0.258 / 0.283 at 60k points a scan, from 0.2
 gained less (the two eyelid scans alone, seed 8 at 60k: 0.267 / 0.298 against 0.251 / 0.280); carrying nothing
 for these two elements gained as much as this (0.253 / 0.278) but the carrying is what keeps an opened jaw's
 chin."""
+WITHIN_FIRST = True
+"""The second tracking (against the template) trusts no vertex more than the first tracking did: it refines
+the motion of the skin the first one tracked, and where the first could not (skin the neutral scan sees at a
+grazing angle: an opened jaw's chin from underneath) the first's carried motion stays, carried again. The
+template is the other scans' view of the neutral skin warped back by their first motions: no better a view
+of skin none of them saw well, and a flow found against it there can land on a wrong match that the check
+against the neutral's own image (lenient where that image is a smear) partly trusts. Measured on the jaw at
+150k points a scan, second tracking (error^2 share of the chin's underside, in 1e-3 of the element's RMS^2):
+seed 11 0.110 -> 0.064 (10.7 -> 2.8; the lowest rows of the underside had a flow 4.7 mm short of the truth
+trusted 0.3-0.45, where the first tracking's trust was 0.01-0.26), seed 7 0.074 -> 0.056 (4.6 -> 2.0), seed 8
+0.079 -> 0.071 (3.2 -> 2.1); every other element within 0.0001 or better (the eyelids up to 0.0009 better).
+The first tracking alone gave 0.065 / 0.058 / 0.073: the template still helps the skin both trackings trust."""
 LANDMARK_MAX_DISTANCE_MM = 5.0
 """A landmark farther than this from the resampled surface is an error (off the face, or in a hole)."""
 
@@ -280,13 +294,13 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
 
 def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,
                        kernel: Kernel | str = Kernel.BIHARMONIC, source=None, colour: bool = True,
-                       start: np.ndarray | None = None) -> np.ndarray:
+                       start: np.ndarray | None = None, start_trust: np.ndarray | None = None) -> np.ndarray:
     """The displacement (n_vertices, 3) of every neutral grid vertex into the expressive surface (§5.5):
     the geometric warp, refined by skin tracking when both scans have colour (and ``colour``), from
-    ``start`` (see :func:`tracked_motion`) when given."""
+    ``start`` (see :func:`tracked_motion`; trusted ``start_trust``) when given."""
     if not (colour and neutral.skin is not None and expression.skin is not None):
         return geometric_element(neutral, expression, stride, kernel, source)
-    element, trust = tracked_motion(neutral, expression, stride, kernel, source, start)
+    element, trust = tracked_motion(neutral, expression, stride, kernel, source, start, start_trust)
     correction = still_skin_correction(neutral.vertices, element, trust)
     element = apply(correction, neutral.vertices + element) - neutral.vertices
     return shrink_noise(neutral.grid, vertex_normals(neutral.vertices, neutral.triangles), element, trust,
@@ -294,13 +308,14 @@ def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CO
 
 
 def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,
-                   kernel: Kernel | str = Kernel.BIHARMONIC, source=None, start: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
+                   kernel: Kernel | str = Kernel.BIHARMONIC, source=None, start: np.ndarray | None = None,
+                   start_trust: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Where each neutral grid vertex's skin went in the (registered) expression scan, (n_vertices, 3), and
     how much that is trusted (n_vertices,), before the still skin corrects the registration: both scans
     must have colour. The flow starts from ``start`` (n_vertices, 3; an earlier tracking's motion) when
     given, else from the geometric warp; either way with the eyelids' guess (:func:`eyelid_guess`: each lid
-    margin's motion from the openings, falling off over the lid) on top."""
+    margin's motion from the openings, falling off over the lid) on top. With ``start_trust`` (n_vertices,; how
+    much that earlier tracking was trusted) no vertex is trusted more than that (:data:`WITHIN_FIRST`)."""
     spacing = np.nanmax([neutral.point_spacing, expression.point_spacing, 0.0])
     smooth = SMOOTH_SPACINGS * (spacing if spacing > 0 else TYPICAL_SPACING_MM)
     grow = skin_gap_mm(neutral.grid.spacing)
@@ -316,6 +331,8 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     motion, trust = skin_motion(neutral.skin, expression.skin, at, guess, smooth, seam,
                                 closing_openings(neutral.skin, seen, before, after, grow, seen_grow),
                                 neutral.template)
+    if start_trust is not None and WITHIN_FIRST:
+        motion, trust = _within(motion, trust, guess, start_trust)
     # Where the skin was not tracked, the motion of the tracked skin around it is a better guess than the
     # geometric warp: the skin went out of the scanner's view (under an opened jaw's chin, round the face's
     # outline) or into a hole, where the warp snaps it to the wrong, visible, surface. Not around a closing
@@ -325,6 +342,15 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
         carried = np.where(lids, 0.0, 1.0 - trust) if LIDS_NOT_CARRIED else 1.0 - trust
         motion = motion + carried[:, None] * (fallback - guess)
     return chart.motion_from_chart(vertices, motion), trust
+
+
+def _within(motion: np.ndarray, trust: np.ndarray, guess: np.ndarray, most: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """``motion`` (n, 3; ``trust`` times the tracked motion plus the rest of ``guess``) with its trust capped
+    at ``most`` (n,): the same blend of the same tracked motion and guess, at the lower trust."""
+    capped = np.minimum(trust, most)
+    share = np.divide(capped, trust, out=np.zeros_like(trust), where=trust > 0)
+    return guess + share[:, None] * (motion - guess), capped
 
 
 def _seen_openings(expression: FaceScan) -> tuple[FaceGrid, float]:
@@ -404,27 +430,31 @@ def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
     coloured = [face for face in expressions.values() if face.skin is not None]
     starts = [None] * len(names)
     if colour and neutral.skin is not None and len(coloured) == len(names) > 1:
-        neutrals, starts = _with_templates(neutral, expressions, kernel)
+        neutrals, starts, trusts = _with_templates(neutral, expressions, kernel)
+    else:
+        trusts = [None] * len(names)
     elements = np.stack([expression_element(own, expressions[name], kernel=kernel, source=name, colour=colour,
-                                            start=start) for own, name, start in zip(neutrals, names, starts)])
+                                            start=start, start_trust=trust)
+                         for own, name, start, trust in zip(neutrals, names, starts, trusts)])
     muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks)
                     for name, element in zip(expressions, elements))
     return Basis(neutral.vertices, neutral.triangles, elements, muscles)
 
 
 def _with_templates(neutral: FaceScan, expressions: dict[str, FaceScan], kernel: Kernel | str
-                    ) -> tuple[list[FaceScan], list[np.ndarray]]:
+                    ) -> tuple[list[FaceScan], list[np.ndarray], list[np.ndarray]]:
     """The neutral once per expression, with the template of the other scans' skin to track against, each
     expression warped back by its tracked motion (one round of groupwise registration); and each
     expression's tracked motion (n_vertices, 3), where its second tracking starts."""
     vertices, chart = neutral.vertices, neutral.chart
-    tracked, motions = [], []
+    tracked, motions, trusts = [], [], []
     for name, face in expressions.items():
         motion, trust = tracked_motion(neutral, face, kernel=kernel, source=name)
         tracked.append((face.skin, chart.motion_to_chart(vertices, motion), trust))
         motions.append(motion)
+        trusts.append(trust)
     templates = skin_templates(neutral.skin, neutral.skin_pixels(), tracked)
-    return [replace(neutral, template=template) for template in templates], motions
+    return [replace(neutral, template=template) for template in templates], motions, trusts
 
 
 def muscle_for(name: str, element: np.ndarray, vertices: np.ndarray, landmarks: dict[str, np.ndarray]) -> Muscle:
