@@ -129,7 +129,11 @@ against the neutral's own image (lenient where that image is a smear) partly tru
 seed 11 0.110 -> 0.064 (10.7 -> 2.8; the lowest rows of the underside had a flow 4.7 mm short of the truth
 trusted 0.3-0.45, where the first tracking's trust was 0.01-0.26), seed 7 0.074 -> 0.056 (4.6 -> 2.0), seed 8
 0.079 -> 0.071 (3.2 -> 2.1); every other element within 0.0001 or better (the eyelids up to 0.0009 better).
-The first tracking alone gave 0.065 / 0.058 / 0.073: the template still helps the skin both trackings trust."""
+The first tracking alone gave 0.065 / 0.058 / 0.073: the template still helps the skin both trackings trust.
+In `livebridge bench scans` (seed 7) the jaw went 0.070 -> 0.069 at 60k, 0.074 -> 0.056 at 150k, every other
+element within 0.0001; its surface error rose 0.047 -> 0.053 and 0.041 -> 0.047 (seed 11: 0.043 -> 0.056), the
+carried spline's heights being off the expressive surface where the wrong flow's were on it (reading them
+from the expression at the carried place instead: jaw 0.064 -> 0.120 on seed 11, 0.056 -> 0.098 on seed 7)."""
 LANDMARK_MAX_DISTANCE_MM = 5.0
 """A landmark farther than this from the resampled surface is an error (off the face, or in a hole)."""
 
