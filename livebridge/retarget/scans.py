@@ -131,7 +131,8 @@ trusted 0.3-0.45, where the first tracking's trust was 0.01-0.26), seed 7 0.074 
 0.079 -> 0.071 (3.2 -> 2.1); every other element within 0.0001 or better (the eyelids up to 0.0009 better).
 The first tracking alone gave 0.065 / 0.058 / 0.073: the template still helps the skin both trackings trust.
 In `livebridge bench scans` (seed 7) the jaw went 0.070 -> 0.069 at 60k, 0.074 -> 0.056 at 150k, every other
-element within 0.0001; its surface error rose 0.047 -> 0.053 and 0.041 -> 0.047 (seed 11: 0.043 -> 0.056), the
+element within 0.0001 (all 16 at 60k: seed 11 0.067 -> 0.065, seed 8 0.069 -> 0.071, the one loss seen);
+its surface error rose 0.047 -> 0.053 and 0.041 -> 0.047 (seed 11: 0.043 -> 0.056), the
 carried spline's heights being off the expressive surface where the wrong flow's were on it (reading them
 from the expression at the carried place instead: jaw 0.064 -> 0.120 on seed 11, 0.056 -> 0.098 on seed 7)."""
 LANDMARK_MAX_DISTANCE_MM = 5.0
