@@ -72,6 +72,7 @@ from livebridge.retarget.normalise import normalisation, register_rigid, transfo
 from livebridge.retarget.scan import Scan
 from livebridge.retarget.seams import LipSeam
 from livebridge.retarget.skin_flow import (
+    FILL_FROM_BEYOND,
     SMOOTH_SPACINGS,
     fine_axes,
     in_front,
@@ -315,7 +316,7 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     seam = _lip_seam(before, neutral.skin)
     motion, trust = skin_motion(neutral.skin, expression.skin, at, guess, smooth, seam,
                                 closing_openings(neutral.skin, seen, before, after, grow, seen_grow),
-                                neutral.template)
+                                neutral.template, FILL_FROM_BEYOND and start is not None)
     # Where the skin was not tracked, the motion of the tracked skin around it is a better guess than the
     # geometric warp: the skin went out of the scanner's view (under an opened jaw's chin, round the face's
     # outline) or into a hole, where the warp snaps it to the wrong, visible, surface. Not around a closing

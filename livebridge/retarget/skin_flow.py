@@ -165,7 +165,7 @@ is not the expression's, and the band's flow scattered by 1.2-1.7 mm about the m
 motion: the band lies inside the eye's opening, the lid's margin is its nearest surface). Their flow is left
 out of the smoothing too, so that it does not pull the skin beyond the band. In `livebridge bench scans` (seed
 7, 60k points a scan) the eyelid elements went from 0.229 / 0.290 to 0.217 / 0.270, every other element within
-0.0003; see the module's docstring of :mod:`~livebridge.retarget.scans` for the other figures. Leaving the band
+0.0003; seed 8 at 60k 0.231 / 0.273 -> 0.218 / 0.244 (the others within 0.0004); 150K_FIGURES. Leaving the band
 untracked to the carried spline was much worse (0.42); a locally linear smoothing there (its value at the band's
 edge without the one-sided window's bias) measured 0.217 / 0.281, in a band of twice the smoothing width beyond
 the opening too 0.215 / 0.314."""
@@ -280,7 +280,7 @@ def _dis(step: float):
 
 def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarray,
                 first_guess: np.ndarray, smooth_mm: float = 2.0, seam=None, not_skin: np.ndarray | None = None,
-                template: FaceGrid | None = None) -> tuple[np.ndarray, np.ndarray]:
+                template: FaceGrid | None = None, fill_from_beyond: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The 3D motion of the output mesh's vertices from skin tracking, and its trust.
 
     Parameters
@@ -300,10 +300,12 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarra
     not_skin : ndarray of bool, shape of ``neutral_fine``, optional
         Points whose change in height is not the skin's (a closing eye's opening: see
         :func:`~livebridge.retarget.eyelids.closing_openings`), left out of the smoothing of the heights,
-        as are the points of either image behind its front surface (:func:`behind_front`); those of them
-        the neutral has (the fill band) take the motion of the skin beyond them (:data:`FILL_FROM_BEYOND`).
+        as are the points of either image behind its front surface (:func:`behind_front`).
     template : FaceGrid, optional
         See :func:`track_skin`.
+    fill_from_beyond : bool
+        The points of ``not_skin`` that the neutral has (a closing eye's fill band) take the motion of the
+        skin beyond them (see :data:`FILL_FROM_BEYOND`).
 
     Returns
     -------
@@ -321,7 +323,7 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarra
     dz = landed_z - neutral_fine.heights
     behind = _landed(behind_front(expression_fine.heights, step), xy, step) | behind_front(neutral_fine.heights, step)
     opening = not_skin
-    fill = None if not_skin is None or not FILL_FROM_BEYOND else not_skin & np.isfinite(neutral_fine.heights)
+    fill = None if not_skin is None or not fill_from_beyond else not_skin & np.isfinite(neutral_fine.heights)
     not_skin = behind if not_skin is None else (not_skin | behind)
     good = (trust > 0) & np.isfinite(dz)
     if fill is not None:
@@ -349,11 +351,14 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarra
     smooth = np.dstack([adaptive, height])
     if fill is not None and fill.any():
         smooth = _from_beyond(smooth, opening, fill)
-        density = np.where(fill, 1.0, density)
     tracked = at_vertices(smooth, at)
     trust_out = np.clip(np.nan_to_num(at_vertices(density, at)), 0.0, 1.0)
     trust_out = np.where(np.isfinite(tracked).all(axis=1), trust_out, 0.0)
-    motion = trust_out[:, None] * np.nan_to_num(tracked) + (1.0 - trust_out[:, None]) * first_guess
+    use = trust_out  # the band's motion is taken in full; the trust reported stays its own flow's
+    if fill is not None and fill.any():
+        use = np.where(np.isfinite(tracked).all(axis=1), np.clip(np.nan_to_num(at_vertices(
+            np.where(fill, 1.0, density), at)), 0.0, 1.0), 0.0)
+    motion = use[:, None] * np.nan_to_num(tracked) + (1.0 - use[:, None]) * first_guess
     return motion, trust_out
 
 
