@@ -74,6 +74,7 @@ from livebridge.retarget.normalise import normalisation, register_rigid, transfo
 from livebridge.retarget.scan import Scan
 from livebridge.retarget.seams import LipSeam
 from livebridge.retarget.skin_flow import (
+    FILL_FROM_BEYOND,
     SMOOTH_SPACINGS,
     fine_axes,
     in_front,
@@ -335,7 +336,7 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     seam = _lip_seam(before, neutral.skin)
     motion, trust = skin_motion(neutral.skin, expression.skin, at, guess, smooth, seam,
                                 closing_openings(neutral.skin, seen, before, after, grow, seen_grow),
-                                neutral.template)
+                                neutral.template, FILL_FROM_BEYOND and start is not None)
     if start_trust is not None and WITHIN_FIRST:
         motion, trust = _within(motion, trust, guess, start_trust)
     # Where the skin was not tracked, the motion of the tracked skin around it is a better guess than the

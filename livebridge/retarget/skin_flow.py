@@ -156,6 +156,25 @@ points): depressor_anguli_oris 0.144 / 0.103 -> 0.139 / 0.098, lips_pressor 0.13
 (with the lips' seam of :mod:`~livebridge.retarget.seams` on the groove's gentler flank)."""
 FRONT_WINDOW_MM = 2.0
 """Width of the square window whose upper fifth of heights is the front surface for :func:`behind_front`."""
+FILL_FROM_BEYOND = True
+"""In a tracking that starts from an earlier one's motion (:func:`~livebridge.retarget.scans.tracked_motion`
+with ``start``), the points of a ``not_skin`` region that the neutral's skin image still has (a closing eye's
+fill band: the one or two mm of the opening that the resampling filled from the lids' rims, see
+:func:`~livebridge.retarget.eyelids.closing_openings`) take the smoothed motion of the nearest skin beyond the
+region in full, instead of their own flow (the trust reported for them stays their own flow's): the rims curl
+back over the eye, their pattern in the band is not the expression's, and the band's flow scattered by 1.2-1.7
+mm about the margin's motion (its true motion: the band lies inside the eye's opening, the lid's margin is its
+nearest surface). Their flow is left out of the smoothing too, so that it does not pull the skin beyond the
+band. In `livebridge bench scans` (seed 7) the eyelid elements went from 0.229 / 0.290 to 0.216 / 0.279 at 60k
+points a scan, from 0.201 / 0.212 to 0.184 / 0.191 at 150k, every other element unchanged (their surface errors
+0.105 / 0.114 -> 0.111 / 0.111 and 0.100 / 0.102 -> 0.103 / 0.107: the band no longer lands on the closed lid's
+front); seed 8 at 60k 0.231 / 0.273 -> 0.215 / 0.245 (the others unchanged), its two eyelid scans alone at 150k
+0.240 / 0.208 -> 0.224 / 0.188. In the first tracking too it gained less and cost the jaw at 150k (0.217 / 0.270
+at 60k, 0.192 / 0.197 at 150k, jaw 0.074 -> 0.084 with the band's trust reported as 1, 0.081 with its own; the
+jaw's chin hangs on the template, which the first tracking's motion builds). Leaving the band untracked to the
+carried spline was much worse (0.42); a locally linear smoothing at the band's edge (without the one-sided
+window's first-order bias) 0.217 / 0.281, in a band of twice the smoothing width beyond the opening too 0.215 /
+0.314 (both in both trackings, 60k)."""
 
 
 def fine_axes(x: np.ndarray, y: np.ndarray, spacing: float = FINE_MM) -> tuple[np.ndarray, np.ndarray, int]:
@@ -267,7 +286,7 @@ def _dis(step: float):
 
 def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarray,
                 first_guess: np.ndarray, smooth_mm: float = 2.0, seam=None, not_skin: np.ndarray | None = None,
-                template: FaceGrid | None = None) -> tuple[np.ndarray, np.ndarray]:
+                template: FaceGrid | None = None, fill_from_beyond: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The 3D motion of the output mesh's vertices from skin tracking, and its trust.
 
     Parameters
@@ -290,6 +309,9 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarra
         as are the points of either image behind its front surface (:func:`behind_front`).
     template : FaceGrid, optional
         See :func:`track_skin`.
+    fill_from_beyond : bool
+        The points of ``not_skin`` that the neutral has (a closing eye's fill band) take the motion of the
+        skin beyond them (see :data:`FILL_FROM_BEYOND`).
 
     Returns
     -------
@@ -306,8 +328,12 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarra
                                order=1, cval=np.nan)
     dz = landed_z - neutral_fine.heights
     behind = _landed(behind_front(expression_fine.heights, step), xy, step) | behind_front(neutral_fine.heights, step)
+    opening = not_skin
+    fill = None if not_skin is None or not fill_from_beyond else not_skin & np.isfinite(neutral_fine.heights)
     not_skin = behind if not_skin is None else (not_skin | behind)
     good = (trust > 0) & np.isfinite(dz)
+    if fill is not None:
+        good &= ~fill  # its flow scatters (see FILL_FROM_BEYOND): it takes the motion beyond it below
     weight = np.where(good, trust, 0.0)
     sigma = smooth_mm / step
     if seam is None:
@@ -329,11 +355,28 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarra
     adaptive = _adaptive_smooth(means, weight, sigma, sharp)
     height = height + _rise(expression_fine.heights, step, means[0], adaptive - means[0], sigma)
     smooth = np.dstack([adaptive, height])
+    if fill is not None and fill.any():
+        smooth = _from_beyond(smooth, opening, fill)
     tracked = at_vertices(smooth, at)
     trust_out = np.clip(np.nan_to_num(at_vertices(density, at)), 0.0, 1.0)
     trust_out = np.where(np.isfinite(tracked).all(axis=1), trust_out, 0.0)
-    motion = trust_out[:, None] * np.nan_to_num(tracked) + (1.0 - trust_out[:, None]) * first_guess
+    use = trust_out  # the band's motion is taken in full; the trust reported stays its own flow's
+    if fill is not None and fill.any():
+        use = np.where(np.isfinite(tracked).all(axis=1), np.clip(np.nan_to_num(at_vertices(
+            np.where(fill, 1.0, density), at)), 0.0, 1.0), 0.0)
+    motion = use[:, None] * np.nan_to_num(tracked) + (1.0 - use[:, None]) * first_guess
     return motion, trust_out
+
+
+def _from_beyond(field: np.ndarray, hole: np.ndarray, fill: np.ndarray) -> np.ndarray:
+    """``field`` (rows, cols[, k]) with each pixel of ``fill`` (rows, cols) bool set to its value at the
+    nearest pixel outside ``hole`` (rows, cols) bool, the region ``fill`` lies in (a copy)."""
+    from scipy.ndimage import distance_transform_edt
+
+    _, (near_r, near_c) = distance_transform_edt(hole, return_indices=True)
+    out = field.copy()
+    out[fill] = field[near_r[fill], near_c[fill]]
+    return out
 
 
 def behind_front(heights: np.ndarray, step: float, gap_mm: float = BEHIND_MM,
