@@ -275,8 +275,8 @@ def test_the_lids_known_slide_is_tracked_closed_or_squinting(upper_after, lower_
     time from the first tracking's motion, the margins pinned again where the openings say), the upper lid's
     motion is within 0.1 of its RMS (measured 0.03 closed, 0.06 squinting; the squint 0.43-0.52 when read from
     the skin image's holes alone: as closed). The lids' skin is trusted nearly everywhere here, so whether its
-    untracked skin keeps the eyelids' guess or takes the carried motion (``scans.LIDS_NOT_CARRIED``) shows little
-    (0.180 / 0.180 closed)."""
+    untracked skin keeps the eyelids' guess or takes the carried motion (see ``retarget/scans.py``'s docstring)
+    shows little (0.180 / 0.180 closed)."""
     from livebridge.retarget.scans import tracked_motion
 
     neutral, expression, truth, upper = _lid_scans(np.random.default_rng(1), upper_after, lower_after)

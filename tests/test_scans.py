@@ -630,7 +630,7 @@ def test_second_tracking_trusts_no_skin_the_first_could_not_track():
     scans that saw that skin poorly does): the flow against it lands off the truth and the check against the
     neutral's own skin still half trusts it (measured 1.35 mm of error, trust 0.47). Where the first
     tracking was not trusted, the second is not either: the patch takes the motion carried from the tracked
-    skin around it (measured 0.14 mm; the opened jaw's chin from underneath, retarget/scans.WITHIN_FIRST)."""
+    skin around it (measured 0.14 mm; the opened jaw's chin from underneath, retarget/scans._within)."""
     import cv2
     from scipy.interpolate import RegularGridInterpolator
 

@@ -31,7 +31,7 @@ in every element's flow. The second tracking starts from the first one's motion,
 again: the template's averaged skin is softer than one scan's, and from the warp's first guess the opened
 jaw's chin was lost in it (jaw 0.073 after the first tracking, 0.115 after the second from the warp, 0.054
 from the first's motion; 150k points a scan, cylinder chart); and it trusts no skin more than the first
-tracking did (:data:`WITHIN_FIRST`: the chin's underside, seen from below the neutral's view, was claimed by
+tracking did (:func:`_within`: the chin's underside, seen from below the neutral's view, was claimed by
 wrong flows against the template). Around a closing eye the second tracking's start
 has the lids' margins pinned again where the eye openings say they went (:mod:`~livebridge.retarget.eyelids`,
 on top of the first motion): the first tracking's smoothing pulls a margin's motion back towards the still skin
@@ -45,6 +45,19 @@ guess instead (the eyelids' guess on the shape warp, not on the first motion) ga
 openings read right: a squint's slit narrower than the skin image's gap reads as a closed eye, and pinned there
 the synthetic squint's lid of tests/test_eyelids.py was tracked to 0.43-0.52 of its motion instead of 0.06
 (the openings are read at the scan's own point spacing: :func:`opening_gap_mm`).
+
+The untracked skin of a closing eye's lids (the vertices whose first guess the eye openings set,
+:func:`~livebridge.retarget.eyelids.eyelid_guess`: the lids up to their reach beyond the margins) keeps that
+guess instead of the carried motion of the tracked skin: the spline through the tracked skin is smooth over
+the whole face, and across an eye it averages the upper lid's ~6-10 mm slide with the lower lid's stillness (the
+margins' skin, trusted 0.87-0.95, took 5-13 % of that average). In `livebridge bench scans` (seed 7) the eyelid
+elements went from 0.294 / 0.271 to 0.258 / 0.283 at 60k points a scan, from 0.217 / 0.233 to 0.210 / 0.226 at
+150k, every other element within 0.0006 (they share the template); their surface errors 0.118 / 0.114 -> 0.107 /
+0.117 at 60k, but 0.096 / 0.097 -> 0.100 / 0.100 at 150k. Seed 8 at 60k (all 16 elements): 0.289 / 0.311 ->
+0.249 / 0.282, the others within 0.0003. Keeping the guess only inside the openings (between the margins)
+gained less (the two eyelid scans alone, seed 8 at 60k: 0.267 / 0.298 against 0.251 / 0.280); carrying nothing
+for these two elements gained as much as this (0.253 / 0.278) but the carrying is what keeps an opened jaw's
+chin.
 """
 
 from __future__ import annotations
@@ -74,7 +87,6 @@ from livebridge.retarget.normalise import normalisation, register_rigid, transfo
 from livebridge.retarget.scan import Scan
 from livebridge.retarget.seams import LipSeam
 from livebridge.retarget.skin_flow import (
-    FILL_FROM_BEYOND,
     SMOOTH_SPACINGS,
     fine_axes,
     in_front,
@@ -106,36 +118,6 @@ MIN_CARRIERS = 20
 CHART_KIND = "cylinder"
 """The skin images' chart (:mod:`~livebridge.retarget.chart`): a cylinder about a vertical axis fitted to the
 neutral face (``"planar"``: the x-y projection, ``"sphere"``); see the chart module for the figures."""
-LIDS_NOT_CARRIED = True
-"""Untracked skin of a closing eye's lids (the vertices whose first guess the eye openings set,
-:func:`~livebridge.retarget.eyelids.eyelid_guess`: the lids up to their reach beyond the margins) keeps that
-guess instead of the carried motion of the tracked skin: the spline through the tracked skin is smooth over
-the whole face, and across an eye it averages the upper lid's ~6-10 mm slide with the lower lid's stillness (the
-margins' skin, trusted 0.87-0.95, took 5-13 % of that average). In `livebridge bench scans` (seed 7) the eyelid
-elements went from 0.294 / 0.271 to 0.258 / 0.283 at 60k points a scan, from 0.217 / 0.233 to 0.210 / 0.226 at
-150k, every other element within 0.0006 (they share the template); their surface errors 0.118 / 0.114 -> 0.107 /
-0.117 at 60k, but 0.096 / 0.097 -> 0.100 / 0.100 at 150k. Seed 8 at 60k (all 16 elements): 0.289 / 0.311 ->
-0.249 / 0.282, the others within 0.0003. Keeping the guess only inside the openings (between the margins)
-gained less (the two eyelid scans alone, seed 8 at 60k: 0.267 / 0.298 against 0.251 / 0.280); carrying nothing
-for these two elements gained as much as this (0.253 / 0.278) but the carrying is what keeps an opened jaw's
-chin."""
-WITHIN_FIRST = True
-"""The second tracking (against the template) trusts no vertex more than the first tracking did: it refines
-the motion of the skin the first one tracked, and where the first could not (skin the neutral scan sees at a
-grazing angle: an opened jaw's chin from underneath) the first's carried motion stays, carried again. The
-template is the other scans' view of the neutral skin warped back by their first motions: no better a view
-of skin none of them saw well, and a flow found against it there can land on a wrong match that the check
-against the neutral's own image (lenient where that image is a smear) partly trusts. Measured on the jaw at
-150k points a scan, second tracking (error^2 share of the chin's underside, in 1e-3 of the element's RMS^2):
-seed 11 0.110 -> 0.064 (10.7 -> 2.8; the lowest rows of the underside had a flow 4.7 mm short of the truth
-trusted 0.3-0.45, where the first tracking's trust was 0.01-0.26), seed 7 0.074 -> 0.056 (4.6 -> 2.0), seed 8
-0.079 -> 0.071 (3.2 -> 2.1); every other element within 0.0001 or better (the eyelids up to 0.0009 better).
-The first tracking alone gave 0.065 / 0.058 / 0.073: the template still helps the skin both trackings trust.
-In `livebridge bench scans` (seed 7) the jaw went 0.070 -> 0.069 at 60k, 0.074 -> 0.056 at 150k, every other
-element within 0.0001 (all 16 at 60k: seed 11 0.067 -> 0.065, seed 8 0.069 -> 0.071, the one loss seen);
-its surface error rose 0.047 -> 0.053 and 0.041 -> 0.047 (seed 11: 0.043 -> 0.056), the
-carried spline's heights being off the expressive surface where the wrong flow's were on it (reading them
-from the expression at the carried place instead: jaw 0.064 -> 0.120 on seed 11, 0.056 -> 0.098 on seed 7)."""
 LANDMARK_MAX_DISTANCE_MM = 5.0
 """A landmark farther than this from the resampled surface is an error (off the face, or in a hole)."""
 
@@ -321,7 +303,7 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     must have colour. The flow starts from ``start`` (n_vertices, 3; an earlier tracking's motion) when
     given, else from the geometric warp; either way with the eyelids' guess (:func:`eyelid_guess`: each lid
     margin's motion from the openings, falling off over the lid) on top. With ``start_trust`` (n_vertices,; how
-    much that earlier tracking was trusted) no vertex is trusted more than that (:data:`WITHIN_FIRST`)."""
+    much that earlier tracking was trusted) no vertex is trusted more than that (:func:`_within`)."""
     spacing = np.nanmax([neutral.point_spacing, expression.point_spacing, 0.0])
     smooth = SMOOTH_SPACINGS * (spacing if spacing > 0 else TYPICAL_SPACING_MM)
     grow = skin_gap_mm(neutral.grid.spacing)
@@ -336,16 +318,16 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     seam = _lip_seam(before, neutral.skin)
     motion, trust = skin_motion(neutral.skin, expression.skin, at, guess, smooth, seam,
                                 closing_openings(neutral.skin, seen, before, after, grow, seen_grow),
-                                neutral.template, FILL_FROM_BEYOND and start is not None)
-    if start_trust is not None and WITHIN_FIRST:
+                                neutral.template, fill_from_beyond=start is not None)
+    if start_trust is not None:
         motion, trust = _within(motion, trust, guess, start_trust)
     # Where the skin was not tracked, the motion of the tracked skin around it is a better guess than the
     # geometric warp: the skin went out of the scanner's view (under an opened jaw's chin, round the face's
     # outline) or into a hole, where the warp snaps it to the wrong, visible, surface. Not around a closing
-    # eye, where the eyelids' guess stands: see :data:`LIDS_NOT_CARRIED`.
+    # eye, where the eyelids' guess stands (see the module's docstring).
     fallback = _carried(neutral.grid, chart, motion, trust, stride, kernel, seam)
     if fallback is not None:
-        carried = np.where(lids, 0.0, 1.0 - trust) if LIDS_NOT_CARRIED else 1.0 - trust
+        carried = np.where(lids, 0.0, 1.0 - trust)
         motion = motion + carried[:, None] * (fallback - guess)
     return chart.motion_from_chart(vertices, motion), trust
 
@@ -353,7 +335,25 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
 def _within(motion: np.ndarray, trust: np.ndarray, guess: np.ndarray, most: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray]:
     """``motion`` (n, 3; ``trust`` times the tracked motion plus the rest of ``guess``) with its trust capped
-    at ``most`` (n,): the same blend of the same tracked motion and guess, at the lower trust."""
+    at ``most`` (n,): the same blend of the same tracked motion and guess, at the lower trust.
+
+    The second tracking (against the template) trusts no vertex more than the first tracking did: it refines
+    the motion of the skin the first one tracked, and where the first could not (skin the neutral scan sees at a
+    grazing angle: an opened jaw's chin from underneath) the first's carried motion stays, carried again. The
+    template is the other scans' view of the neutral skin warped back by their first motions: no better a view
+    of skin none of them saw well, and a flow found against it there can land on a wrong match that the check
+    against the neutral's own image (lenient where that image is a smear) partly trusts. Measured on the jaw at
+    150k points a scan, second tracking (error^2 share of the chin's underside, in 1e-3 of the element's RMS^2):
+    seed 11 0.110 -> 0.064 (10.7 -> 2.8; the lowest rows of the underside had a flow 4.7 mm short of the truth
+    trusted 0.3-0.45, where the first tracking's trust was 0.01-0.26), seed 7 0.074 -> 0.056 (4.6 -> 2.0), seed 8
+    0.079 -> 0.071 (3.2 -> 2.1); every other element within 0.0001 or better (the eyelids up to 0.0009 better).
+    The first tracking alone gave 0.065 / 0.058 / 0.073: the template still helps the skin both trackings trust.
+    In `livebridge bench scans` (seed 7) the jaw went 0.070 -> 0.069 at 60k, 0.074 -> 0.056 at 150k, every other
+    element within 0.0001 (all 16 at 60k: seed 11 0.067 -> 0.065, seed 8 0.069 -> 0.071, the one loss seen);
+    its surface error rose 0.047 -> 0.053 and 0.041 -> 0.047 (seed 11: 0.043 -> 0.056), the
+    carried spline's heights being off the expressive surface where the wrong flow's were on it (reading them
+    from the expression at the carried place instead: jaw 0.064 -> 0.120 on seed 11, 0.056 -> 0.098 on seed 7).
+    """
     capped = np.minimum(trust, most)
     share = np.divide(capped, trust, out=np.zeros_like(trust), where=trust > 0)
     return guess + share[:, None] * (motion - guess), capped
@@ -434,11 +434,9 @@ def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
     names = list(expressions)
     neutrals = [neutral] * len(names)
     coloured = [face for face in expressions.values() if face.skin is not None]
-    starts = [None] * len(names)
+    starts = trusts = [None] * len(names)
     if colour and neutral.skin is not None and len(coloured) == len(names) > 1:
         neutrals, starts, trusts = _with_templates(neutral, expressions, kernel)
-    else:
-        trusts = [None] * len(names)
     elements = np.stack([expression_element(own, expressions[name], kernel=kernel, source=name, colour=colour,
                                             start=start, start_trust=trust)
                          for own, name, start, trust in zip(neutrals, names, starts, trusts)])
@@ -450,8 +448,9 @@ def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
 def _with_templates(neutral: FaceScan, expressions: dict[str, FaceScan], kernel: Kernel | str
                     ) -> tuple[list[FaceScan], list[np.ndarray], list[np.ndarray]]:
     """The neutral once per expression, with the template of the other scans' skin to track against, each
-    expression warped back by its tracked motion (one round of groupwise registration); and each
-    expression's tracked motion (n_vertices, 3), where its second tracking starts."""
+    expression warped back by its tracked motion (one round of groupwise registration); each expression's
+    tracked motion (n_vertices, 3), where its second tracking starts; and how much that motion is trusted
+    (n_vertices,), the most its second tracking may trust (:func:`_within`)."""
     vertices, chart = neutral.vertices, neutral.chart
     tracked, motions, trusts = [], [], []
     for name, face in expressions.items():

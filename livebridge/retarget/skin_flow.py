@@ -156,25 +156,6 @@ points): depressor_anguli_oris 0.144 / 0.103 -> 0.139 / 0.098, lips_pressor 0.13
 (with the lips' seam of :mod:`~livebridge.retarget.seams` on the groove's gentler flank)."""
 FRONT_WINDOW_MM = 2.0
 """Width of the square window whose upper fifth of heights is the front surface for :func:`behind_front`."""
-FILL_FROM_BEYOND = True
-"""In a tracking that starts from an earlier one's motion (:func:`~livebridge.retarget.scans.tracked_motion`
-with ``start``), the points of a ``not_skin`` region that the neutral's skin image still has (a closing eye's
-fill band: the one or two mm of the opening that the resampling filled from the lids' rims, see
-:func:`~livebridge.retarget.eyelids.closing_openings`) take the smoothed motion of the nearest skin beyond the
-region in full, instead of their own flow (the trust reported for them stays their own flow's): the rims curl
-back over the eye, their pattern in the band is not the expression's, and the band's flow scattered by 1.2-1.7
-mm about the margin's motion (its true motion: the band lies inside the eye's opening, the lid's margin is its
-nearest surface). Their flow is left out of the smoothing too, so that it does not pull the skin beyond the
-band. In `livebridge bench scans` (seed 7) the eyelid elements went from 0.229 / 0.290 to 0.216 / 0.279 at 60k
-points a scan, from 0.201 / 0.212 to 0.184 / 0.191 at 150k, every other element unchanged (their surface errors
-0.105 / 0.114 -> 0.111 / 0.111 and 0.100 / 0.102 -> 0.103 / 0.107: the band no longer lands on the closed lid's
-front); seed 8 at 60k 0.231 / 0.273 -> 0.215 / 0.245 (the others unchanged), its two eyelid scans alone at 150k
-0.240 / 0.208 -> 0.224 / 0.188. In the first tracking too it gained less and cost the jaw at 150k (0.217 / 0.270
-at 60k, 0.192 / 0.197 at 150k, jaw 0.074 -> 0.084 with the band's trust reported as 1, 0.081 with its own; the
-jaw's chin hangs on the template, which the first tracking's motion builds). Leaving the band untracked to the
-carried spline was much worse (0.42); a locally linear smoothing at the band's edge (without the one-sided
-window's first-order bias) 0.217 / 0.281, in a band of twice the smoothing width beyond the opening too 0.215 /
-0.314 (both in both trackings, 60k)."""
 
 
 def fine_axes(x: np.ndarray, y: np.ndarray, spacing: float = FINE_MM) -> tuple[np.ndarray, np.ndarray, int]:
@@ -311,7 +292,7 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarra
         See :func:`track_skin`.
     fill_from_beyond : bool
         The points of ``not_skin`` that the neutral has (a closing eye's fill band) take the motion of the
-        skin beyond them (see :data:`FILL_FROM_BEYOND`).
+        skin beyond them (see :func:`_from_beyond`).
 
     Returns
     -------
@@ -333,7 +314,7 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarra
     not_skin = behind if not_skin is None else (not_skin | behind)
     good = (trust > 0) & np.isfinite(dz)
     if fill is not None:
-        good &= ~fill  # its flow scatters (see FILL_FROM_BEYOND): it takes the motion beyond it below
+        good &= ~fill  # its flow scatters (see _from_beyond): it takes the motion beyond it below
     weight = np.where(good, trust, 0.0)
     sigma = smooth_mm / step
     if seam is None:
@@ -370,7 +351,27 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarra
 
 def _from_beyond(field: np.ndarray, hole: np.ndarray, fill: np.ndarray) -> np.ndarray:
     """``field`` (rows, cols[, k]) with each pixel of ``fill`` (rows, cols) bool set to its value at the
-    nearest pixel outside ``hole`` (rows, cols) bool, the region ``fill`` lies in (a copy)."""
+    nearest pixel outside ``hole`` (rows, cols) bool, the region ``fill`` lies in (a copy).
+
+    Used in a tracking that starts from an earlier one's motion (:func:`~livebridge.retarget.scans.tracked_motion`
+    with ``start``), the points of a ``not_skin`` region that the neutral's skin image still has (a closing eye's
+    fill band: the one or two mm of the opening that the resampling filled from the lids' rims, see
+    :func:`~livebridge.retarget.eyelids.closing_openings`) take the smoothed motion of the nearest skin beyond the
+    region in full, instead of their own flow (the trust reported for them stays their own flow's): the rims curl
+    back over the eye, their pattern in the band is not the expression's, and the band's flow scattered by 1.2-1.7
+    mm about the margin's motion (its true motion: the band lies inside the eye's opening, the lid's margin is its
+    nearest surface). Their flow is left out of the smoothing too, so that it does not pull the skin beyond the
+    band. In `livebridge bench scans` (seed 7) the eyelid elements went from 0.229 / 0.290 to 0.216 / 0.279 at 60k
+    points a scan, from 0.201 / 0.212 to 0.184 / 0.191 at 150k, every other element unchanged (their surface errors
+    0.105 / 0.114 -> 0.111 / 0.111 and 0.100 / 0.102 -> 0.103 / 0.107: the band no longer lands on the closed lid's
+    front); seed 8 at 60k 0.231 / 0.273 -> 0.215 / 0.245 (the others unchanged), its two eyelid scans alone at 150k
+    0.240 / 0.208 -> 0.224 / 0.188. In the first tracking too it gained less and cost the jaw at 150k (0.217 / 0.270
+    at 60k, 0.192 / 0.197 at 150k, jaw 0.074 -> 0.084 with the band's trust reported as 1, 0.081 with its own; the
+    jaw's chin hangs on the template, which the first tracking's motion builds). Leaving the band untracked to the
+    carried spline was much worse (0.42); a locally linear smoothing at the band's edge (without the one-sided
+    window's first-order bias) 0.217 / 0.281, in a band of twice the smoothing width beyond the opening too 0.215 /
+    0.314 (both in both trackings, 60k).
+    """
     from scipy.ndimage import distance_transform_edt
 
     _, (near_r, near_c) = distance_transform_edt(hole, return_indices=True)
