@@ -153,10 +153,25 @@ def holes(points: np.ndarray, x: np.ndarray, y: np.ndarray, max_gap: float) -> n
     """The grid points (n_rows, n_cols) bool with no point of the front surface of ``points`` (n, 3) within
     ``max_gap`` in x-y (the mask :func:`resample` leaves NaN, here for any gap)."""
     points = np.asarray(points, dtype=np.float64)
-    points = points[front_surface(points, float(max(np.diff(x).max(), np.diff(y).max())))]
+    points = points[front_surface(points, _cell(x, y))]
+    return ~_near(points[:, :2], _grid_xy(x, y), max_gap).reshape(len(y), len(x))
+
+
+def _cell(x: np.ndarray, y: np.ndarray) -> float:
+    """The grid's largest step along either axis, mm."""
+    return float(max(np.diff(x).max(), np.diff(y).max()))
+
+
+def _grid_xy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The grid's points (n_rows * n_cols, 2), row by row."""
     xx, yy = np.meshgrid(x, y)
-    gap, _ = cKDTree(points[:, :2]).query(np.stack([xx.ravel(), yy.ravel()], axis=1), distance_upper_bound=max_gap)
-    return ~np.isfinite(gap).reshape(xx.shape)
+    return np.stack([xx.ravel(), yy.ravel()], axis=1)
+
+
+def _near(points_xy: np.ndarray, grid_xy: np.ndarray, max_gap: float) -> np.ndarray:
+    """Which of ``grid_xy`` (m, 2) have a point of ``points_xy`` (n, 2) within ``max_gap``, shape (m,) bool."""
+    gap, _ = cKDTree(points_xy).query(grid_xy, distance_upper_bound=max_gap)
+    return np.isfinite(gap)
 
 
 def point_spacing(points_xy: np.ndarray) -> float:
@@ -184,7 +199,7 @@ def resample(points: np.ndarray, x: np.ndarray, y: np.ndarray, max_gap: float | 
         The points' RGB: interpolated like ``z`` into :attr:`FaceGrid.colours`.
     """
     points = np.asarray(points, dtype=np.float64)
-    cell = float(max(np.diff(x).max(), np.diff(y).max()))
+    cell = _cell(x, y)
     front = front_surface(points, cell)
     points = points[front]
     if len(points) < 3 or np.linalg.matrix_rank(points[:, :2] - points[0, :2]) < 2:
@@ -192,10 +207,8 @@ def resample(points: np.ndarray, x: np.ndarray, y: np.ndarray, max_gap: float | 
                          "landmark on the scan, and the crop radius right?)", source, "points")
     if max_gap is None:
         max_gap = max(GAP_SPACINGS * point_spacing(points[:, :2]), cell)
-    xx, yy = np.meshgrid(x, y)
-    grid_xy = np.stack([xx.ravel(), yy.ravel()], axis=1)
-    gap, _ = cKDTree(points[:, :2]).query(grid_xy, distance_upper_bound=max_gap)
-    near = np.isfinite(gap)
+    grid_xy = _grid_xy(x, y)
+    near = _near(points[:, :2], grid_xy, max_gap)
     values = points[:, 2:] if colours is None else np.hstack([points[:, 2:], np.asarray(colours)[front]])
     interpolated = np.full((len(grid_xy), values.shape[1]), np.nan)
     interpolated[near] = _linear(points[:, :2], values, grid_xy[near])
