@@ -336,15 +336,18 @@ def skin_motion(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarra
     adaptive = _adaptive_smooth(means, weight, sigma, sharp)
     height = height + _rise(expression_fine.heights, step, means[0], adaptive - means[0], sigma)
     smooth = np.dstack([adaptive, height])
-    if fill is not None and fill.any():
+    filled = fill is not None and fill.any()
+    if filled:
         smooth = _from_beyond(smooth, opening, fill)
     tracked = at_vertices(smooth, at)
-    trust_out = np.clip(np.nan_to_num(at_vertices(density, at)), 0.0, 1.0)
-    trust_out = np.where(np.isfinite(tracked).all(axis=1), trust_out, 0.0)
-    use = trust_out  # the band's motion is taken in full; the trust reported stays its own flow's
-    if fill is not None and fill.any():
-        use = np.where(np.isfinite(tracked).all(axis=1), np.clip(np.nan_to_num(at_vertices(
-            np.where(fill, 1.0, density), at)), 0.0, 1.0), 0.0)
+    finite = np.isfinite(tracked).all(axis=1)
+
+    def at_tracked(share):
+        return np.where(finite, np.clip(np.nan_to_num(at_vertices(share, at)), 0.0, 1.0), 0.0)
+
+    trust_out = at_tracked(density)
+    # the band's motion is taken in full; the trust reported stays its own flow's
+    use = at_tracked(np.where(fill, 1.0, density)) if filled else trust_out
     motion = use[:, None] * np.nan_to_num(tracked) + (1.0 - use[:, None]) * first_guess
     return motion, trust_out
 
