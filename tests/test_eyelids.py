@@ -75,9 +75,10 @@ def test_an_eye_that_did_not_move_keeps_the_first_guess(rng):
     coarse = FaceGrid(FINE[::4], FINE[::4], np.zeros((len(FINE[::4]),) * 2))
     guess = rng.normal(0.0, 0.3, (int(coarse.valid.sum()), 3))
     landmarks = {"eye_inner_L": np.r_[CORNERS[0], 0.0], "eye_outer_L": np.r_[CORNERS[1], 0.0]}
-    out = eyelid_guess(neutral, expression, pixels_of(neutral, coarse.vertices[:, :2]), guess, landmarks, landmarks,
-                       skin_gap_mm(COARSE_STEP))
+    out, lids = eyelid_guess(neutral, expression, pixels_of(neutral, coarse.vertices[:, :2]), guess, landmarks,
+                             landmarks, skin_gap_mm(COARSE_STEP))
     np.testing.assert_array_equal(out, guess)
+    assert not lids.any()
 
 
 def test_a_closing_lid_moves_the_guess_down_above_the_eye(rng):
@@ -85,8 +86,8 @@ def test_a_closing_lid_moves_the_guess_down_above_the_eye(rng):
     coarse = FaceGrid(FINE[::4], FINE[::4], np.zeros((len(FINE[::4]),) * 2))
     guess = np.zeros((int(coarse.valid.sum()), 3))
     landmarks = {"eye_inner_L": np.r_[CORNERS[0], 0.0], "eye_outer_L": np.r_[CORNERS[1], 0.0]}
-    out = eyelid_guess(neutral, expression, pixels_of(neutral, coarse.vertices[:, :2]), guess, landmarks, landmarks,
-                       skin_gap_mm(COARSE_STEP))
+    out, _ = eyelid_guess(neutral, expression, pixels_of(neutral, coarse.vertices[:, :2]), guess, landmarks,
+                          landmarks, skin_gap_mm(COARSE_STEP))
     xy = np.stack(np.meshgrid(coarse.x, coarse.y), axis=-1)[coarse.valid]
     above = (np.abs(xy[:, 0]) < 2.5) & (xy[:, 1] > 4.0) & (xy[:, 1] < 6.5)  # the upper lid by its margin
     assert above.any() and np.all(out[above, 1] < -4.0)

@@ -172,11 +172,11 @@ def lid_motion(neutral: FaceGrid, columns: dict[int, LidColumn], reach_mm: float
 
 
 def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarray, first_guess: np.ndarray,
-                 before: dict, after: dict, grow_mm: float, seen_grow_mm: float | None = None,
-                 with_lids: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+                 before: dict, after: dict, grow_mm: float, seen_grow_mm: float | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """``first_guess`` (n_vertices, 3) of a mesh's vertices with the lids' motion (y from
-    :func:`lid_motion`, z onto the expressive surface there) wherever an eye's lids are found; with
-    ``with_lids`` also which vertices those are, (n_vertices,) bool.
+    :func:`lid_motion`, z onto the expressive surface there) wherever an eye's lids are found, and which
+    vertices those are, (n_vertices,) bool.
 
     ``neutral_fine``, ``expression_fine``, ``at`` (the vertices on the skin images) as in
     :func:`~livebridge.retarget.skin_flow.skin_motion`, ``first_guess`` in the skin images' chart (x, y, z
@@ -203,7 +203,7 @@ def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarr
                                                        at[hit, 1] + out[hit, 0] / step], order=1, cval=np.nan)
     dz = landed - at_vertices(neutral_fine.heights, at[hit])
     out[hit, 2] = np.where(np.isfinite(dz), dz, out[hit, 2])
-    return (out, hit) if with_lids else out
+    return out, hit
 
 
 def closing_openings(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict, after: dict,

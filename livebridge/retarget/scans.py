@@ -314,7 +314,7 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     base = geometric_element(neutral, expression, stride, kernel, source) if start is None else start
     # with a start too, the lids' margins are pinned again where the openings say: see the module's docstring
     guess, lids = eyelid_guess(neutral.skin, seen, at, chart.motion_to_chart(vertices, base), before, after, grow,
-                               seen_grow, with_lids=True)
+                               seen_grow)
     seam = _lip_seam(before, neutral.skin)
     motion, trust = skin_motion(neutral.skin, expression.skin, at, guess, smooth, seam,
                                 closing_openings(neutral.skin, seen, before, after, grow, seen_grow),
