@@ -220,19 +220,26 @@ def _skin_axes() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     return x, y, fine_x, fine_y
 
 
+def _texture(rng, blur_mm: float = 0.8):
+    """A skin pattern over [-42, 42]^2 mm: grey values about 0.5 (a quarter of their spread each way) of white
+    noise on 0.25 mm texels blurred by ``blur_mm``, as a function of (y, x) points (n, 2)."""
+    import cv2
+    from scipy.interpolate import RegularGridInterpolator
+
+    texel = 0.25
+    axis = np.arange(-42, 42 + texel, texel)
+    noise = cv2.GaussianBlur(rng.normal(size=(len(axis), len(axis))).astype(np.float32), (0, 0), blur_mm / texel)
+    return RegularGridInterpolator((axis, axis), 0.5 + noise / (4 * noise.std()))
+
+
 def _tracked_slide(rng, peak_mm: float, width_mm: float = 12.0) -> tuple[float, float]:
     """A textured, gently curved surface whose skin slides by a known smooth field ``d`` (``peak_mm`` at its
     peak, Gaussian of ``width_mm``) in an expression scan with other sampling and noise, tracked from a zero
     first guess: (the tracked motion's RMS error relative to ``d``'s RMS, the mean trust)."""
-    import cv2
-    from scipy.interpolate import RegularGridInterpolator
 
     from livebridge.retarget.skin_flow import pixels_of, skin_motion
 
-    texel = 0.25
-    axis = np.arange(-42, 42 + texel, texel)
-    noise = cv2.GaussianBlur(rng.normal(size=(len(axis), len(axis))).astype(np.float32), (0, 0), 0.8 / texel)
-    texture = RegularGridInterpolator((axis, axis), 0.5 + noise / (4 * noise.std()))
+    texture = _texture(rng)
 
     def surface(xy):
         return np.column_stack([xy, 20 * np.exp(-(xy ** 2).sum(axis=1) / 40.0 ** 2)])
@@ -343,15 +350,10 @@ def test_heights_ignore_another_surface_showing_through_a_gap(rng):
     points are on a surface 25 mm behind the skin, different points in each scan: the tracked motion along
     the face's normal there stays on the skin's (measured 0.05 mm RMS error; 0.61 mm when those points'
     heights counted, without ``behind_front``)."""
-    import cv2
-    from scipy.interpolate import RegularGridInterpolator
 
     from livebridge.retarget.skin_flow import pixels_of, skin_motion
 
-    texel = 0.25
-    axis = np.arange(-42, 42 + texel, texel)
-    noise = cv2.GaussianBlur(rng.normal(size=(len(axis), len(axis))).astype(np.float32), (0, 0), 0.8 / texel)
-    texture = RegularGridInterpolator((axis, axis), 0.5 + noise / (4 * noise.std()))
+    texture = _texture(rng)
     nostril = np.array([-10.0, 8.0])
 
     def surface(xy):
@@ -574,17 +576,12 @@ def test_skin_template_averages_the_scans_into_a_cleaner_neutral_skin(rng):
     neutral (measured: 1 - correlation with the true pattern 0.027 against 0.059; RMS error 0.047 against
     0.051 mm with the adaptive smoothing of the motion, which takes noise out of both; 0.049 against 0.057
     with one smoothing width)."""
-    import cv2
-    from scipy.interpolate import RegularGridInterpolator
 
     from livebridge.retarget.grid import FaceGrid
     from livebridge.retarget.skin_flow import pixels_of, skin_image, skin_motion
     from livebridge.retarget.skin_template import skin_templates
 
-    texel = 0.25
-    axis = np.arange(-42, 42 + texel, texel)
-    noise = cv2.GaussianBlur(rng.normal(size=(len(axis), len(axis))).astype(np.float32), (0, 0), 0.6 / texel)
-    texture = RegularGridInterpolator((axis, axis), 0.5 + noise / (4 * noise.std()))
+    texture = _texture(rng, 0.6)
 
     def slide(xy, centre, size):
         return size * np.exp(-((xy - centre) ** 2).sum(axis=1) / 12.0 ** 2)[:, None] * np.array([[0.8, 0.6]])
@@ -631,17 +628,12 @@ def test_second_tracking_trusts_no_skin_the_first_could_not_track():
     neutral's own skin still half trusts it (measured 1.35 mm of error, trust 0.47). Where the first
     tracking was not trusted, the second is not either: the patch takes the motion carried from the tracked
     skin around it (measured 0.14 mm; the opened jaw's chin from underneath, retarget/scans._within)."""
-    import cv2
-    from scipy.interpolate import RegularGridInterpolator
 
     from livebridge.retarget.scans import FaceScan, tracked_motion
     from livebridge.retarget.skin_flow import fine_axes
 
     rng = np.random.default_rng(3)
-    texel = 0.25
-    axis = np.arange(-42, 42 + texel, texel)
-    noise = cv2.GaussianBlur(rng.normal(size=(len(axis), len(axis))).astype(np.float32), (0, 0), 0.8 / texel)
-    texture = RegularGridInterpolator((axis, axis), 0.5 + noise / (4 * noise.std()))
+    texture = _texture(rng)
     patch, radius = np.array([8.0, -6.0]), 7.0
 
     def slide(xy):  # smooth over the face: the spline through the skin around the patch carries it
