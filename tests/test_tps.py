@@ -29,8 +29,8 @@ def _random_affine(rng):
     return rng.normal(size=(3, 3)) + 2 * np.eye(3), rng.normal(scale=20, size=3)
 
 
-def _thesis_coefficients(centres, values, kernel):
-    """``[W; A] = L^-1 [V; 0]`` with L built entry by entry from eqs. 4.11-4.15."""
+def _thesis_coefficients(centres, values, kernel, smoothing=0.0):
+    """``[W; A] = L^-1 [V; 0]`` with L built entry by entry from eqs. 4.11-4.15 (``s lambda`` on K's diagonal)."""
     n = len(centres)
 
     def u(r):
@@ -41,26 +41,25 @@ def _thesis_coefficients(centres, values, kernel):
     system = np.zeros((n + 4, n + 4))
     for i in range(n):
         for j in range(n):
-            system[i, j] = u(math.dist(centres[i], centres[j]))
+            system[i, j] = u(math.dist(centres[i], centres[j])) + (kernel.sign * smoothing if i == j else 0.0)
         system[i, n:] = system[n:, i] = [1.0, *centres[i]]
     rhs = np.vstack([values, np.zeros((4, 3))])
     return np.linalg.solve(system, rhs)
 
 
 @pytest.mark.parametrize("kernel", KERNELS)
-@pytest.mark.parametrize("n", [4, 30, 400])
-def test_interpolates_its_control_points(rng, kernel, n):
-    centres = _cloud(rng, n)
-    targets = _smooth_warp(centres) + rng.normal(scale=2, size=centres.shape)
+@pytest.mark.parametrize("n, offset", [(4, 0.0), (30, 0.0), (400, 0.0), (2000, 1000.0)])
+def test_interpolates_its_control_points(rng, kernel, n, offset):
+    """To 1e-9 mm, also for 2000 points 1000 mm from the origin: in millimetres the r^2 ln r^2 terms reach 1e5
+    and their rounding alone put 400 points 1.2e-9 mm off (2000: 4.8e-9 mm); the spline's frame keeps them small."""
+    centres = _cloud(rng, n) + offset
+    targets = _smooth_warp(centres - offset) + offset + rng.normal(scale=2, size=centres.shape)
     spline = fit_tps(centres, targets, kernel)
-    # To 1e-9 in the targets' own units, scaled to their size: evaluating the spline sums n kernel terms of up to
-    # r^2 ln r^2 ~ 1e5 for these mm-scale points, whose double-precision rounding alone reached 1.2e-9 mm (2e-11
-    # of the targets' size) for 400 points under one OpenBLAS build (0.3.31, Haswell kernels).
-    assert np.abs(spline(centres) - targets).max() < 1e-10 * np.abs(targets).max()
+    assert np.abs(spline(centres) - targets).max() < 1e-9
     # side conditions: sum w = 0, sum w c = 0 (relative to the weights' size)
     scale = np.abs(np.vstack([spline.weights, spline.affine])).max()
     assert np.abs(spline.weights.sum(axis=0)).max() < 1e-9 * scale * n
-    assert np.abs(centres.T @ spline.weights).max() < 1e-9 * scale * n * 60
+    assert np.abs(centres.T @ spline.weights).max() < 1e-9 * scale * n * np.abs(centres).max()
 
 
 @pytest.mark.parametrize("kernel", KERNELS)
@@ -87,12 +86,14 @@ def test_affine_map_of_the_builtin_face_from_its_landmarks(rng):
     assert np.abs(warp(landmarks @ matrix + offset) - (basis.neutral @ matrix + offset)).max() < 1e-9
 
 
+@pytest.mark.parametrize("smoothing", [0.0, 3.0])
 @pytest.mark.parametrize("kernel", KERNELS)
-def test_equals_the_thesis_closed_form(rng, kernel):
+def test_equals_the_thesis_closed_form(rng, kernel, smoothing):
+    """Weights, affine part and smoothing mean the thesis's, in the points' own millimetres (not the frame's)."""
     centres = _cloud(rng, 40)
     targets = centres + rng.normal(scale=5, size=centres.shape)
-    spline = fit_tps(centres, targets, kernel)
-    expected = _thesis_coefficients(centres, targets, kernel)
+    spline = fit_tps(centres, targets, kernel, smoothing)
+    expected = _thesis_coefficients(centres, targets, kernel, smoothing)
     scale = np.abs(expected).max()
     assert np.abs(spline.weights - expected[:-4]).max() < 1e-9 * scale
     assert np.abs(spline.affine - expected[-4:]).max() < 1e-9 * scale
@@ -100,6 +101,37 @@ def test_equals_the_thesis_closed_form(rng, kernel):
     gram = kernel.matrix(centres, centres)
     assert spline.bending_energy() == pytest.approx(kernel.sign * np.trace(expected[:-4].T @ gram @ expected[:-4]))
     assert spline.bending_energy() > 0
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_spline_from_its_weights_and_affine_is_the_same_spline(rng, kernel):
+    """A spline a user builds from the public (centres, weights, affine, kernel) evaluates, differentiates and
+    bends as the fitted one."""
+    centres = _cloud(rng, 50) + 300.0
+    fitted = fit_tps(centres, _smooth_warp(centres), kernel, smoothing=0.5)
+    rebuilt = ThinPlateSpline(fitted.centres, fitted.weights, fitted.affine, fitted.kernel)
+    queries = _cloud(rng, 200, scale=90.0) + 300.0
+    assert np.abs(rebuilt(queries) - fitted(queries)).max() < 1e-11
+    assert np.abs(rebuilt.jacobian(queries) - fitted.jacobian(queries)).max() < 1e-12
+    assert rebuilt.bending_energy() == pytest.approx(fitted.bending_energy(), rel=1e-12)
+    # and the spline as written in millimetres: [1, p] A + U(|p - c|) W
+    by_definition = np.hstack([kernel.matrix(queries, centres), np.ones((200, 1)), queries]) @ np.vstack(
+        [fitted.weights, fitted.affine])
+    assert np.abs(fitted(queries) - by_definition).max() < 1e-8
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_jacobian_equals_central_differences(rng, kernel):
+    centres = _cloud(rng, 30) + np.array([0.0, 1000.0, -200.0])
+    spline = fit_tps(centres, _smooth_warp(centres), kernel)
+    points = _cloud(rng, 40, scale=70.0) + np.array([0.0, 1000.0, -200.0])
+    step = 1e-3
+    differences = np.stack([(spline(points + step * e) - spline(points - step * e)) / (2 * step)
+                            for e in np.eye(3)], axis=2)  # (m, out, in)
+    jacobian = spline.jacobian(points, chunk=16)
+    assert jacobian.shape == (40, 3, 3)
+    assert np.abs(jacobian - differences).max() < 1e-6
+    assert np.abs(jacobian).max() > 0.5
 
 
 @pytest.mark.parametrize("smoothing", [0.0, 25.0])

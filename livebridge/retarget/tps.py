@@ -5,11 +5,15 @@ points ``c_i`` with the side conditions ``sum_i w_i = 0`` and ``sum_i w_i c_i = 
 with ``L = [[K, P], [P^T, 0]]``, ``K_ij = U(|c_i - c_j|)`` and ``P = [1, c]``. With ``U(r) = r`` (the default)
 this is the 3D biharmonic spline, the same function as ``scipy.interpolate.RBFInterpolator(kernel="linear",
 degree=1)``; the thesis's ``U(r) = r^2 ln r^2`` is an option.
+
+Fits and evaluations happen in centred, unit-sized coordinates (:class:`Frame`): for mm-scale points the
+kernel terms in millimetres reach ``r^2 ln r^2 ~ 1e5`` and their double-precision rounding alone put a fitted
+spline 1e-9 mm off its own control points.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
 from functools import lru_cache
 
@@ -54,6 +58,11 @@ class Kernel(Enum):
         return r2 * np.log(np.maximum(r2, np.finfo(float).tiny))
 
     @property
+    def degree(self) -> int:
+        """``k`` with ``U(s r) = s^k U(r)``; ``r^2 ln r^2`` adds ``s^2 ln(s^2) r^2`` (see :class:`Frame`)."""
+        return 1 if self is Kernel.BIHARMONIC else 2
+
+    @property
     def sign(self) -> float:
         """``s`` with ``s U`` conditionally positive definite under the side conditions.
 
@@ -67,6 +76,9 @@ class Kernel(Enum):
 class ThinPlateSpline:
     """A fitted 3D thin-plate spline ``f(p) = [1, p] A + U(|p - c|) W``.
 
+    ``weights`` and ``affine`` are in the points' own coordinates; the spline evaluates itself in the
+    :class:`Frame` of its centres, from the same spline's coefficients there.
+
     Attributes
     ----------
     centres : ndarray, shape (n, 3)
@@ -77,35 +89,56 @@ class ThinPlateSpline:
     affine : ndarray, shape (4, 3)
         ``A``: rows for ``1, x, y, z``.
     kernel : Kernel
+    frame : Frame
+        The centres' frame (derived from ``centres``).
+    frame_coefficients : ndarray, shape (n + 4, 3)
+        ``[W; A]`` of the same spline in ``frame`` (derived from ``weights`` and ``affine``).
     """
 
     centres: np.ndarray
     weights: np.ndarray
     affine: np.ndarray
     kernel: Kernel
+    frame: Frame = field(init=False, repr=False, compare=False)
+    frame_coefficients: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
         for name in ("centres", "weights", "affine"):
             array = np.array(getattr(self, name), dtype=np.float64)
             array.setflags(write=False)
             object.__setattr__(self, name, array)
+        frame = Frame.of(self.centres)
+        coefficients = frame.frame_coefficients(self.weights, self.affine, frame.to(self.centres), self.kernel)
+        coefficients.setflags(write=False)
+        object.__setattr__(self, "frame", frame)
+        object.__setattr__(self, "frame_coefficients", coefficients)
+
+    @classmethod
+    def in_frame(cls, centres: np.ndarray, coefficients: np.ndarray, kernel: Kernel) -> ThinPlateSpline:
+        """The spline with (n + 4, 3) ``coefficients`` ``[W; A]`` in the :class:`Frame` of its (n, 3) centres."""
+        frame = Frame.of(centres)
+        return cls(centres, *frame.weights_and_affine(coefficients, frame.to(centres), kernel), kernel)
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """``f(points)``, shape (m, 3), for points (m, 3)."""
         points = _as_points(points, "points")
-        return design_matrix(points, self.centres, self.kernel) @ np.vstack([self.weights, self.affine])
+        centres = self.frame.to(self.centres)
+        return design_matrix(self.frame.to(points), centres, self.kernel) @ self.frame_coefficients
 
     def jacobian(self, points: np.ndarray, chunk: int = 4096) -> np.ndarray:
         """``df/dp`` at points (m, 3), shape (m, 3 out, 3 in), from the kernel's gradient.
 
         ``grad U(|p - c|)`` is ``(p - c) / r`` for ``U = r`` (0 at a centre, where ``r`` has no gradient) and
-        ``(2 ln r^2 + 2)(p - c)`` for ``U = r^2 ln r^2``. Evaluated ``chunk`` points at a time to bound memory.
+        ``(2 ln r^2 + 2)(p - c)`` for ``U = r^2 ln r^2``, taken in the frame (``df/dp = df/dq / scale``).
+        Evaluated ``chunk`` points at a time to bound memory.
         """
-        points = _as_points(points, "points")
+        points = self.frame.to(_as_points(points, "points"))
+        centres = self.frame.to(self.centres)
+        weights, linear = self.frame_coefficients[:-4], self.frame_coefficients[-3:] / self.frame.scale
         out = np.empty((len(points), 3, 3))
         for start in range(0, len(points), chunk):
             part = points[start:start + chunk]
-            offsets = part[:, None, :] - self.centres[None]  # (m, n, 3)
+            offsets = part[:, None, :] - centres[None]  # (m, n, 3)
             r2 = np.einsum("mnd,mnd->mn", offsets, offsets)
             if self.kernel is Kernel.BIHARMONIC:
                 r = np.sqrt(r2)
@@ -115,16 +148,20 @@ class ThinPlateSpline:
                 scale[r2 == 0] = 0.0
             # J[m, out, in] = A_lin[in, out] + sum_n W[n, out] * scale[m, n] * offsets[m, n, in]
             gradients = (offsets * scale[..., None]).transpose(0, 2, 1)  # (m, in, n)
-            out[start:start + chunk] = (self.affine[1:][None] + gradients @ self.weights).transpose(0, 2, 1)
+            out[start:start + chunk] = (linear[None] + gradients @ weights / self.frame.scale).transpose(0, 2, 1)
         return out
 
     def bending_energy(self) -> float:
         """The bending energy up to the kernel's constant factor: ``s trace(W^T K W)`` (>= 0, 0 iff affine).
 
         ``s`` is :attr:`Kernel.sign`; summed over the three output coordinates (the thesis's ``W K W^T``).
+        Taken in the frame: ``W K W^T`` there is ``scale^k`` times this (``k`` = :attr:`Kernel.degree`; the
+        extra ``r^2`` term of ``r^2 ln r^2`` vanishes under the side conditions).
         """
-        gram = self.kernel.matrix(self.centres, self.centres)
-        return float(self.kernel.sign * np.einsum("ik,ij,jk->", self.weights, gram, self.weights))
+        centres = self.frame.to(self.centres)
+        weights = self.frame_coefficients[:-4]
+        energy = np.einsum("ik,ij,jk->", weights, self.kernel.matrix(centres, centres), weights)
+        return float(self.kernel.sign * energy / self.frame.scale ** self.kernel.degree)
 
 
 def fit_tps(control_points: np.ndarray, targets: np.ndarray, kernel: Kernel | str = Kernel.BIHARMONIC,
@@ -151,23 +188,24 @@ def fit_tps(control_points: np.ndarray, targets: np.ndarray, kernel: Kernel | st
     kernel = Kernel.parse(kernel)
     centres = check_control_points(control_points)
     values = check_targets(targets, len(centres))
-    frame = AffineFrame.of(centres)
+    smoothing = check_smoothing(smoothing)
+    frame = Frame.of(centres)
     # LAPACK gesv as RBFInterpolator calls it: measured 2-4x faster than scipy.linalg.solve (which adds a
     # condition estimate) and than lu_factor + lu_solve (OpenBLAS threads getrs even for 26 x 26)
-    _, _, coefficients, info = dgesv(system_matrix(centres, kernel, smoothing, frame),
+    _, _, coefficients, info = dgesv(system_matrix(frame.to(centres), kernel, frame.smoothing(smoothing, kernel)),
                                      np.vstack([values, np.zeros((4, 3))]), overwrite_a=True, overwrite_b=True)
     if info > 0:
         raise InputError("the spline's system is singular: control points nearly coincide or nearly lie on one "
                          "plane", field="control points")
-    return ThinPlateSpline(centres, coefficients[:-4], frame.affine(coefficients[-4:]), kernel)
+    return ThinPlateSpline.in_frame(centres, coefficients, kernel)
 
 
 class Warp:
     """The same mesh warped by the spline of the same control points towards new targets, many times.
 
     Built once from the control points and the mesh vertices: keeps the LU factorisation of ``L`` and the
-    (m, n + 4) matrix ``[U(|v - c|), 1, v]`` of the vertices, so a warp costs one (n + 4) solve and one
-    (m, n + 4) @ (n + 4, 3) product.
+    (m, n + 4) matrix ``[U(|v - c|), 1, v]`` of the vertices, both in the control points' :class:`Frame`, so a
+    warp costs one (n + 4) solve and one (m, n + 4) @ (n + 4, 3) product.
 
     Parameters
     ----------
@@ -184,12 +222,12 @@ class Warp:
         self.kernel = Kernel.parse(kernel)
         self.control_points = check_control_points(control_points)
         self.control_points.setflags(write=False)
-        self.smoothing = float(smoothing)
-        self._frame = AffineFrame.of(self.control_points)
-        self._lu = lu_factor(system_matrix(self.control_points, self.kernel, smoothing, self._frame),
+        self.smoothing = check_smoothing(smoothing)
+        frame = Frame.of(self.control_points)
+        centres = frame.to(self.control_points)
+        self._lu = lu_factor(system_matrix(centres, self.kernel, frame.smoothing(self.smoothing, self.kernel)),
                              overwrite_a=True, check_finite=False)
-        self._design = design_matrix(_as_points(vertices, "vertices", "vertex"), self.control_points, self.kernel,
-                                     self._frame)
+        self._design = design_matrix(frame.to(_as_points(vertices, "vertices", "vertex")), centres, self.kernel)
 
     @property
     def n_vertices(self) -> int:
@@ -200,8 +238,7 @@ class Warp:
         targets = check_targets(targets, len(self.control_points))
         with _blas_controller().limit(limits=1, user_api="blas"):
             coefficients = _solve(self._lu, targets)
-        return ThinPlateSpline(self.control_points, coefficients[:-4], self._frame.affine(coefficients[-4:]),
-                               self.kernel)
+        return ThinPlateSpline.in_frame(self.control_points, coefficients, self.kernel)
 
     def __call__(self, targets: np.ndarray) -> np.ndarray:
         """The warped vertices: (m, 3) for targets (n, 3), or (k, m, 3) for k target sets (k, n, 3) at once."""
@@ -227,58 +264,80 @@ def _blas_controller():
 
 
 @dataclass(frozen=True)
-class AffineFrame:
-    """Coordinates ``(p - shift) / scale`` for the affine part of a fit (as scipy's RBFInterpolator does).
+class Frame:
+    """Centred, unit-sized coordinates ``q = (p - shift) / scale`` in which a spline is solved and evaluated.
 
-    Centred, unit-sized coordinates keep ``L`` well conditioned far from the origin and in millimetres;
-    the spline is the same, only the affine coefficients are expressed in this frame while solving.
+    They keep ``L`` well conditioned far from the origin (as scipy's RBFInterpolator does for the affine part)
+    and the kernel terms small for points in millimetres. The spline is the same: with ``k`` =
+    :attr:`Kernel.degree`, ``U(|p - c|) = scale^k U(|q - q_c|)``, so the weights in ``p`` are those in the frame
+    over ``scale^k`` and the smoothing in the frame is ``lambda / scale^k``. ``r^2 ln r^2`` adds
+    ``scale^2 ln(scale^2) |q - q_c|^2``, whose sum over the weights is, under the side conditions, the constant
+    ``ln(scale^2) sum_i w_i |q_c,i|^2`` (frame weights ``w_i``): it moves into the affine part.
     """
 
     shift: np.ndarray
     scale: float
 
     @classmethod
-    def of(cls, centres: np.ndarray) -> AffineFrame:
+    def of(cls, centres: np.ndarray) -> Frame:
         return cls(centres.mean(axis=0), max(float(np.ptp(centres, axis=0).max()) / 2, np.finfo(float).tiny))
 
-    @classmethod
-    def identity(cls) -> AffineFrame:
-        return cls(np.zeros(3), 1.0)
+    def to(self, points: np.ndarray) -> np.ndarray:
+        """``(p - shift) / scale``, shape (m, 3), for points (m, 3)."""
+        return (points - self.shift) / self.scale
 
-    def coordinates(self, points: np.ndarray) -> np.ndarray:
-        """``[1, (p - shift) / scale]``, shape (m, 4)."""
-        return np.hstack([np.ones((len(points), 1)), (points - self.shift) / self.scale])
+    def smoothing(self, smoothing: float, kernel: Kernel) -> float:
+        """The frame's ``lambda`` for the same spline as ``smoothing`` in the points' own units."""
+        return smoothing / self.scale ** kernel.degree
 
-    def affine(self, coefficients: np.ndarray) -> np.ndarray:
-        """The (4, 3) affine ``A`` for ``[1, p]`` from the (4, 3) coefficients of :meth:`coordinates`."""
-        linear = coefficients[1:] / self.scale
-        return np.vstack([coefficients[:1] - self.shift @ linear, linear])
+    def weights_and_affine(self, coefficients: np.ndarray, centres: np.ndarray,
+                           kernel: Kernel) -> tuple[np.ndarray, np.ndarray]:
+        """``(W, A)`` in the points' own coordinates, shapes (n, 3) and (4, 3), from the frame's (n + 4, 3)
+        coefficients ``[W; A]`` of a spline with centres (n, 3) in the frame."""
+        weights = coefficients[:-4] / self.scale ** kernel.degree
+        linear = coefficients[-3:] / self.scale
+        constant = coefficients[-4] - self.shift @ linear - self._kernel_constant(coefficients[:-4], centres, kernel)
+        return weights, np.vstack([constant, linear])
+
+    def frame_coefficients(self, weights: np.ndarray, affine: np.ndarray, centres: np.ndarray,
+                           kernel: Kernel) -> np.ndarray:
+        """The frame's (n + 4, 3) ``[W; A]`` from ``W`` (n, 3) and ``A`` (4, 3) in the points' own coordinates
+        (the inverse of :meth:`weights_and_affine`); ``centres`` (n, 3) in the frame."""
+        frame_weights = weights * self.scale ** kernel.degree
+        constant = affine[0] + self.shift @ affine[1:] + self._kernel_constant(frame_weights, centres, kernel)
+        return np.vstack([frame_weights, constant, affine[1:] * self.scale])
+
+    def _kernel_constant(self, weights: np.ndarray, centres: np.ndarray, kernel: Kernel) -> np.ndarray:
+        """The (3,) affine constant the kernel gains from the points' units to the frame's, for frame weights."""
+        if kernel is Kernel.BIHARMONIC:
+            return np.zeros(weights.shape[1])
+        return np.log(self.scale ** 2) * (np.einsum("nd,nd->n", centres, centres) @ weights)
 
 
-def design_matrix(points: np.ndarray, centres: np.ndarray, kernel: Kernel,
-                  frame: AffineFrame | None = None) -> np.ndarray:
-    """``[U(|p - c|), 1, p]``, shape (m, n + 4): the spline's value at points (m, 3) is this @ ``[W; A]``.
-
-    With a ``frame`` the last three columns are that frame's coordinates (for coefficients solved in it).
-    """
-    return np.hstack([kernel.matrix(points, centres), (frame or AffineFrame.identity()).coordinates(points)])
+def design_matrix(points: np.ndarray, centres: np.ndarray, kernel: Kernel) -> np.ndarray:
+    """``[U(|p - c|), 1, p]``, shape (m, n + 4): the spline's value at points (m, 3) is this @ ``[W; A]``."""
+    return np.hstack([kernel.matrix(points, centres), np.ones((len(points), 1)), points])
 
 
-def system_matrix(centres: np.ndarray, kernel: Kernel, smoothing: float = 0.0,
-                  frame: AffineFrame | None = None) -> np.ndarray:
+def system_matrix(centres: np.ndarray, kernel: Kernel, smoothing: float = 0.0) -> np.ndarray:
     """``L = [[K + s lambda I, P], [P^T, 0]]``, shape (n + 4, n + 4) (eq. 4.13; ``s`` = :attr:`Kernel.sign`).
 
-    ``P = [1, c]``, or the ``frame``'s coordinates of the centres.
+    ``P = [1, c]``; ``smoothing`` is ``lambda``.
     """
-    if not (np.isfinite(smoothing) and smoothing >= 0):
-        raise InputError(f"smoothing must be a finite number >= 0, got {smoothing}", field="smoothing")
     n = len(centres)
     system = np.zeros((n + 4, n + 4))
     system[:n, :n] = kernel.matrix(centres, centres)
     system[:n, :n][np.diag_indices(n)] += kernel.sign * smoothing
-    system[:n, n:] = (frame or AffineFrame.identity()).coordinates(centres)
+    system[:n, n:] = np.hstack([np.ones((n, 1)), centres])
     system[n:, :n] = system[:n, n:].T
     return system
+
+
+def check_smoothing(smoothing: float) -> float:
+    """``smoothing`` as a float ``lambda >= 0``, or an :class:`InputError`."""
+    if not (np.isfinite(smoothing) and smoothing >= 0):
+        raise InputError(f"smoothing must be a finite number >= 0, got {smoothing}", field="smoothing")
+    return float(smoothing)
 
 
 def check_control_points(points: np.ndarray) -> np.ndarray:
