@@ -121,9 +121,10 @@ class ThinPlateSpline:
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """``f(points)``, shape (m, 3), for points (m, 3)."""
-        points = _as_points(points, "points")
-        centres = self.frame.to(self.centres)
-        return design_matrix(self.frame.to(points), centres, self.kernel) @ self.frame_coefficients
+        points = self.frame.to(_as_points(points, "points"))
+        weights, affine = self.frame_coefficients[:-4], self.frame_coefficients[-4:]
+        # the kernel and affine parts apart: the (m, n + 4) design matrix's copy cost more than its product
+        return self.kernel.matrix(points, self.frame.to(self.centres)) @ weights + affine[0] + points @ affine[1:]
 
     def jacobian(self, points: np.ndarray, chunk: int = 4096) -> np.ndarray:
         """``df/dp`` at points (m, 3), shape (m, 3 out, 3 in), from the kernel's gradient.
