@@ -230,6 +230,14 @@ def closing_openings(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: 
     return opening if opening.any() else None
 
 
+def moving_lids(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict, after: dict, grow_mm: float,
+                seen_grow_mm: float | None = None) -> list[tuple[dict[int, LidColumn], float]]:
+    """(lid columns, reach in mm) of every eye whose lids moved; arguments as in :func:`eyelid_guess`."""
+    return [(columns, REACH_EYE_WIDTHS * float(np.linalg.norm(outer - inner)))
+            for inner, outer, columns in _moving_lids(neutral_fine, expression_fine, before, after, grow_mm,
+                                                      seen_grow_mm)]
+
+
 def _moving_lids(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict, after: dict, grow_mm: float,
                  seen_grow_mm: float | None = None):
     """(inner corner, outer corner, lid columns) of every eye whose lids moved (see :func:`eyelid_guess`)."""

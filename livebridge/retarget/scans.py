@@ -71,7 +71,7 @@ from livebridge.face.basis import CHOE_KO_BY_NAME, Basis, Muscle
 from livebridge.face.meshio import vertex_normals
 from livebridge.geometry.transforms import apply
 from livebridge.retarget.chart import PLANAR, SkinChart, face_chart
-from livebridge.retarget.eyelids import closing_openings, eyelid_guess
+from livebridge.retarget.eyelids import closing_openings, eyelid_guess, moving_lids
 from livebridge.retarget.grid import (
     GAP_SPACINGS,
     GRID_SHAPE,
@@ -318,7 +318,8 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     seam = _lip_seam(before, neutral.skin)
     motion, trust = skin_motion(neutral.skin, expression.skin, at, guess, smooth, seam,
                                 closing_openings(neutral.skin, seen, before, after, grow, seen_grow),
-                                neutral.template, fill_from_beyond=start is not None)
+                                neutral.template, fill_from_beyond=start is not None,
+                                lids=moving_lids(neutral.skin, seen, before, after, grow, seen_grow))
     if start_trust is not None:
         motion, trust = _within(motion, trust, guess, start_trust)
     # Where the skin was not tracked, the motion of the tracked skin around it is a better guess than the
