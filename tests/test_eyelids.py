@@ -8,6 +8,7 @@ from livebridge.retarget.eyelids import (
     eyelid_guess,
     lid_columns,
     lid_columns_from_landmarks,
+    moving_lids,
 )
 from livebridge.retarget.grid import FaceGrid, resample
 from livebridge.retarget.scans import skin_gap_mm
@@ -75,8 +76,9 @@ def test_an_eye_that_did_not_move_keeps_the_first_guess(rng):
     coarse = FaceGrid(FINE[::4], FINE[::4], np.zeros((len(FINE[::4]),) * 2))
     guess = rng.normal(0.0, 0.3, (int(coarse.valid.sum()), 3))
     landmarks = {"eye_inner_L": np.r_[CORNERS[0], 0.0], "eye_outer_L": np.r_[CORNERS[1], 0.0]}
-    out, lids = eyelid_guess(neutral, expression, pixels_of(neutral, coarse.vertices[:, :2]), guess, landmarks,
-                             landmarks, skin_gap_mm(COARSE_STEP))
+    eyes = moving_lids(neutral, expression, landmarks, landmarks, skin_gap_mm(COARSE_STEP))
+    assert eyes == []
+    out, lids = eyelid_guess(neutral, expression, pixels_of(neutral, coarse.vertices[:, :2]), guess, eyes)
     np.testing.assert_array_equal(out, guess)
     assert not lids.any()
 
@@ -86,8 +88,9 @@ def test_a_closing_lid_moves_the_guess_down_above_the_eye(rng):
     coarse = FaceGrid(FINE[::4], FINE[::4], np.zeros((len(FINE[::4]),) * 2))
     guess = np.zeros((int(coarse.valid.sum()), 3))
     landmarks = {"eye_inner_L": np.r_[CORNERS[0], 0.0], "eye_outer_L": np.r_[CORNERS[1], 0.0]}
-    out, _ = eyelid_guess(neutral, expression, pixels_of(neutral, coarse.vertices[:, :2]), guess, landmarks,
-                          landmarks, skin_gap_mm(COARSE_STEP))
+    eyes = moving_lids(neutral, expression, landmarks, landmarks, skin_gap_mm(COARSE_STEP))
+    assert len(eyes) == 1
+    out, _ = eyelid_guess(neutral, expression, pixels_of(neutral, coarse.vertices[:, :2]), guess, eyes)
     xy = np.stack(np.meshgrid(coarse.x, coarse.y), axis=-1)[coarse.valid]
     above = (np.abs(xy[:, 0]) < 2.5) & (xy[:, 1] > 4.0) & (xy[:, 1] < 6.5)  # the upper lid by its margin
     assert above.any() and np.all(out[above, 1] < -4.0)
@@ -153,8 +156,9 @@ def test_a_closing_eye_s_opening_is_not_skin_up_to_its_margins(rng):
     gap = skin_gap_mm(COARSE_STEP)
     landmarks = {"eye_inner_L": np.r_[CORNERS[0], 0.0], "eye_outer_L": np.r_[CORNERS[1], 0.0]}
     neutral = _scan(rng, 4.0, -4.0)
-    assert closing_openings(neutral, _scan(rng, 4.0, -4.0), landmarks, landmarks, gap) is None
-    opening = closing_openings(neutral, _scan(rng, 0.0, 0.0), landmarks, landmarks, gap)
+    assert closing_openings(neutral.shape, moving_lids(neutral, _scan(rng, 4.0, -4.0), landmarks, landmarks,
+                                                       gap)) is None
+    opening = closing_openings(neutral.shape, moving_lids(neutral, _scan(rng, 0.0, 0.0), landmarks, landmarks, gap))
     xx, yy = np.meshgrid(FINE, FINE)
     margin = 4.0 * np.sqrt(np.clip(1.0 - (xx / HALF_WIDTH) ** 2, 0.0, None))  # the true margins: y = +-margin
     middle = np.abs(xx) < 0.6 * HALF_WIDTH

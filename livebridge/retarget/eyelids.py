@@ -172,18 +172,14 @@ def lid_motion(neutral: FaceGrid, columns: dict[int, LidColumn], reach_mm: float
 
 
 def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarray, first_guess: np.ndarray,
-                 before: dict, after: dict, grow_mm: float, seen_grow_mm: float | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
+                 lids: list[tuple[dict[int, LidColumn], float]]) -> tuple[np.ndarray, np.ndarray]:
     """``first_guess`` (n_vertices, 3) of a mesh's vertices with the lids' motion (y from
     :func:`lid_motion`, z onto the expressive surface there) wherever an eye's lids are found, and which
     vertices those are, (n_vertices,) bool.
 
     ``neutral_fine``, ``expression_fine``, ``at`` (the vertices on the skin images) as in
     :func:`~livebridge.retarget.skin_flow.skin_motion`, ``first_guess`` in the skin images' chart (x, y, z
-    here: the chart's u, v, height); ``before``, ``after``: the neutral's and the expression's landmarks in
-    that chart (the eye corners ``eye_inner_L`` ... name the eyes; an eye without both corners is left alone;
-    lid landmarks :data:`LID_LANDMARKS` in both are used when there); ``grow_mm``, ``seen_grow_mm``: see
-    :func:`lid_columns`.
+    here: the chart's u, v, height); ``lids``: the moving eyes, as :func:`moving_lids` finds them.
     """
     from scipy.ndimage import map_coordinates
 
@@ -191,8 +187,7 @@ def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarr
 
     guess = vertex_field(at, first_guess[:, 1:2], neutral_fine.shape)[..., 0]
     dy, touched = guess, np.zeros(neutral_fine.shape, bool)
-    for inner, outer, columns in _moving_lids(neutral_fine, expression_fine, before, after, grow_mm, seen_grow_mm):
-        reach = REACH_EYE_WIDTHS * float(np.linalg.norm(outer - inner))
+    for columns, reach in lids:
         dy, hit = lid_motion(neutral_fine, columns, reach, dy)
         touched |= hit
     hit = at_vertices(touched.astype(np.float64), at) > 0.5
@@ -206,10 +201,11 @@ def eyelid_guess(neutral_fine: FaceGrid, expression_fine: FaceGrid, at: np.ndarr
     return out, hit
 
 
-def closing_openings(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict, after: dict,
-                     grow_mm: float, seen_grow_mm: float | None = None) -> np.ndarray | None:
-    """The neutral's eye openings whose lids moved, between the lids' margins (n_rows, n_cols) bool on
-    ``neutral_fine``'s grid; None when no eye's lids moved. Arguments as in :func:`eyelid_guess`.
+def closing_openings(shape: tuple[int, int], lids: list[tuple[dict[int, LidColumn], float]]
+                     ) -> np.ndarray | None:
+    """The neutral's eye openings whose lids moved, between the lids' margins, (n_rows, n_cols) = ``shape``
+    bool on the neutral skin image's grid; None when no eye's lids moved. ``lids``: as :func:`moving_lids`
+    finds them.
 
     The skin image's hole lies inside the opening by ``grow_mm``; the heights in that band are the
     resampling's fill from the last scan points of the lids' rims, which curl back over the eye, away from
@@ -222,9 +218,9 @@ def closing_openings(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: 
     0.269). Leaving out every hole's fill band the same way (nostrils, the face's outline) cost other elements
     up to 0.003.
     """
-    opening = np.zeros(neutral_fine.shape, bool)
-    rows = np.arange(neutral_fine.shape[0])
-    for _, _, columns in _moving_lids(neutral_fine, expression_fine, before, after, grow_mm, seen_grow_mm):
+    opening = np.zeros(shape, bool)
+    rows = np.arange(shape[0])
+    for columns, _ in lids:
         for col, lid in columns.items():
             opening[:, col] |= (rows >= lid.lower) & (rows <= lid.upper)
     return opening if opening.any() else None
@@ -232,15 +228,14 @@ def closing_openings(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: 
 
 def moving_lids(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict, after: dict, grow_mm: float,
                 seen_grow_mm: float | None = None) -> list[tuple[dict[int, LidColumn], float]]:
-    """(lid columns, reach in mm) of every eye whose lids moved; arguments as in :func:`eyelid_guess`."""
-    return [(columns, REACH_EYE_WIDTHS * float(np.linalg.norm(outer - inner)))
-            for inner, outer, columns in _moving_lids(neutral_fine, expression_fine, before, after, grow_mm,
-                                                      seen_grow_mm)]
+    """(lid columns, reach in mm) of every eye whose lids moved.
 
-
-def _moving_lids(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict, after: dict, grow_mm: float,
-                 seen_grow_mm: float | None = None):
-    """(inner corner, outer corner, lid columns) of every eye whose lids moved (see :func:`eyelid_guess`)."""
+    ``neutral_fine``, ``expression_fine``: the neutral's and the expression's skin images; ``before``,
+    ``after``: their landmarks in the images' chart (the eye corners ``eye_inner_L`` ... name the eyes; an eye
+    without both corners is left alone; lid landmarks :data:`LID_LANDMARKS` in both are used when there);
+    ``grow_mm``, ``seen_grow_mm``: see :func:`lid_columns`. The reach is :data:`REACH_EYE_WIDTHS` eye widths.
+    """
+    found = []
     for side in ("L", "R"):
         if f"eye_inner_{side}" not in before or f"eye_outer_{side}" not in before:
             continue
@@ -253,7 +248,8 @@ def _moving_lids(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict
         if not columns or np.median([max(abs(c.upper_motion), abs(c.lower_motion)) for c in columns.values()]
                                     ) < MIN_MOTION_MM:
             continue  # this eye's lids did not move (a thin opening at a corner may read as closed): the guess stays
-        yield inner, outer, columns
+        found.append((columns, REACH_EYE_WIDTHS * float(np.linalg.norm(outer - inner))))
+    return found
 
 
 def _long_holes(hole: np.ndarray, length: float) -> np.ndarray:

@@ -313,13 +313,12 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     seen, seen_grow = _seen_openings(expression)
     base = geometric_element(neutral, expression, stride, kernel, source) if start is None else start
     # with a start too, the lids' margins are pinned again where the openings say: see the module's docstring
-    guess, lids = eyelid_guess(neutral.skin, seen, at, chart.motion_to_chart(vertices, base), before, after, grow,
-                               seen_grow)
+    eyes = moving_lids(neutral.skin, seen, before, after, grow, seen_grow)
+    guess, lids = eyelid_guess(neutral.skin, seen, at, chart.motion_to_chart(vertices, base), eyes)
     seam = _lip_seam(before, neutral.skin)
     motion, trust = skin_motion(neutral.skin, expression.skin, at, guess, smooth, seam,
-                                closing_openings(neutral.skin, seen, before, after, grow, seen_grow),
-                                neutral.template, fill_from_beyond=start is not None,
-                                lids=moving_lids(neutral.skin, seen, before, after, grow, seen_grow))
+                                closing_openings(neutral.skin.shape, eyes), neutral.template,
+                                fill_from_beyond=start is not None, lids=eyes)
     if start_trust is not None:
         motion, trust = _within(motion, trust, guess, start_trust)
     # Where the skin was not tracked, the motion of the tracked skin around it is a better guess than the
