@@ -76,10 +76,11 @@ REFINEMENT_ITERATIONS = 20
 flow between the patches' estimates unsettled where the skin's pattern is weak). The flow against the true
 motion (60k points a scan, seeds 7 and 8, depressor_anguli_oris / lips_pressor / frontalis_L, the second
 tracking's inputs): RMS error on the moving skin 0.326 -> 0.298 mm, 0.165 -> 0.158 mm after a 5 mm
-Gaussian; 10 iterations 0.309 / 0.161, 40 0.294 / 0.157 (0.4 s more a flow than 20). `livebridge bench
+Gaussian; 10 iterations 0.309 / 0.161, 40 0.294 / 0.157. A full-resolution flow of a 490 x 490 px image
+pair takes 0.41 s of one core instead of 0.32 s (40: 0.52 s). `livebridge bench
 scans` (seed 7): every element but the jaw better (+0.0007 / +0.0002 at 60k / 150k points), lips_pressor
-0.115 -> 0.109, depressor_anguli_oris 0.118 -> 0.114 at 60k; seed 8 at 60k 0.119 -> 0.114 and 0.120 ->
-0.117, nothing worse by more than 0.003 (orbicularis_oculi_R)."""
+0.115 -> 0.109, depressor_anguli_oris 0.118 -> 0.114 at 60k; seed 8 at 60k lips_pressor 0.119 -> 0.114,
+depressor_anguli_oris 0.120 -> 0.117, nothing worse by more than 0.003 (orbicularis_oculi_R)."""
 SMOOTH_SPACINGS = 5.0
 """The skin motion is smoothed (Gaussian sigma) over this many of the scan's point spacings before it is
 sampled at the grid vertices: the flow's noise grows with the spacing (spacing 0.38 mm at 60k points a
