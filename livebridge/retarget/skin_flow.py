@@ -73,6 +73,16 @@ Mean relative error of the 8 smooth elements at 60k points a scan: 0.145 with 8 
 0.126 with 20 px."""
 PATCH_OVERLAP = 4
 """Patches start every ``1 / PATCH_OVERLAP`` of a patch (the DIS presets' ratio; half-overlap lost 0.005)."""
+REFINEMENT_ITERATIONS = 20
+"""Iterations of DIS's variational refinement at each pyramid level (the MEDIUM preset's 5 leave the dense
+flow between the patches' estimates unsettled where the skin's pattern is weak). The flow against the true
+motion (60k points a scan, seeds 7 and 8, depressor_anguli_oris / lips_pressor / frontalis_L, the second
+tracking's inputs): RMS error on the moving skin 0.326 -> 0.298 mm, 0.165 -> 0.158 mm after a 5 mm
+Gaussian; 10 iterations 0.309 / 0.161, 40 0.294 / 0.157. A full-resolution flow of a 490 x 490 px image
+pair takes 0.41 s of one core instead of 0.32 s (40: 0.52 s). `livebridge bench
+scans` (seed 7): every element but the jaw better (+0.0007 / +0.0002 at 60k / 150k points), lips_pressor
+0.115 -> 0.109, depressor_anguli_oris 0.118 -> 0.114 at 60k; seed 8 at 60k lips_pressor 0.119 -> 0.114,
+depressor_anguli_oris 0.120 -> 0.117, nothing worse by more than 0.003 (orbicularis_oculi_R)."""
 SMOOTH_SPACINGS = 5.0
 """The skin motion is smoothed (Gaussian sigma) over this many of the scan's point spacings before it is
 sampled at the grid vertices: the flow's noise grows with the spacing (spacing 0.38 mm at 60k points a
@@ -146,7 +156,13 @@ COARSE_FACTOR = 2
 Without it, zygomatic_major_R's smile at 60k points a scan measured 0.165 (seed 7) and 0.230 (seed 8) in
 the cylinder chart: the landmark warp was 5-10 mm off at the face's lower outline and the full-resolution
 flow settled on a wrong match there (trusted 0.97); with it 0.057 / 0.054, nothing else worse by more than
-0.006 (`livebridge bench scans`)."""
+0.006 (`livebridge bench scans`). The coarse flow's images are contrast-normalised over this many times
+:data:`CONTRAST_MM` (the same number of their own pixels as the full-resolution images): normalised at the
+full-resolution width, the coarse images kept only the finest pattern that their pixels average away.
+`livebridge bench scans` (seed 7, 60k / 150k points): orbicularis_oculi_R 0.272 -> 0.242 / 0.186 -> 0.181,
+jaw 0.070 -> 0.067 at 60k, nothing worse by more than 0.004 (orbicularis_oculi_L 0.212 -> 0.217 at 60k,
+levator_labii_R 0.046 -> 0.049 at 150k); seed 8 at 60k orbicularis_oculi_R 0.247 -> 0.243, nothing worse
+by more than 0.001."""
 PASSES = 2
 """Flow passes, each starting from the last one's motion (the first from the geometric warp)."""
 STILL_FRACTION = 0.4
@@ -176,12 +192,12 @@ def fine_axes(x: np.ndarray, y: np.ndarray, spacing: float = FINE_MM) -> tuple[n
             factor)
 
 
-def skin_image(grid: FaceGrid) -> tuple[np.ndarray, np.ndarray]:
-    """The contrast-normalised luminance of a coloured grid (n_rows, n_cols) float32 (0 where masked), and
-    its valid mask."""
+def skin_image(grid: FaceGrid, contrast_mm: float = CONTRAST_MM) -> tuple[np.ndarray, np.ndarray]:
+    """The luminance of a coloured grid contrast-normalised over ``contrast_mm``, (n_rows, n_cols) float32
+    (0 where masked), and its valid mask."""
     valid = np.isfinite(grid.heights) & np.isfinite(grid.colours).all(axis=2)
     luminance = np.where(valid, np.nan_to_num(grid.colours) @ np.array([0.299, 0.587, 0.114]), 0.0)
-    sigma = CONTRAST_MM / grid.spacing
+    sigma = contrast_mm / grid.spacing
     mean = _masked_blur(luminance, valid, sigma)
     detail = np.where(valid, luminance - mean, 0.0)
     spread = np.sqrt(_masked_blur(detail ** 2, valid, sigma))
@@ -236,9 +252,13 @@ def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray,
     source, source_valid = skin_image(neutral)
     target, _ = skin_image(expression)
     total = (guess / step).astype(np.float32)
-    source_u8 = _to_u8(source if template is None else skin_image(template)[0])
+    reference = neutral if template is None else template
+    # each flow's images normalised over the same number of its own pixels (see COARSE_FACTOR)
+    images = {factor: (_to_u8(skin_image(reference, CONTRAST_MM * factor)[0]),
+                       skin_image(expression, CONTRAST_MM * factor)[0]) for factor in (COARSE_FACTOR, 1)}
     for factor in (COARSE_FACTOR,) + (1,) * PASSES:
-        flow = _flow(source_u8, _to_u8(_remap(target, total)), step, factor)  # source(p) ~ warped(p + flow)
+        source_u8, flow_target = images[factor]
+        flow = _flow(source_u8, _to_u8(_remap(flow_target, total)), step, factor)  # source(p) ~ warped(p + flow)
         total = flow + _remap(total, flow)  # the previous motion where the flow lands
     matched = _remap(target, total)
     residual = np.where(source_valid, (source - matched) ** 2, 0.0)
@@ -271,6 +291,7 @@ def _dis(step: float):
     patch = max(8, int(round(PATCH_MM / step)))
     dis.setPatchSize(patch)
     dis.setPatchStride(max(1, patch // PATCH_OVERLAP))
+    dis.setVariationalRefinementIterations(REFINEMENT_ITERATIONS)
     return dis
 
 
