@@ -253,9 +253,11 @@ def track_skin(neutral: FaceGrid, expression: FaceGrid, guess: np.ndarray,
     target, _ = skin_image(expression)
     total = (guess / step).astype(np.float32)
     reference = neutral if template is None else template
-    # each flow's images normalised over the same number of its own pixels (see COARSE_FACTOR)
-    images = {factor: (_to_u8(skin_image(reference, CONTRAST_MM * factor)[0]),
-                       skin_image(expression, CONTRAST_MM * factor)[0]) for factor in (COARSE_FACTOR, 1)}
+    # each flow's images normalised over the same number of its own pixels (see COARSE_FACTOR); the
+    # full-resolution ones are those the trust is read from
+    images = {COARSE_FACTOR: (_to_u8(skin_image(reference, CONTRAST_MM * COARSE_FACTOR)[0]),
+                              skin_image(expression, CONTRAST_MM * COARSE_FACTOR)[0]),
+              1: (_to_u8(source if template is None else skin_image(template)[0]), target)}
     for factor in (COARSE_FACTOR,) + (1,) * PASSES:
         source_u8, flow_target = images[factor]
         flow = _flow(source_u8, _to_u8(_remap(flow_target, total)), step, factor)  # source(p) ~ warped(p + flow)
