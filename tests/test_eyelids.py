@@ -133,7 +133,7 @@ def test_retarget_scans_takes_lid_landmarks_beside_the_22(tmp_path, ict):
 
     face = prepare_neutral(read_scan(tmp_path / "neutral.ply"), neutral.landmarks, _builtin_reference(),
                            shape=(100, 100))
-    np.testing.assert_allclose(face.vertices, basis.neutral, atol=0.01)  # landmarks written to 0.1 µm
+    np.testing.assert_allclose(face.mesh_vertices, basis.neutral, atol=0.01)  # landmarks written to 0.1 µm
     truth = truth_on_grid(ict, neutral, face, ["orbicularis_oculi_L"])[0]
     lid = np.argsort(np.linalg.norm(truth, axis=1))[-20:]  # the upper lid's 20 most moved grid vertices
     assert np.all(element[lid, 1] < 0)

@@ -151,7 +151,8 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
 
 
 def truth_on_grid(basis, neutral_scan: SyntheticScan, face, names) -> np.ndarray:
-    """The basis's elements at the grid vertices' points on its neutral surface, in the face frame.
+    """The basis's elements at the points of its neutral surface closest to the built neutral mesh's vertices
+    (:attr:`~livebridge.retarget.scans.FaceScan.mesh_vertices`), in the face frame.
 
     ``face`` is the prepared neutral (:class:`~livebridge.retarget.scans.FaceScan`); returns (k, n_vertices, 3).
     """
@@ -159,7 +160,7 @@ def truth_on_grid(basis, neutral_scan: SyntheticScan, face, names) -> np.ndarray
     from livebridge.retarget.landmarks import closest_surface_points
 
     mesh2face = face.scan2face @ neutral_scan.face2scanner
-    on_mesh = apply(np.linalg.inv(mesh2face), face.vertices)
+    on_mesh = apply(np.linalg.inv(mesh2face), face.mesh_vertices)
     triangle, bary, _ = closest_surface_points(on_mesh, basis.neutral, basis.triangles)
     index = [basis.index(name) for name in names]
     corners = basis.elements[index][:, basis.triangles[triangle]]  # (k, n, 3 corners, 3)
@@ -233,7 +234,7 @@ def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[in
     truth = truth_on_grid(basis, neutral_scan, neutral, names)
 
     def surface(built):
-        return surface_errors(built.elements, neutral.vertices, basis, neutral_scan, neutral, names, truth)
+        return surface_errors(built.elements, built.neutral, basis, neutral_scan, neutral, names, truth)
 
     return ScanFigures(names, coloured.n_vertices, truth, coloured.elements, shape_only.elements,
                        relative_errors(coloured.elements, truth), relative_errors(shape_only.elements, truth),

@@ -114,7 +114,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     basis = basis_from_scans(neutral, faces, kernel)
     basis.save(out)
     if grid_obj is not None:
-        neutral.grid.write_obj(grid_obj)
+        neutral.mesh_grid.write_obj(grid_obj)
     if landmarks_out is not None:
         neutral.landmark_set(neutral_landmarks).save(landmarks_out)
     largest = np.linalg.norm(basis.elements, axis=2).max(axis=1)

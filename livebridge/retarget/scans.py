@@ -96,6 +96,7 @@ from livebridge.retarget.skin_flow import (
     still_skin_correction,
 )
 from livebridge.retarget.skin_template import skin_templates
+from livebridge.retarget.surface_fit import fitted_heights
 from livebridge.retarget.tps import Kernel, fit_tps
 
 CROP_FACTOR = 1.2
@@ -150,6 +151,9 @@ class FaceScan:
     skin_holes : ndarray of bool, shape of ``skin``'s heights, or None
         The skin image's points with no scan point within :func:`opening_gap_mm` (the scan's own holes at its
         resolution: a squinting eye's slit, which the skin image's wider gap fills); None without colour.
+    fitted_heights : ndarray, shape of ``grid``'s heights, or None
+        The neutral's surface fitted to its points (:mod:`~livebridge.retarget.surface_fit`): the heights of
+        the mesh a basis is written on (:attr:`mesh_vertices`); None: the grid's own.
     """
 
     grid: FaceGrid
@@ -162,10 +166,23 @@ class FaceScan:
     template: FaceGrid | None = None
     chart: SkinChart = PLANAR
     skin_holes: np.ndarray | None = None
+    fitted_heights: np.ndarray | None = None
 
     @property
     def vertices(self) -> np.ndarray:
+        """The grid's vertices (n_vertices, 3): the interpolated scan, what the scans are registered and
+        tracked on."""
         return self.grid.vertices
+
+    @property
+    def mesh_grid(self) -> FaceGrid:
+        """The grid with the fitted heights when there are any: the mesh a basis is written on."""
+        return self.grid if self.fitted_heights is None else replace(self.grid, heights=self.fitted_heights)
+
+    @property
+    def mesh_vertices(self) -> np.ndarray:
+        """The grid's vertices (n_vertices, 3) on the fitted surface when there is one: the basis's neutral."""
+        return self.mesh_grid.vertices
 
     @property
     def triangles(self) -> np.ndarray:
@@ -194,7 +211,8 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     """The neutral scan normalised onto ``reference`` by ``method`` (see
     :func:`~livebridge.retarget.normalise.normalisation`), cropped to a sphere of ``radius`` around the nose
     tip and resampled on a ``shape`` grid over ``[-radius, radius]^2``; its skin images in a ``chart`` fitted
-    to it (:func:`~livebridge.retarget.chart.face_chart`)."""
+    to it (:func:`~livebridge.retarget.chart.face_chart`); its surface fitted to its points at the grid's
+    vertices (:mod:`~livebridge.retarget.surface_fit`)."""
     scan2face = normalisation(landmarks, reference, method, source)
     points = apply(scan2face, scan.points)
     moved = transform_landmarks(scan2face, landmarks)
@@ -202,7 +220,8 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     x, y = square_axes(radius, shape)
     face = _resampled(scan, points, x, y, radius, moved, scan2face, source, chart)
     face.landmark_set(source)  # every landmark on the resampled face, or a clear error
-    return face
+    inside = crop_sphere(points, np.zeros(3), radius)
+    return replace(face, fitted_heights=fitted_heights(points[inside], face.grid))
 
 
 def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float, landmarks: dict,
@@ -442,7 +461,7 @@ def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
                          for own, name, start, trust in zip(neutrals, names, starts, trusts)])
     muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks)
                     for name, element in zip(expressions, elements))
-    return Basis(neutral.vertices, neutral.triangles, elements, muscles)
+    return Basis(neutral.mesh_vertices, neutral.triangles, elements, muscles)
 
 
 def _with_templates(neutral: FaceScan, expressions: dict[str, FaceScan], kernel: Kernel | str
