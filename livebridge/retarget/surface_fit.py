@@ -13,7 +13,10 @@ steep sides). In `livebridge bench scans` (seed 7, 60k points a scan) the surfac
 to 0.036-0.088 of the elements' RMS motion (the lip corner 0.109 -> 0.088, the eyelids 0.110 / 0.111 -> 0.085 /
 0.082, the brows 0.057 -> 0.047); the elements are unchanged, but their truth is read where the moved vertices
 now lie, which moved their errors by at most 0.002 except the jaw's, 0.068 -> 0.071: one vertex on the lips'
-seam, 0.34 mm lower, has its closest point of the ICT face on the other lip.
+seam, 0.34 mm lower, has its closest point of the ICT face on the other lip. Seed 8 (60k): surfaces 0.05-0.149
+-> 0.045-0.134; the lip corner (0.134) and the lip press (0.119) stay over 0.10 for the grid vertices under
+the nose that span the nostrils' gap 2-7 mm off the face (the fit is not trusted there; they keep the
+interpolation). Seed 11 (150k): surfaces at most 0.079.
 
 Only the neutral mesh the basis is written on takes these heights: the skin tracking and the shape warp work
 on the interpolated grids as before (tracking on fitted expression grids too moved the eyelids and the jaw by
