@@ -18,6 +18,14 @@ seam, 0.34 mm lower, has its closest point of the ICT face on the other lip. See
 the nose that span the nostrils' gap 2-7 mm off the face (the fit is not trusted there; they keep the
 interpolation). Seed 11 (150k): surfaces at most 0.079.
 
+Tried and not taken: fitting (and falling back to) only the points the skin images keep
+(:func:`~livebridge.retarget.skin_flow.in_front`, judged on a fine height image of the points): the nostrils'
+vertices came onto the face (RMS off the true neutral, seed 8 / 7 at 60k: 0.202 / 0.141 -> 0.121 / 0.118;
+bench surfaces of seed 8's lip corner and lip press 0.134 / 0.119 -> 0.073 / 0.073), but at 150k points the
+bottom of the crease beside the nose's wings, narrower than the 2 mm window, was taken for a surface seen
+through a gap and spanned 1-2.6 mm above (RMS 0.102 -> 0.109; judged on the grid's own cells, 0.124). A test
+that tells a nostril's speckle of two depths from a narrow crease would take the gain.
+
 Only the neutral mesh the basis is written on takes these heights: the skin tracking and the shape warp work
 on the interpolated grids as before (tracking on fitted expression grids too moved the eyelids and the jaw by
 +0.009 and +0.005 relative RMS, unguarded, for nothing).
