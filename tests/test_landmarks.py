@@ -213,3 +213,64 @@ def test_show_renders_an_image(tmp_path):
 
 def test_builtin_68_names_are_what_the_derivation_reads():
     assert {landmark_name(i) for i in range(68)} <= set(shipped_marker_set("builtin-68").names)
+
+
+def _refused(result, *words):
+    """Exit != 0, one ``Error:`` line holding every word, no traceback (nor a crash report's internal error)."""
+    assert result.exit_code != 0, result.output
+    assert "Traceback" not in result.output and "internal error" not in result.output, result.output
+    error = next(line for line in result.output.splitlines() if line.startswith("Error:"))
+    for word in words:
+        assert word in error, (word, error)
+
+
+def _write_obj(path, vertices, triangles):
+    path.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in vertices)
+                    + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in triangles))
+
+
+def test_place_at_a_vertex_takes_a_triangle_with_area(tmp_path, face):
+    """A zero-area triangle listed first at the vertex (an exporter's sliver) is passed over: a landmark on it
+    would be refused as off the surface by every transfer."""
+    vertex = int(face.triangles[100, 0])
+    triangles = np.vstack([[[vertex, vertex, vertex]], face.triangles])
+    _write_obj(tmp_path / "sliver.obj", face.neutral, triangles)
+    (tmp_path / "ids.toml").write_text(f"nose_tip = {vertex}\n")
+    _run("landmarks", "place", tmp_path / "sliver.obj", "--vertices", tmp_path / "ids.toml", "--out",
+         tmp_path / "lm.toml")
+    placed = LandmarkSet.load(tmp_path / "lm.toml")
+    assert placed.triangles[0] != 0 and vertex in triangles[placed.triangles[0]]
+    assert np.allclose(placed.positions(face.neutral, triangles), face.neutral[vertex])
+
+
+def test_place_refuses_a_vertex_in_zero_area_triangles_only(tmp_path, face):
+    vertices = np.vstack([face.neutral, [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]])
+    n = len(face.neutral)
+    _write_obj(tmp_path / "line.obj", vertices, np.vstack([face.triangles, [[n, n + 1, n + 2]]]))
+    (tmp_path / "ids.toml").write_text(f"chin = {n + 1}\n")
+    result = CliRunner().invoke(main, ["landmarks", "place", str(tmp_path / "line.obj"), "--vertices",
+                                       str(tmp_path / "ids.toml"), "--out", str(tmp_path / "lm.toml")])
+    _refused(result, "ids.toml", "chin", f"vertex {n + 1}", "no area")
+
+
+@pytest.mark.parametrize("row,words", [
+    (",0,-80,89.94\n", ("p.csv", "line 1", "no name")),
+    ("nose_tip,1e300,0,0\n", ("p.csv", "nose_tip", "inf mm from the mesh surface")),
+])
+def test_place_refuses_an_unnamed_or_astronomically_far_point(tmp_path, row, words):
+    (tmp_path / "p.csv").write_text(row)
+    result = CliRunner().invoke(main, ["landmarks", "place", "builtin", "--points", str(tmp_path / "p.csv"),
+                                       "--out", str(tmp_path / "lm.toml")])
+    _refused(result, *words)
+
+
+@pytest.mark.parametrize("command", ["place", "show"])
+def test_a_mesh_with_a_nan_vertex_is_refused_naming_the_file_and_vertex(tmp_path, face, command):
+    vertices = face.neutral.copy()
+    vertices[4] = np.nan
+    _write_obj(tmp_path / "nan.obj", vertices, face.triangles)
+    (tmp_path / "p.csv").write_text("chin,0,-80,89.94\n")
+    args = (["place", str(tmp_path / "nan.obj"), "--points", str(tmp_path / "p.csv"), "--out",
+             str(tmp_path / "lm.toml")] if command == "place" else
+            ["show", str(tmp_path / "nan.obj"), "builtin-22", "--out", str(tmp_path / "lm.png")])
+    _refused(CliRunner().invoke(main, ["landmarks", *args]), "nan.obj", "vertex 5 is not finite")

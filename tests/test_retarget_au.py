@@ -114,3 +114,42 @@ def test_cli_writes_an_au_mesh(tmp_path):
     basis = builtin_basis()
     assert mesh.vertices.shape == basis.neutral.shape
     assert 1.0 < np.linalg.norm(mesh.vertices - basis.neutral, axis=1).max() < 30.0
+
+
+def _refused(result, *words):
+    """Exit != 0, one ``Error:`` line holding every word, no traceback (nor a crash report's internal error)."""
+    assert result.exit_code != 0, result.output
+    assert "Traceback" not in result.output and "internal error" not in result.output, result.output
+    error = next(line for line in result.output.splitlines() if line.startswith("Error:"))
+    for word in words:
+        assert word in error, (word, error)
+
+
+def test_cli_names_the_file_of_source_landmarks_the_control_points_need(tmp_path, builtin):
+    from click.testing import CliRunner
+
+    from livebridge.cli import main
+
+    _, landmarks = builtin
+    landmarks.subset(np.array([name != "chin" for name in landmarks.names])).save(tmp_path / "lm21.toml")
+    result = CliRunner().invoke(main, ["retarget", "au", "--source", "builtin", "--source-landmarks",
+                                       str(tmp_path / "lm21.toml"), "--target", "builtin", "--target-landmarks",
+                                       "builtin-22", "--au", "12", "--out", str(tmp_path / "au.obj")])
+    _refused(result, "lm21.toml", "landmarks", "chin", "control points")
+
+
+@pytest.mark.parametrize("verb", ["au", "basis"])
+def test_cli_refuses_a_target_in_other_units_naming_the_mesh_and_units(tmp_path, builtin, verb):
+    from click.testing import CliRunner
+
+    from livebridge.cli import main
+
+    face, _ = builtin
+    (tmp_path / "metres.obj").write_text("".join(f"v {x / 1000} {y / 1000} {z / 1000}\n" for x, y, z in face.neutral)
+                                         + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in face.triangles))
+    args = ["retarget", verb, "--source", "builtin", "--source-landmarks", "builtin-22", "--target",
+            str(tmp_path / "metres.obj"), "--target-landmarks", "builtin-22"]
+    out = ["--au", "12", "--out", str(tmp_path / "au.obj")] if verb == "au" else ["--out", str(tmp_path / "b.npz")]
+    _refused(CliRunner().invoke(main, args + out), "metres.obj", "units", "0.001 times")
+    result = CliRunner().invoke(main, args + out + ["--units", "m"])
+    assert result.exit_code == 0, result.output

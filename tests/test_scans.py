@@ -886,3 +886,84 @@ def test_retarget_scans_cli_writes_a_basis(tmp_path, ict):
     grid_mesh = read_scan(tmp_path / "grid.obj")
     assert grid_mesh.triangles.shape == basis.triangles.shape
     assert np.allclose(grid_mesh.points, basis.neutral, atol=1e-5)  # the OBJ is the basis's (fitted) neutral
+
+
+# ------------------------------------------------------------------------------------------------ bad scans
+@pytest.fixture(scope="module")
+def small_scans(tmp_path_factory):
+    """A neutral and a jaw scan of the built-in face (8000 points, no colour) with their landmark files."""
+    from livebridge.face.builtin import builtin_basis
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    folder = tmp_path_factory.mktemp("scans")
+    neutral, expressions = synthetic_scans(builtin_basis(), load_landmark_set("builtin-22"),
+                                           np.random.default_rng(3), n_points=8000, hole_muscle=None, colour=False,
+                                           muscles=("jaw",))
+    for name, scan in (("neutral", neutral), ("jaw", expressions["jaw"])):
+        write_ply(folder / f"{name}.ply", scan.points, None, "ascii")
+        (folder / f"{name}.landmarks.csv").write_text("".join(f"{k},{x},{y},{z}\n"
+                                                              for k, (x, y, z) in scan.landmarks.items()))
+    return folder
+
+
+def _spoil(folder, name, points=None, landmarks=None):
+    """Rewrite ``name``'s scan by ``points(p)`` and its landmarks by ``landmarks(dict)``."""
+    if points is not None:
+        write_ply(folder / f"{name}.ply", points(read_scan(folder / f"{name}.ply").points), None, "ascii")
+    if landmarks is not None:
+        rows = [line.split(",") for line in (folder / f"{name}.landmarks.csv").read_text().splitlines()]
+        marks = landmarks({row[0]: np.array([float(v) for v in row[1:]]) for row in rows})
+        (folder / f"{name}.landmarks.csv").write_text("".join(f"{k},{x},{y},{z}\n" for k, (x, y, z) in marks.items()))
+
+
+def _flat(p):
+    return p * [1.0, 1.0, 0.0]
+
+
+def _moved(name, by):
+    return lambda marks: {**marks, name: marks[name] + by}
+
+
+def _same(marks):
+    return {name: marks["nose_tip"] for name in marks}
+
+
+BAD_SCANS = [  # (case, scan to spoil, its points, its landmarks, extra options, words of the error)
+    ("a flat neutral", "neutral", _flat, lambda m: {k: _flat(v) for k, v in m.items()}, (),
+     ("neutral.ply", "points", "flat")),
+    ("the neutral in metres", "neutral", lambda p: p / 1000, lambda m: {k: v / 1000 for k, v in m.items()}, (),
+     ("neutral.landmarks.csv", "points", "0 points in the face crop")),
+    ("the neutral's landmarks at one point", "neutral", None, _same, (), ("neutral.landmarks.csv", "landmarks",
+                                                                          "coincide")),
+    ("a crop radius of 9 m", "neutral", None, None, ("--crop-radius", "9000"), ("neutral.landmarks.csv", "points",
+                                                                                "no surface")),
+    ("an expression landmark 50 mm off", "jaw", None, _moved("chin", [0, 0, 50]), (),
+     ("jaw.landmarks.csv", "chin", "from the nearest point of jaw.ply")),
+    ("an expression scan of one point", "jaw", lambda p: p[:1], None, (), ("jaw.landmarks.csv", "jaw.ply")),
+    ("an expression in metres", "jaw", lambda p: p / 1000, lambda m: {k: v / 1000 for k, v in m.items()}, (),
+     ("jaw.ply", "landmarks", "0.00", "times as far apart")),
+    ("an expression 1.3 times the size", "jaw", lambda p: p * 1.3, lambda m: {k: v * 1.3 for k, v in m.items()}, (),
+     ("jaw.ply", "landmarks", "1.3", "times as far apart")),
+]
+
+
+@pytest.mark.parametrize("case,name,points,landmarks,extra,words", BAD_SCANS, ids=[c[0] for c in BAD_SCANS])
+def test_retarget_scans_refuses_a_bad_scan_naming_the_file_and_landmark(tmp_path, small_scans, case, name, points,
+                                                                        landmarks, extra, words):
+    import shutil
+
+    from livebridge.cli import main
+
+    for path in small_scans.iterdir():
+        shutil.copy(path, tmp_path / path.name)
+    _spoil(tmp_path, name, points, landmarks)
+    result = CliRunner().invoke(main, [
+        "retarget", "scans", "--neutral", str(tmp_path / "neutral.ply"), "--neutral-landmarks",
+        str(tmp_path / "neutral.landmarks.csv"), "--expression", f"jaw={tmp_path / 'jaw.ply'}", "--grid", "40x40",
+        "--out", str(tmp_path / "b.npz"), *extra])
+    assert result.exit_code != 0, result.output
+    assert "Traceback" not in result.output and "internal error" not in result.output, result.output
+    error = next(line for line in result.output.splitlines() if line.startswith("Error:"))
+    for word in words:
+        assert word in error, (word, error)
+    assert not (tmp_path / "b.npz").exists()

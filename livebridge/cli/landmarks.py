@@ -72,7 +72,8 @@ def place(mesh, vertices_file: Path | None, points_file: Path | None, out: Path,
     vertices, triangles = load_mesh(mesh, units)
     if vertices_file is not None:
         source = vertices_file
-        placed = place_at_vertices(read_vertex_ids(vertices_file), len(vertices), triangles, vertices_file)
+        placed = place_at_vertices(read_vertex_ids(vertices_file), len(vertices), triangles, vertices_file,
+                                   vertices)
     else:
         source = points_file
         points = {name: xyz * UNITS_TO_MM[units] for name, xyz in read_points_csv(points_file).items()}

@@ -15,6 +15,9 @@ from livebridge.errors import InputError
 from livebridge.retarget.landmarks import SHIPPED_LANDMARK_SETS
 
 LANDMARKS_TYPE = InputPath(builtins=SHIPPED_LANDMARK_SETS)
+SIZE_RATIO = 5.0
+"""A target face whose landmarks spread more than this many times as far as the source's, or less than its
+inverse, is refused: faces differ in size by tens of percent, a mesh read in the wrong ``--units`` by 10 or 1000."""
 
 
 @click.group("retarget")
@@ -45,6 +48,7 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
     source = _load_source(source_spec)
     vertices, triangles = load_mesh(target_spec, units)
     on_source, on_target = _landmarks(source_landmarks, source, target_landmarks, vertices, triangles)
+    _check_size(on_source, source, on_target, vertices, triangles, target_spec, units)
     result = retarget_basis(source, on_source, vertices, triangles, on_target, kernel)
     result.save(out)
     moving = int(np.count_nonzero(np.abs(result.elements).max(axis=(1, 2)) > 0))
@@ -81,7 +85,9 @@ def au(source_spec, source_landmarks, target_spec, target_landmarks, aus, magnit
     source = _load_source(source_spec)
     vertices, triangles = load_mesh(target_spec, units)
     on_source, on_target = _landmarks(source_landmarks, source, target_landmarks, vertices, triangles)
+    _check_size(on_source, source, on_target, vertices, triangles, target_spec, units)
     points = load_control_points(control_points)
+    _require_reference_names(points, (source_landmarks, on_source), (target_landmarks, on_target))
     sides = {"both": ("L", "R", "C"), "left": ("L",), "right": ("R",)}[side]
     transfer = prepare_transfer(points, parse_aus(aus), source, on_source, (vertices, triangles), on_target, sides,
                                 kernel)
@@ -116,6 +122,38 @@ def _landmarks(source_spec, source, target_spec, vertices, triangles):
     check_landmarks_on(on_source, source.neutral, source.triangles, source_spec)
     check_landmarks_on(on_target, vertices, triangles, target_spec)
     return on_source, on_target
+
+
+def _check_size(on_source, source, on_target, vertices, triangles, target_mesh, units: str) -> None:
+    """Refuse a target whose landmarks spread :data:`SIZE_RATIO` times more or less than the source's: an OBJ
+    read in the wrong ``--units``. The transfer itself would run and write a face moved in the wrong units (or
+    find too few of its control points on the surface), so the error names the mesh and the option."""
+    names = list(on_source.names)
+    here = on_source.positions(source.neutral, source.triangles)
+    there = on_target.positions(vertices, triangles)[on_target.index_of(names)]
+    spread = [float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1)))) for p in (here, there)]
+    ratio = spread[1] / spread[0] if spread[0] > 0 else float("inf")
+    if not 1 / SIZE_RATIO <= ratio <= SIZE_RATIO:
+        raise InputError(f"its landmarks spread {spread[1]:.3g} mm (RMS about their centre), {ratio:.3g} times the "
+                         f"source's {spread[0]:.3g} mm: is it in {units}? (give its unit with --units)", target_mesh,
+                         "units")
+
+
+def _require_reference_names(points, *landmark_sets) -> None:
+    """Refuse, naming the landmark file, a source or target set that lacks a landmark the control points are
+    carried by (``landmark_sets``: (spec, LandmarkSet) pairs)."""
+    from livebridge.retarget.control_points import reference_face
+
+    try:
+        _, reference = reference_face(points.reference)
+    except InputError:
+        return  # a set defined on a face livebridge cannot load: carrying it says what is wrong
+    for spec, landmarks in landmark_sets:
+        try:
+            landmarks.index_of(reference.names)
+        except InputError as error:
+            raise InputError(error.message + f" (the control points are carried by {points.reference})", spec,
+                             "landmarks") from None
 
 
 @retarget.command("show")

@@ -103,12 +103,12 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     named = unique_names(expressions, "--expression")
     neutral = prepare_neutral(read_scan(neutral_scan, scale), read_landmark_points(neutral_landmarks, scale),
                               reference_landmarks(reference, 1.0), method, (rows, columns), crop_radius,
-                              neutral_landmarks)
+                              neutral_landmarks, scan_source=neutral_scan)
     faces, uncoloured = {}, []
     for name, spec in named.items():
         scan_path, landmark_path = split_scan_spec(spec)
         faces[name] = prepare_expression(read_scan(scan_path, scale), read_landmark_points(landmark_path, scale),
-                                         neutral, scan_path)
+                                         neutral, scan_path, landmark_path)
         if neutral.skin is None or faces[name].skin is None:
             uncoloured.append(name)
     basis = basis_from_scans(neutral, faces, kernel)

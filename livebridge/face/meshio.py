@@ -47,6 +47,10 @@ def read_obj(path: str | Path) -> Mesh:
         vertex_array = np.asarray(vertices, dtype=np.float64)
     except ValueError:
         raise InputError("a vertex line has fewer than 3 numeric coordinates", path) from None
+    bad = np.flatnonzero(~np.isfinite(vertex_array).all(axis=1))
+    if len(bad):  # a NaN or infinite vertex poisons every nearest-point search and spline that touches the mesh
+        raise InputError(f"vertex {bad[0] + 1} is not finite ({' '.join(vertices[bad[0]])}; {len(bad)} such)", path,
+                         "v")
     triangle_array = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     if triangle_array.size and (triangle_array.min() < 0 or triangle_array.max() >= len(vertex_array)):
         raise InputError("a face refers to a vertex that does not exist", path)

@@ -141,6 +141,8 @@ def crop_sphere(points: np.ndarray, centre: np.ndarray, radius: float) -> np.nda
 def front_surface(points: np.ndarray, cell: float, depth: float = FRONT_DEPTH_MM) -> np.ndarray:
     """Mask, shape (n,), of points (n, 3) within ``depth`` of the front-most (largest z) point of their
     x-y cell of size ``cell``: what a scanner looking along -z sees."""
+    if not len(points):  # no point in the crop: the caller says so, naming the file
+        return np.zeros(0, dtype=bool)
     cells = np.floor(points[:, :2] / cell).astype(np.int64)
     _, which = np.unique(cells, axis=0, return_inverse=True)
     which = which.ravel()
@@ -213,7 +215,11 @@ def resample(points: np.ndarray, x: np.ndarray, y: np.ndarray, max_gap: float | 
     interpolated = np.full((len(grid_xy), values.shape[1]), np.nan)
     interpolated[near] = _linear(points[:, :2], values, grid_xy[near])
     rgb = None if colours is None else interpolated[:, 1:].reshape(len(y), len(x), 3)
-    return FaceGrid(x, y, interpolated[:, 0].reshape(len(y), len(x)), rgb)
+    grid = FaceGrid(x, y, interpolated[:, 0].reshape(len(y), len(x)), rgb)
+    if not grid.valid.any():  # every later step needs a surface; points in a cell or two (wrong units) give none
+        raise InputError(f"{len(points)} points in the face crop make no surface on the {len(x)} x {len(y)} grid "
+                         f"of {cell:.3g} mm cells (are the scan's units and the crop radius right?)", source, "points")
+    return grid
 
 
 def _linear(points_xy: np.ndarray, values: np.ndarray, queries: np.ndarray) -> np.ndarray:

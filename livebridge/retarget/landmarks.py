@@ -170,7 +170,9 @@ def closest_surface_points(points: np.ndarray, vertices: np.ndarray, triangles: 
     used = np.unique(triangles)  # vertices in no triangle cannot lead to the surface
     k = min(near, len(used))
     _, nearest = cKDTree(vertices[used]).query(points, k=k)
-    nearest = used[np.asarray(nearest).reshape(len(points), k)]
+    # a point so far off (1e300 mm) that its distance overflows has no neighbour: cKDTree answers len(used);
+    # any vertex will do, the distance below is then infinite and the caller refuses it
+    nearest = used[np.minimum(np.asarray(nearest).reshape(len(points), k), len(used) - 1)]
     incidence = csr_matrix((np.ones(triangles.size), (triangles.ravel(), np.repeat(np.arange(len(triangles)), 3))),
                            shape=(len(vertices), len(triangles)))
     selection = csr_matrix((np.ones(nearest.size), (np.repeat(np.arange(len(points)), k), nearest.ravel())),
@@ -235,17 +237,40 @@ def _region(name: str) -> str:
 
 
 def place_at_vertices(vertex_ids: dict[str, int], n_vertices: int, triangles: np.ndarray,
-                      source=None) -> LandmarkSet:
-    """Landmarks exactly at mesh vertices (``{name: vertex id}``); errors name ``source`` and the landmark."""
+                      source=None, vertices: np.ndarray | None = None) -> LandmarkSet:
+    """Landmarks exactly at mesh vertices (``{name: vertex id}``); errors name ``source`` and the landmark.
+
+    Parameters
+    ----------
+    vertex_ids : dict of str to int
+    n_vertices : int
+    triangles : ndarray of int, shape (n_triangles, 3)
+    source : str or Path, optional
+        The file the ids came from, named in errors.
+    vertices : ndarray, shape (n_vertices, 3), optional
+        When given, each landmark takes the largest of its vertex's triangles: a zero-area triangle there (a
+        scanner's or an exporter's sliver) is no surface, and a landmark on it is refused by every transfer.
+    """
     triangles = np.asarray(triangles, dtype=np.int64)
+    areas = None
+    if vertices is not None:
+        corners_xyz = np.asarray(vertices, dtype=np.float64)[triangles]
+        areas = np.linalg.norm(np.cross(corners_xyz[:, 1] - corners_xyz[:, 0], corners_xyz[:, 2] - corners_xyz[:, 0]),
+                               axis=1)
     chosen, bary = [], []
     for name, vertex in vertex_ids.items():
         rows, corners = np.nonzero(triangles == vertex)
         if not len(rows):
             why = "is in no triangle of the mesh" if 0 <= vertex < n_vertices else "does not exist"
             raise InputError(f"vertex {vertex} {why} (mesh vertices 0..{n_vertices - 1})", source, name)
-        chosen.append(int(rows[0]))
-        bary.append(np.eye(3)[corners[0]])
+        best = 0
+        if areas is not None:
+            best = int(np.argmax(areas[rows]))
+            if not areas[rows[best]] > 0:
+                raise InputError(f"vertex {vertex} is only in triangles with no area (their corners coincide or lie "
+                                 "on a line): no surface there", source, name)
+        chosen.append(int(rows[best]))
+        bary.append(np.eye(3)[corners[best]])
     names = tuple(vertex_ids)
     return LandmarkSet(names, np.array(chosen), np.array(bary).reshape(-1, 3), tuple(map(_region, names)),
                        ("face",) * len(names))
@@ -300,6 +325,8 @@ def read_points_csv(path: str | Path) -> dict[str, np.ndarray]:
         if len(cells) != 4:
             raise InputError(f"line {line}: expected 4 fields name,x,y,z, got {len(cells)}", path)
         name = cells[0]
+        if not name:  # an unnamed landmark cannot be matched to another face's, nor named in an error
+            raise InputError(f"line {line}: the landmark has no name (expected name,x,y,z)", path)
         if name in points:
             raise InputError(f"line {line}: landmark {name!r} appears twice", path, name)
         try:

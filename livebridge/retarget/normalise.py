@@ -26,6 +26,12 @@ RIGID_LANDMARKS = ("eye_outer_L", "eye_outer_R", "eye_inner_L", "eye_inner_R", "
 METHODS = ("affine", "similarity", "rigid")
 ICP_POINTS = 8000
 """At most this many scan points (evenly picked) take part in a registration."""
+ICP_MIN_POINTS = 6
+"""Fewer scan points than this near the face cannot fix a rigid motion (6 unknowns)."""
+SIZE_RATIO = 1.25
+"""Two scans of one person whose skull landmarks differ in size by more than this factor are refused: another
+unit or another person. Hand-placed landmarks' noise (a few mm over the 30-100 mm between them) stays well
+inside; the 16 ICT-FaceKit expressions' skull landmarks are within 0.5 % of the neutral's."""
 
 
 def normalisation(landmarks: dict[str, np.ndarray], reference: dict[str, np.ndarray], method: str = "affine",
@@ -67,7 +73,12 @@ def _centred(landmarks, source) -> np.ndarray:
         raise InputError(f"normalisation needs the landmarks {', '.join(NORMALISATION_LANDMARKS)}; missing: "
                          f"{', '.join(missing)}", source, "landmarks")
     points = np.array([landmarks[name] for name in NORMALISATION_LANDMARKS], dtype=np.float64)
-    return points - points[-1]
+    centred = points - points[-1]
+    spread = np.linalg.svd(centred, compute_uv=False)
+    if not spread[1] > 1e-3 * spread[0]:  # on one line (or one point): no rotation is fixed by them
+        raise InputError(f"the landmarks {', '.join(NORMALISATION_LANDMARKS)} coincide or lie on one line "
+                         f"(spread {spread[0]:.3g} by {spread[1]:.3g} mm): no pose from them", source, "landmarks")
+    return centred
 
 
 def _columns(centred: np.ndarray) -> np.ndarray:
@@ -111,13 +122,24 @@ def register_rigid(points: np.ndarray, landmarks: dict[str, np.ndarray], target_
     if len(shared) < 3:
         raise InputError(f"registering a scan needs 3 or more of {', '.join(RIGID_LANDMARKS)}, got "
                          f"{', '.join(shared) or 'none'}", source, "landmarks")
-    transform = umeyama(np.array([landmarks[n] for n in shared]), np.array([target_landmarks[n] for n in shared]),
-                        with_scale=False)
+    own, theirs = np.array([landmarks[n] for n in shared]), np.array([target_landmarks[n] for n in shared])
+    # a rigid motion cannot undo a change of size: a scan in other units (or of another person) registers
+    # nowhere near the face, so say so before the registration lands it there
+    size = np.cbrt(abs(np.linalg.det(umeyama(own, theirs, with_scale=True)[:3, :3])))
+    if not 1 / SIZE_RATIO <= size <= SIZE_RATIO:
+        raise InputError(f"its landmarks {', '.join(shared)} are {1 / size:.3g} times as far apart as the neutral's "
+                         "(scans of one person, in one unit, are the same size: --units applies to every scan)",
+                         source, "landmarks")
+    transform = umeyama(own, theirs, with_scale=False)
     tree = cKDTree(target_points)
     points = np.asarray(points, dtype=np.float64)[::max(1, len(points) // ICP_POINTS)]
     for _ in range(iterations):
         moved = apply(transform, points)
         near = np.linalg.norm(moved, axis=1) < radius
+        if near.sum() < ICP_MIN_POINTS:
+            raise InputError(f"{int(near.sum())} of its points lie within {radius:.3g} mm of the neutral's nose tip "
+                             "once its landmarks are put on the neutral's: the scan does not overlap the face",
+                             source, "points")
         distance, nearest = tree.query(moved[near])
         trimmed = distance <= np.quantile(distance, keep)
         step = _point_to_plane_step(moved[near][trimmed], target_points[nearest[trimmed]],

@@ -121,6 +121,9 @@ CHART_KIND = "cylinder"
 neutral face (``"planar"``: the x-y projection, ``"sphere"``); see the chart module for the figures."""
 LANDMARK_MAX_DISTANCE_MM = 5.0
 """A landmark farther than this from the resampled surface is an error (off the face, or in a hole)."""
+MIN_DEPTH = 0.05
+"""A neutral face whose crop lies closer to a plane (RMS) than this fraction of the crop radius is refused as
+flat: a face's nose stands 20-35 mm in front of its cheeks, over a crop of about 100 mm."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -207,18 +210,24 @@ def crop_radius(landmarks: dict[str, np.ndarray]) -> float:
 
 def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dict[str, np.ndarray],
                     method: str = "rigid", shape: tuple[int, int] = GRID_SHAPE, radius: float | None = None,
-                    source=None, chart: str = CHART_KIND) -> FaceScan:
+                    source=None, chart: str = CHART_KIND, scan_source=None) -> FaceScan:
     """The neutral scan normalised onto ``reference`` by ``method`` (see
     :func:`~livebridge.retarget.normalise.normalisation`), cropped to a sphere of ``radius`` around the nose
     tip and resampled on a ``shape`` grid over ``[-radius, radius]^2``; its skin images in a ``chart`` fitted
     to it (:func:`~livebridge.retarget.chart.face_chart`); its surface fitted to its points at the grid's
-    vertices (:mod:`~livebridge.retarget.surface_fit`)."""
+    vertices (:mod:`~livebridge.retarget.surface_fit`). Errors name ``source`` (the landmark file) or
+    ``scan_source`` (the scan file: a flat scan)."""
     scan2face = normalisation(landmarks, reference, method, source)
     points = apply(scan2face, scan.points)
     moved = transform_landmarks(scan2face, landmarks)
     radius = crop_radius(moved) if radius is None else float(radius)
     x, y = square_axes(radius, shape)
     face = _resampled(scan, points, x, y, radius, moved, scan2face, source, chart)
+    off_plane = face.vertices - face.vertices.mean(axis=0)
+    depth = float(np.linalg.svd(off_plane, compute_uv=False)[-1] / np.sqrt(len(off_plane)))  # RMS off its plane
+    if depth < MIN_DEPTH * radius:  # a plane has no face to register the expressions on
+        raise InputError(f"flat: its face crop lies within {depth:.2g} mm (RMS) of a plane over {2 * radius:.3g} mm "
+                         "(a face is tens of mm deep)", scan_source or source, "points")
     face.landmark_set(source)  # every landmark on the resampled face, or a clear error
     inside = crop_sphere(points, np.zeros(3), radius)
     return replace(face, fitted_heights=fitted_heights(points[inside], face.grid))
@@ -287,8 +296,20 @@ def opening_gap_mm(spacing: float, step: float) -> float:
     return float(min(GAP_SPACINGS * spacing, gap)) if np.isfinite(spacing) and spacing > 0 else gap
 
 
-def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: FaceScan, source=None) -> FaceScan:
-    """An expression scan of the neutral's person, registered onto it and resampled on its grid lines."""
+def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: FaceScan, source=None,
+                       landmarks_source=None) -> FaceScan:
+    """An expression scan of the neutral's person, registered onto it and resampled on its grid lines.
+
+    Parameters
+    ----------
+    scan : Scan
+    landmarks : dict of str to ndarray, shape (3,)
+        In the scan's coordinates; each within :data:`LANDMARK_MAX_DISTANCE_MM` of a scan point.
+    neutral : FaceScan
+    source, landmarks_source : str or Path, optional
+        The scan file and its landmark file, named in errors.
+    """
+    check_on_points(landmarks, scan.points, landmarks_source, source)
     radius = float(neutral.grid.x[-1])
     normals = vertex_normals(neutral.vertices, neutral.triangles)
     scan2face = register_rigid(scan.points, landmarks, neutral.vertices, normals, neutral.landmarks, radius,
@@ -297,6 +318,31 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     axes = None if neutral.skin is None else (neutral.skin.x, neutral.skin.y, neutral.skin_factor, neutral.skin_margin)
     return _resampled(scan, points, neutral.grid.x, neutral.grid.y, radius, transform_landmarks(scan2face, landmarks),
                       scan2face, source, neutral.chart, axes)
+
+
+def check_on_points(landmarks: dict[str, np.ndarray], points: np.ndarray, source=None, scan=None) -> None:
+    """Raise an :class:`InputError` naming ``source`` (the landmark file) and the landmark farthest from the
+    scan's ``points`` (n, 3) when it is farther than :data:`LANDMARK_MAX_DISTANCE_MM` from all of them.
+
+    The expression's landmarks drive its landmark spline: one off the scan (misplaced, another file's, or in
+    other units) would warp the face towards nothing. The scan's own points are the reference, not its
+    resampled grid, which the neutral's crop may cut short of an opened jaw's chin.
+    """
+    from pathlib import Path
+
+    from scipy.spatial import cKDTree
+
+    names = list(landmarks)
+    distance, _ = cKDTree(points).query(np.array([landmarks[name] for name in names], dtype=np.float64))
+    far = np.flatnonzero(distance > LANDMARK_MAX_DISTANCE_MM)
+    if far.size:
+        k = int(far[np.argmax(distance[far])])
+        scan_name = Path(scan).name if scan is not None else "the scan"
+        several = f"; {far.size} landmarks this far" if far.size > 1 else ""
+        raise InputError(f"{distance[k]:.3g} mm from the nearest point of {scan_name} (at most "
+                         f"{LANDMARK_MAX_DISTANCE_MM:g} mm{several}): off the scan's surface or in a hole of it "
+                         "(same coordinates and units as the scan?)",
+                         source, names[k])
 
 
 def expression_element(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,
