@@ -18,3 +18,13 @@ def random_basis(rng: np.random.Generator, n_vertices: int = 40, n_muscles: int 
     elements = rng.normal(size=(n_muscles, side * side, 3))
     muscles = tuple(Muscle(f"m{i}", "upper" if i % 2 == 0 else "lower", None, "") for i in range(n_muscles))
     return Basis(neutral, triangles, elements, muscles)
+
+
+def assert_cli_refused(result, *words) -> None:
+    """A click ``result`` that exited != 0 with one ``Error:`` line holding every word, and no traceback (nor a
+    crash report's internal error)."""
+    assert result.exit_code != 0, result.output
+    assert "Traceback" not in result.output and "internal error" not in result.output, result.output
+    error = next(line for line in result.output.splitlines() if line.startswith("Error:"))
+    for word in words:
+        assert word in error, (word, error)

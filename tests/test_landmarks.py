@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from factories import assert_cli_refused
 
 from livebridge.cli import main
 from livebridge.face import builtin
@@ -215,15 +216,6 @@ def test_builtin_68_names_are_what_the_derivation_reads():
     assert {landmark_name(i) for i in range(68)} <= set(shipped_marker_set("builtin-68").names)
 
 
-def _refused(result, *words):
-    """Exit != 0, one ``Error:`` line holding every word, no traceback (nor a crash report's internal error)."""
-    assert result.exit_code != 0, result.output
-    assert "Traceback" not in result.output and "internal error" not in result.output, result.output
-    error = next(line for line in result.output.splitlines() if line.startswith("Error:"))
-    for word in words:
-        assert word in error, (word, error)
-
-
 def _write_obj(path, vertices, triangles):
     path.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in vertices)
                     + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in triangles))
@@ -250,7 +242,7 @@ def test_place_refuses_a_vertex_in_zero_area_triangles_only(tmp_path, face):
     (tmp_path / "ids.toml").write_text(f"chin = {n + 1}\n")
     result = CliRunner().invoke(main, ["landmarks", "place", str(tmp_path / "line.obj"), "--vertices",
                                        str(tmp_path / "ids.toml"), "--out", str(tmp_path / "lm.toml")])
-    _refused(result, "ids.toml", "chin", f"vertex {n + 1}", "no area")
+    assert_cli_refused(result, "ids.toml", "chin", f"vertex {n + 1}", "no area")
 
 
 @pytest.mark.parametrize("row,words", [
@@ -261,7 +253,7 @@ def test_place_refuses_an_unnamed_or_astronomically_far_point(tmp_path, row, wor
     (tmp_path / "p.csv").write_text(row)
     result = CliRunner().invoke(main, ["landmarks", "place", "builtin", "--points", str(tmp_path / "p.csv"),
                                        "--out", str(tmp_path / "lm.toml")])
-    _refused(result, *words)
+    assert_cli_refused(result, *words)
 
 
 @pytest.mark.parametrize("command", ["place", "show"])
@@ -273,4 +265,4 @@ def test_a_mesh_with_a_nan_vertex_is_refused_naming_the_file_and_vertex(tmp_path
     args = (["place", str(tmp_path / "nan.obj"), "--points", str(tmp_path / "p.csv"), "--out",
              str(tmp_path / "lm.toml")] if command == "place" else
             ["show", str(tmp_path / "nan.obj"), "builtin-22", "--out", str(tmp_path / "lm.png")])
-    _refused(CliRunner().invoke(main, ["landmarks", *args]), "nan.obj", "vertex 5 is not finite")
+    assert_cli_refused(CliRunner().invoke(main, ["landmarks", *args]), "nan.obj", "vertex 5 is not finite")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from factories import assert_cli_refused
 
 from livebridge.face.basis import CHOE_KO_MUSCLES
 from livebridge.face.builtin import builtin_basis
@@ -116,15 +117,6 @@ def test_cli_writes_an_au_mesh(tmp_path):
     assert 1.0 < np.linalg.norm(mesh.vertices - basis.neutral, axis=1).max() < 30.0
 
 
-def _refused(result, *words):
-    """Exit != 0, one ``Error:`` line holding every word, no traceback (nor a crash report's internal error)."""
-    assert result.exit_code != 0, result.output
-    assert "Traceback" not in result.output and "internal error" not in result.output, result.output
-    error = next(line for line in result.output.splitlines() if line.startswith("Error:"))
-    for word in words:
-        assert word in error, (word, error)
-
-
 def test_cli_names_the_file_of_source_landmarks_the_control_points_need(tmp_path, builtin):
     from click.testing import CliRunner
 
@@ -135,7 +127,7 @@ def test_cli_names_the_file_of_source_landmarks_the_control_points_need(tmp_path
     result = CliRunner().invoke(main, ["retarget", "au", "--source", "builtin", "--source-landmarks",
                                        str(tmp_path / "lm21.toml"), "--target", "builtin", "--target-landmarks",
                                        "builtin-22", "--au", "12", "--out", str(tmp_path / "au.obj")])
-    _refused(result, "lm21.toml", "landmarks", "chin", "control points")
+    assert_cli_refused(result, "lm21.toml", "landmarks", "chin", "control points")
 
 
 @pytest.mark.parametrize("verb", ["au", "basis"])
@@ -150,6 +142,6 @@ def test_cli_refuses_a_target_in_other_units_naming_the_mesh_and_units(tmp_path,
     args = ["retarget", verb, "--source", "builtin", "--source-landmarks", "builtin-22", "--target",
             str(tmp_path / "metres.obj"), "--target-landmarks", "builtin-22"]
     out = ["--au", "12", "--out", str(tmp_path / "au.obj")] if verb == "au" else ["--out", str(tmp_path / "b.npz")]
-    _refused(CliRunner().invoke(main, args + out), "metres.obj", "units", "0.001 times")
+    assert_cli_refused(CliRunner().invoke(main, args + out), "metres.obj", "units", "0.001 times")
     result = CliRunner().invoke(main, args + out + ["--units", "m"])
     assert result.exit_code == 0, result.output
