@@ -34,18 +34,19 @@ def test_fitted_surface_averages_the_scanner_noise_and_keeps_the_curvature(rng):
     assert np.sqrt(np.mean(error ** 2)) < 0.06  # noise 0.2 mm per point; the ripples' curvature not flattened
 
 
-def test_fitted_surface_leaves_a_cliff_and_a_hole_edge_as_the_points_give_them(rng):
-    """Where a quadratic does not describe the surface (a 6 mm step, as at a nostril's rim), the vertices keep
-    the interpolated heights instead of a fit that cuts the corner; a hole stays a hole."""
+def test_fitted_surface_leaves_a_step_and_a_hole_edge_as_the_points_give_them(rng):
+    """Where a quadratic does not describe the surface (a 4 mm step, as at a lip's edge; deeper ones are two
+    surfaces, see below), the vertices keep the interpolated heights instead of a fit that cuts the corner; a
+    hole stays a hole."""
     xy = rng.uniform(-30, 30, (12_000, 2))
     xy = xy[np.hypot(xy[:, 0] + 12.0, xy[:, 1]) > 6.0]
-    step = np.where(xy[:, 0] > 5.0, 6.0, 0.0)
+    step = np.where(xy[:, 0] > 5.0, 4.0, 0.0)
     points = _scan(rng, xy, step)
     x, y = square_axes(25.0, (60, 60))
     grid = resample(points, x, y)
     fitted = fitted_heights(points, grid)
     xx, _ = np.meshgrid(x, y)
-    truth = np.where(xx > 5.0, 6.0, 0.0)
+    truth = np.where(xx > 5.0, 4.0, 0.0)
     near_step = grid.valid & (np.abs(xx - 5.0) < 2.0)
     away = grid.valid & (np.abs(xx - 5.0) > 6.0)
     assert np.max(np.abs(fitted - grid.heights)[near_step]) <= 0.85  # at most twice the allowed noise
@@ -60,3 +61,20 @@ def test_too_few_points_keep_the_interpolated_heights(rng):
     grid = resample(points, x, y)
     fitted = fitted_heights(points, grid, spacing=0.05)  # a reach of 0.5 mm: no vertex has 12 points in it
     assert np.array_equal(fitted[grid.valid], grid.heights[grid.valid])
+
+
+def test_a_vertex_interpolated_between_two_surfaces_takes_the_fit(rng):
+    """Where the scanner sees past the skin at some of its points (a nostril's rim, the lip 25 mm behind it)
+    the interpolation blends the two depths and leaves the vertex in the air; the fit, robust to the deeper
+    points, puts it back on the skin."""
+    xy = rng.uniform(-30, 30, (12_000, 2))
+    past = (np.hypot(xy[:, 0], xy[:, 1]) < 3.0) & (rng.random(len(xy)) < 0.3)
+    points = _scan(rng, xy, np.where(past, -25.0, 0.0))
+    x, y = square_axes(25.0, (60, 60))
+    grid = resample(points, x, y)
+    fitted = fitted_heights(points, grid)
+    xx, yy = np.meshgrid(x, y)
+    over = grid.valid & (np.hypot(xx, yy) < 2.5)
+    in_the_air = over & (grid.heights < -3.0) & (grid.heights > -22.0)
+    assert in_the_air.sum() >= 3  # what the interpolation makes of it
+    assert np.abs(fitted[in_the_air]).max() < 0.5

@@ -7,18 +7,23 @@ basis gives are that neutral plus the elements, whose heights are smoothed: they
 noise, which was most of how far they lay off the true expressive surfaces. A moving least squares fit (a
 quadratic in x-y through the points within :data:`FIT_SPACINGS` point spacings, Gaussian-weighted and robust
 to outliers), trusted only where it stays within the noise of the interpolated height
-(:data:`TRUSTED_DEVIATION`), keeps the face's curvature and averages the noise: median 0.048 mm, RMS 0.141 mm
-(the rest of the tail is where the fit is not trusted: the lips' seam, the nostrils, the eyes' rims, the face's
-steep sides). In `livebridge bench scans` (seed 7, 60k points a scan) the surface errors fell from 0.042-0.111
-to 0.036-0.088 of the elements' RMS motion (the lip corner 0.109 -> 0.088, the eyelids 0.110 / 0.111 -> 0.085 /
-0.082, the brows 0.057 -> 0.047); the elements are unchanged, but their truth is read where the moved vertices
-now lie, which moved their errors by at most 0.002 except the jaw's, 0.068 -> 0.071: one vertex on the lips'
-seam, 0.34 mm lower, has its closest point of the ICT face on the other lip. Seed 8 (60k): surfaces 0.05-0.149
--> 0.045-0.134; the lip corner (0.134) and the lip press (0.119) stay over 0.10 for the grid vertices under
-the nose that span the nostrils' gap 2-7 mm off the face (the fit is not trusted there; they keep the
-interpolation). Seed 11 (150k): surfaces at most 0.079.
+(:data:`TRUSTED_DEVIATION`) or where the interpolation blends two surfaces (:data:`MIXED_DEPTH_MM`: a nostril's
+rim and the lip 25 mm behind it, leaving the vertex in the air), keeps the face's curvature and averages the
+noise: median 0.047 mm, RMS 0.129 mm (the rest of the tail is where the fit is not trusted: the lips' seam, the
+nostrils, the eyes' rims, the face's steep sides); 0.095 / 0.236 -> 0.047 / 0.172 for seed 8's neutral, 0.095 /
+0.158 -> 0.044 / 0.102 at 150k points (seed 7).
 
-Tried and not taken: fitting (and falling back to) only the points the skin images keep
+In `livebridge bench scans` (seed 7) the surface errors fell from 0.042-0.111 to 0.033-0.085 of the elements'
+RMS motion at 60k points a scan (the lip corner 0.109 -> 0.079, the lip press 0.099 -> 0.075, the eyelids 0.110
+/ 0.111 -> 0.085 / 0.082, the brows 0.057 -> 0.043), from 0.029-0.105 to 0.019-0.081 at 150k (the eyelids
+0.102 / 0.105 -> 0.074 / 0.081). The elements are unchanged, but their truth is read where the moved vertices
+now lie, which moved their errors by at most 0.002 except the jaw's, 0.068 -> 0.071: one vertex on the lips'
+seam, 0.34 mm lower, has its closest point of the ICT face on the other lip. Seed 8 (60k): surfaces 0.050-0.149
+-> 0.042-0.113; the lip corner (0.113) and the lip press (0.102) stay over 0.10 for the grid vertices under the
+nose that still span the nostrils' gap several mm off the face. Seed 11 (150k): surfaces at most 0.079 (before
+the two-surface rule, which does not change seed 7's 150k figures).
+
+Tried and not taken (before the two-surface rule): fitting (and falling back to) only the points the skin images keep
 (:func:`~livebridge.retarget.skin_flow.in_front`, judged on a fine height image of the points): the nostrils'
 vertices came onto the face (RMS off the true neutral, seed 8 / 7 at 60k: 0.202 / 0.141 -> 0.121 / 0.118;
 bench surfaces of seed 8's lip corner and lip press 0.134 / 0.119 -> 0.073 / 0.073), but at 150k points the
@@ -57,6 +62,9 @@ TRUSTED_DEVIATION = 2.0
 points' noise (their robust residual scale from the fits), and not at all at twice that: more than noise
 apart, the quadratic does not describe the surface there (a nostril's rim, the face's steep sides, a hole's
 edge, where fits moved vertices by 1-30 mm)."""
+MIXED_DEPTH_MM = 5.0
+"""A vertex whose three nearest points (the corners its interpolation blends) span more than this in depth lies
+between two surfaces (a nostril's rim and the lip seen past it): it takes the fit whatever it deviates."""
 CHUNK = 4000
 """Vertices fitted at once (bounds the memory of the per-point products)."""
 
@@ -92,6 +100,10 @@ def fitted_heights(points: np.ndarray, grid: FaceGrid, spacing: float | None = N
     flat = heights.ravel()
     deviation = np.abs(fitted - flat[at])
     share = np.clip(2.0 - deviation / max(TRUSTED_DEVIATION * noise, 1e-12), 0.0, 1.0)
+    _, nearest = tree.query(queries, k=3)
+    depths = points[:, 2][nearest]
+    mixed = np.ptp(depths, axis=1) > MIXED_DEPTH_MM  # the interpolation spans two surfaces: no height of either
+    share = np.where(mixed, 1.0, share)
     flat[at] += np.where(np.isfinite(fitted), share * (fitted - flat[at]), 0.0)
     return flat.reshape(heights.shape)
 
