@@ -56,7 +56,7 @@ interpolated height."""
 ROBUST_ROUNDS = 2
 """Rounds of re-weighting by the Cauchy function of each point's residual."""
 ROBUST_SCALE = 4.0
-"""Cauchy scale in median absolute residuals (over the whole face)."""
+"""Cauchy scale in median absolute residuals (over the :data:`CHUNK` vertices fitted together)."""
 TRUSTED_DEVIATION = 2.0
 """The fitted height replaces the interpolated one fully while the two differ by at most this many times the
 points' noise (their robust residual scale from the fits), and not at all at twice that: more than noise
@@ -100,7 +100,7 @@ def fitted_heights(points: np.ndarray, grid: FaceGrid, spacing: float | None = N
     flat = heights.ravel()
     deviation = np.abs(fitted - flat[at])
     share = np.clip(2.0 - deviation / max(TRUSTED_DEVIATION * noise, 1e-12), 0.0, 1.0)
-    _, nearest = tree.query(queries, k=3)
+    _, nearest = tree.query(queries, k=min(3, len(points)))
     depths = points[:, 2][nearest]
     mixed = np.ptp(depths, axis=1) > MIXED_DEPTH_MM  # the interpolation spans two surfaces: no height of either
     share = np.where(mixed, 1.0, share)
