@@ -7,21 +7,21 @@ basis gives are that neutral plus the elements, whose heights are smoothed: they
 noise, which was most of how far they lay off the true expressive surfaces. A moving least squares fit (a
 quadratic in x-y through the points within :data:`FIT_SPACINGS` point spacings, Gaussian-weighted and robust
 to outliers), trusted only where it stays within the noise of the interpolated height
-(:data:`TRUSTED_DEVIATION`) or where the interpolation blends two surfaces (:data:`MIXED_DEPTH_MM`: a nostril's
-rim and the lip 25 mm behind it, leaving the vertex in the air), keeps the face's curvature and averages the
-noise: median 0.047 mm, RMS 0.129 mm (the rest of the tail is where the fit is not trusted: the lips' seam, the
-nostrils, the eyes' rims, the face's steep sides); 0.095 / 0.236 -> 0.047 / 0.172 for seed 8's neutral, 0.095 /
-0.158 -> 0.044 / 0.102 at 150k points (seed 7).
+(:data:`TRUSTED_DEVIATION`), keeps the face's curvature and averages the noise. Where the interpolation blends
+two surfaces (:data:`MIXED_DEPTH_MM`: a nostril's rim and the lip 25 mm behind it, which left the vertex in the
+air, up to 6.9 mm off the face) the vertex takes the fit to one of them. Off the true neutral, median / RMS mm:
+0.095 / 0.186 -> 0.048 / 0.099 (seed 7, 60k points), 0.097 / 0.236 -> 0.046 / 0.102 (seed 8, 60k), 0.095 /
+0.158 -> 0.044 / 0.099 (seed 7, 150k); the rest of the tail is where no fit is trusted (the lips' seam, the
+eyes' rims, the face's steep sides).
 
-In `livebridge bench scans` (seed 7) the surface errors fell from 0.042-0.111 to 0.033-0.085 of the elements'
-RMS motion at 60k points a scan (the lip corner 0.109 -> 0.079, the lip press 0.099 -> 0.075, the eyelids 0.110
-/ 0.111 -> 0.085 / 0.082, the brows 0.057 -> 0.043), from 0.029-0.105 to 0.019-0.081 at 150k (the eyelids
-0.102 / 0.105 -> 0.074 / 0.081). The elements are unchanged, but their truth is read where the moved vertices
-now lie, which moved their errors by at most 0.002 except the jaw's, 0.068 -> 0.071: one vertex on the lips'
-seam, 0.34 mm lower, has its closest point of the ICT face on the other lip. Seed 8 (60k): surfaces 0.050-0.149
--> 0.042-0.113; the lip corner (0.113) and the lip press (0.102) stay over 0.10 for the grid vertices under the
-nose that still span the nostrils' gap several mm off the face. Seed 11 (150k): surfaces at most 0.079 (before
-the two-surface rule, which does not change seed 7's 150k figures).
+In `livebridge bench scans` (seed 7) the surface errors fell from 0.042-0.111 to 0.023-0.085 of the elements'
+RMS motion at 60k points a scan (the lip corner 0.109 -> 0.056, the lip press 0.099 -> 0.059, the eyelids 0.110
+/ 0.111 -> 0.085 / 0.082, the brows 0.057 -> 0.029), from 0.029-0.105 to 0.018-0.081 at 150k (the eyelids
+0.102 / 0.105 -> 0.074 / 0.081). Seed 8 (60k): 0.050-0.149 -> 0.023-0.085. The elements are unchanged, but
+their truth is read where the moved vertices now lie, which moved their errors by at most 0.002 except the
+jaw's, 0.068 -> 0.071: one vertex on the lips' seam, 0.34 mm lower, has its closest point of the ICT face on
+the other lip. Without the two-surface rule seed 8's lip corner and lip press stayed at 0.134 / 0.119; with
+it judged on the three nearest points and the fit to all of them, 0.113 / 0.102.
 
 Tried and not taken (before the two-surface rule): fitting (and falling back to) only the points the skin images keep
 (:func:`~livebridge.retarget.skin_flow.in_front`, judged on a fine height image of the points): the nostrils'
@@ -63,8 +63,10 @@ points' noise (their robust residual scale from the fits), and not at all at twi
 apart, the quadratic does not describe the surface there (a nostril's rim, the face's steep sides, a hole's
 edge, where fits moved vertices by 1-30 mm)."""
 MIXED_DEPTH_MM = 5.0
-"""A vertex whose three nearest points (the corners its interpolation blends) span more than this in depth lies
-between two surfaces (a nostril's rim and the lip seen past it): it takes the fit whatever it deviates."""
+"""A vertex whose interpolation blends points (its Delaunay triangle's corners) more than this apart in depth
+lies between two surfaces, in the air (a nostril's rim and the lip seen past it): it takes the fit to the
+points of one surface, those within this depth of the corners' majority (or of the third corner where that
+surface has too few points in reach), whatever it deviates from the interpolation."""
 CHUNK = 4000
 """Vertices fitted at once (bounds the memory of the per-point products)."""
 
@@ -100,17 +102,37 @@ def fitted_heights(points: np.ndarray, grid: FaceGrid, spacing: float | None = N
     flat = heights.ravel()
     deviation = np.abs(fitted - flat[at])
     share = np.clip(2.0 - deviation / max(TRUSTED_DEVIATION * noise, 1e-12), 0.0, 1.0)
-    _, nearest = tree.query(queries, k=min(3, len(points)))
-    depths = points[:, 2][nearest]
+    corners = _interpolated_from(points[:, :2], queries)
+    depths = np.where(corners[:, :1] >= 0, points[:, 2][np.maximum(corners, 0)], np.nan)
     mixed = np.ptp(depths, axis=1) > MIXED_DEPTH_MM  # the interpolation spans two surfaces: no height of either
-    share = np.where(mixed, 1.0, share)
+    if mixed.any():  # fitted again to the surface two of the three corners lie on, else to the third's
+        majority = np.median(depths[mixed], axis=1)
+        odd = depths[mixed][np.arange(mixed.sum()), np.argmax(np.abs(depths[mixed] - majority[:, None]), axis=1)]
+        on_layer = _fit(points, tree, queries[mixed], radius, majority)[0]
+        on_layer = np.where(np.isfinite(on_layer), on_layer, _fit(points, tree, queries[mixed], radius, odd)[0])
+        fitted[mixed] = on_layer
+        share = np.where(mixed, 1.0, share)
     flat[at] += np.where(np.isfinite(fitted), share * (fitted - flat[at]), 0.0)
     return flat.reshape(heights.shape)
 
 
-def _fit(points: np.ndarray, tree: cKDTree, queries: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+def _interpolated_from(points_xy: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """The three points (indices, (m, 3); -1 outside their hull) whose Delaunay triangle holds each query: the
+    corners :func:`~livebridge.retarget.grid.resample`'s linear interpolation blends there."""
+    from scipy.spatial import Delaunay
+    from threadpoolctl import threadpool_limits
+
+    triangulation = Delaunay(points_xy)
+    with threadpool_limits(limits=1, user_api="blas"):  # as grid._linear: threaded BLAS is far slower here
+        simplex = triangulation.find_simplex(queries)
+    return np.where(simplex[:, None] >= 0, triangulation.simplices[simplex], -1)
+
+
+def _fit(points: np.ndarray, tree: cKDTree, queries: np.ndarray, radius: float, layer: np.ndarray | None = None
+         ) -> tuple[np.ndarray, np.ndarray]:
     """The fitted height at each query (m, 2), NaN where none can be fitted, shape (m,); and the residuals of
-    the points in reach of the fitted queries (by the last fit; a point once per query it reaches)."""
+    the points in reach of the fitted queries (by the last fit; a point once per query it reaches). With
+    ``layer`` (m,), only the points within :data:`MIXED_DEPTH_MM` of that depth count for each query."""
     near = tree.query_ball_point(queries, radius)
     counts = np.fromiter((len(n) for n in near), int, len(near))
     out = np.full(len(queries), np.nan)
@@ -123,8 +145,11 @@ def _fit(points: np.ndarray, tree: cKDTree, queries: np.ndarray, radius: float) 
     design = np.column_stack([np.ones(len(z)), offset[:, 0], offset[:, 1], offset[:, 0] ** 2,
                               offset[:, 0] * offset[:, 1], offset[:, 1] ** 2])
     prior = np.exp(-2.0 * np.sum(offset ** 2, axis=1))  # sigma = radius / 2
+    if layer is not None:
+        prior = np.where(np.abs(z - layer[owner]) < MIXED_DEPTH_MM, prior, 0.0)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     has = counts > 0
+    enough = np.bincount(owner, weights=(prior > 0).astype(float), minlength=len(queries)) >= MIN_POINTS
     weight = prior
     for _ in range(ROBUST_ROUNDS + 1):
         normal = np.zeros((len(queries), 6, 6))
@@ -133,7 +158,7 @@ def _fit(points: np.ndarray, tree: cKDTree, queries: np.ndarray, radius: float) 
                                       starts[has], axis=0)
         right[has] = np.add.reduceat(weight[:, None] * design * z[:, None], starts[has], axis=0)
         scale = np.linalg.eigvalsh(normal)
-        usable = (counts >= MIN_POINTS) & (scale[:, 0] > 1e-6 * np.maximum(scale[:, -1], 1e-300))
+        usable = enough & (scale[:, 0] > 1e-6 * np.maximum(scale[:, -1], 1e-300))
         normal[~usable] = np.eye(6)
         coefficients = np.linalg.solve(normal, right[..., None])[..., 0]
         residual = z - np.einsum("nk,nk->n", design, coefficients[owner])
