@@ -224,18 +224,10 @@ def resample(points: np.ndarray, x: np.ndarray, y: np.ndarray, max_gap: float | 
 
 def _linear(points_xy: np.ndarray, values: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """``values`` (n, k) of points (n, 2) interpolated linearly at queries (m, 2) over the Delaunay
-    triangulation (what ``griddata(method="linear")`` computes), NaN outside the hull; shape (m, k).
-
-    One BLAS thread: scipy inverts each triangle's 2 x 2 barycentric matrix with its own LAPACK call, and
-    threaded OpenBLAS made that 10-20 s instead of 0.2 s for a 30k-point face on a busy 2-core machine (so
-    ``griddata`` itself was that slow).
+    triangulation (what ``griddata(method="linear")`` computes, without its threaded slowness: see
+    :func:`containing_triangles`), NaN outside the hull; shape (m, k).
     """
-    from scipy.spatial import Delaunay
-    from threadpoolctl import threadpool_limits
-
-    triangulation = Delaunay(points_xy)
-    with threadpool_limits(limits=1, user_api="blas"):
-        simplex = triangulation.find_simplex(queries)
+    triangulation, simplex = containing_triangles(points_xy, queries)
     inside = simplex >= 0
     transform = triangulation.transform[simplex[inside]]  # (k, 3, 2): inverse affine and offset
     partial = np.einsum("kij,kj->ki", transform[:, :2], queries[inside] - transform[:, 2])
@@ -243,3 +235,19 @@ def _linear(points_xy: np.ndarray, values: np.ndarray, queries: np.ndarray) -> n
     out = np.full((len(queries), values.shape[1]), np.nan)
     out[inside] = np.einsum("ki,kij->kj", barycentric, values[triangulation.simplices[simplex[inside]]])
     return out
+
+
+def containing_triangles(points_xy: np.ndarray, queries: np.ndarray):
+    """The Delaunay triangulation of ``points_xy`` (n, 2) and the index of the triangle holding each query
+    (m, 2), -1 outside the hull: what the linear interpolation of :func:`resample` blends at each query.
+
+    One BLAS thread: scipy inverts each triangle's 2 x 2 barycentric matrix with its own LAPACK call, and
+    threaded OpenBLAS made that 10-20 s instead of 0.2 s for a 30k-point face on a busy 2-core machine.
+    """
+    from scipy.spatial import Delaunay
+    from threadpoolctl import threadpool_limits
+
+    triangulation = Delaunay(points_xy)
+    with threadpool_limits(limits=1, user_api="blas"):
+        simplex = triangulation.find_simplex(queries)
+    return triangulation, simplex

@@ -45,7 +45,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from livebridge.retarget.grid import FaceGrid, _cell, front_surface, point_spacing
+from livebridge.retarget.grid import FaceGrid, _cell, containing_triangles, front_surface, point_spacing
 
 FIT_SPACINGS = 10.0
 """Radius of the points a grid vertex's quadratic is fitted to, in the scan's median point spacings (3.8 mm
@@ -119,12 +119,7 @@ def fitted_heights(points: np.ndarray, grid: FaceGrid, spacing: float | None = N
 def _interpolated_from(points_xy: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """The three points (indices, (m, 3); -1 outside their hull) whose Delaunay triangle holds each query: the
     corners :func:`~livebridge.retarget.grid.resample`'s linear interpolation blends there."""
-    from scipy.spatial import Delaunay
-    from threadpoolctl import threadpool_limits
-
-    triangulation = Delaunay(points_xy)
-    with threadpool_limits(limits=1, user_api="blas"):  # as grid._linear: threaded BLAS is far slower here
-        simplex = triangulation.find_simplex(queries)
+    triangulation, simplex = containing_triangles(points_xy, queries)
     return np.where(simplex[:, None] >= 0, triangulation.simplices[simplex], -1)
 
 
