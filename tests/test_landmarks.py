@@ -13,6 +13,7 @@ from livebridge.face import builtin
 from livebridge.face.builtin import builtin_basis, builtin_landmarks
 from livebridge.face.markers import landmark_name
 from livebridge.face.shipped import shipped_marker_set
+from livebridge.retarget.au import save_obj
 from livebridge.retarget.landmarks import (
     MIRROR_PAIRS,
     SADDLE,
@@ -216,17 +217,12 @@ def test_builtin_68_names_are_what_the_derivation_reads():
     assert {landmark_name(i) for i in range(68)} <= set(shipped_marker_set("builtin-68").names)
 
 
-def _write_obj(path, vertices, triangles):
-    path.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in vertices)
-                    + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in triangles))
-
-
 def test_place_at_a_vertex_takes_a_triangle_with_area(tmp_path, face):
     """A zero-area triangle listed first at the vertex (an exporter's sliver) is passed over: a landmark on it
     would be refused as off the surface by every transfer."""
     vertex = int(face.triangles[100, 0])
     triangles = np.vstack([[[vertex, vertex, vertex]], face.triangles])
-    _write_obj(tmp_path / "sliver.obj", face.neutral, triangles)
+    save_obj(tmp_path / "sliver.obj", face.neutral, triangles)
     (tmp_path / "ids.toml").write_text(f"nose_tip = {vertex}\n")
     _run("landmarks", "place", tmp_path / "sliver.obj", "--vertices", tmp_path / "ids.toml", "--out",
          tmp_path / "lm.toml")
@@ -238,7 +234,7 @@ def test_place_at_a_vertex_takes_a_triangle_with_area(tmp_path, face):
 def test_place_refuses_a_vertex_in_zero_area_triangles_only(tmp_path, face):
     vertices = np.vstack([face.neutral, [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]])
     n = len(face.neutral)
-    _write_obj(tmp_path / "line.obj", vertices, np.vstack([face.triangles, [[n, n + 1, n + 2]]]))
+    save_obj(tmp_path / "line.obj", vertices, np.vstack([face.triangles, [[n, n + 1, n + 2]]]))
     (tmp_path / "ids.toml").write_text(f"chin = {n + 1}\n")
     result = CliRunner().invoke(main, ["landmarks", "place", str(tmp_path / "line.obj"), "--vertices",
                                        str(tmp_path / "ids.toml"), "--out", str(tmp_path / "lm.toml")])
@@ -260,7 +256,7 @@ def test_place_refuses_an_unnamed_or_astronomically_far_point(tmp_path, row, wor
 def test_a_mesh_with_a_nan_vertex_is_refused_naming_the_file_and_vertex(tmp_path, face, command):
     vertices = face.neutral.copy()
     vertices[4] = np.nan
-    _write_obj(tmp_path / "nan.obj", vertices, face.triangles)
+    save_obj(tmp_path / "nan.obj", vertices, face.triangles)
     (tmp_path / "p.csv").write_text("chin,0,-80,89.94\n")
     args = (["place", str(tmp_path / "nan.obj"), "--points", str(tmp_path / "p.csv"), "--out",
              str(tmp_path / "lm.toml")] if command == "place" else

@@ -8,7 +8,7 @@ from factories import assert_cli_refused
 
 from livebridge.face.basis import CHOE_KO_MUSCLES
 from livebridge.face.builtin import builtin_basis
-from livebridge.retarget.au import FaceRegions, prepare_transfer
+from livebridge.retarget.au import FaceRegions, prepare_transfer, save_obj
 from livebridge.retarget.control_points import THESIS_AUS, ControlPointSet, load_control_points
 from livebridge.retarget.landmarks import load_landmark_set
 
@@ -137,8 +137,7 @@ def test_cli_refuses_a_target_in_other_units_naming_the_mesh_and_units(tmp_path,
     from livebridge.cli import main
 
     face, _ = builtin
-    (tmp_path / "metres.obj").write_text("".join(f"v {x / 1000} {y / 1000} {z / 1000}\n" for x, y, z in face.neutral)
-                                         + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in face.triangles))
+    save_obj(tmp_path / "metres.obj", face.neutral / 1000, face.triangles)
     args = ["retarget", verb, "--source", "builtin", "--source-landmarks", "builtin-22", "--target",
             str(tmp_path / "metres.obj"), "--target-landmarks", "builtin-22"]
     out = ["--au", "12", "--out", str(tmp_path / "au.obj")] if verb == "au" else ["--out", str(tmp_path / "b.npz")]
