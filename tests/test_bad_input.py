@@ -1190,6 +1190,7 @@ COMMANDS = (
     Command("retarget au options", ("retarget", "au", *_RETARGET, "--au", "12", "--out", "{dir}/au.obj"), (
         *_numbers("--magnitude", _NOT_FINITE + ("1.5", "-0.1")),
         Bad("--au unknown", ("--au", "99"), ("au99", "no control points")),
+        Bad("--au twice", ("--au", "au12"), ("--au", "au12", "more than once")),
         Bad("--side unknown", ("--side", "up"), ("--side", "up")),
     )),
     Command("take show", ("take", "show", "{dir}/take.npz"), (

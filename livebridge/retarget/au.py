@@ -257,11 +257,18 @@ def _rotation_of(jacobian: np.ndarray) -> np.ndarray:
 
 
 def parse_aus(values) -> list[str]:
-    """Group names from ``--au`` values: ``12`` -> ``au12``, ``au12`` and muscle names as given."""
+    """Group names from ``--au`` values: ``12`` -> ``au12``, ``au12`` and muscle names as given.
+
+    A group named twice (``--au 12 --au au12``) is an :class:`InputError`: combined, its control points would
+    move twice as far, an expression at twice the magnitude asked for.
+    """
     out = []
     for value in values:
         text = str(value).strip()
-        out.append(f"au{int(text)}" if text.isdigit() else text)
+        name = f"au{int(text)}" if text.isdigit() else text
+        if name in out:
+            raise InputError(f"{name} is given more than once (each --au is added to the others)", field="--au")
+        out.append(name)
     return out
 
 
