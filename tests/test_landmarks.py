@@ -243,7 +243,7 @@ def test_place_refuses_a_vertex_in_zero_area_triangles_only(tmp_path, face):
 
 @pytest.mark.parametrize("row,words", [
     (",0,-80,89.94\n", ("p.csv", "line 1", "no name")),
-    ("nose_tip,1e300,0,0\n", ("p.csv", "nose_tip", "inf mm from the mesh surface")),
+    ("nose_tip,1e300,0,0\n", ("p.csv", "nose_tip", "1e+300 mm from the mesh surface")),
 ])
 def test_place_refuses_an_unnamed_or_astronomically_far_point(tmp_path, row, words):
     (tmp_path / "p.csv").write_text(row)

@@ -284,8 +284,16 @@ def place_at_points(points: dict[str, np.ndarray], vertices: np.ndarray, triangl
     how far it is (in ``units``).
     """
     names = tuple(points)
-    triangle, barycentric, distance = closest_surface_points(np.array([points[n] for n in names]), vertices,
-                                                             triangles)
+    xyz = np.array([points[n] for n in names], dtype=np.float64)
+    # the largest gap to the mesh's bounding box along any axis: a lower bound of the distance found without
+    # squaring (a point at 1e300 mm would overflow the closest-point search)
+    outside = np.maximum(vertices.min(axis=0) - xyz, xyz - vertices.max(axis=0)).clip(min=0.0).max(axis=1)
+    if (outside > max_distance).any():
+        k = int(np.argmax(outside))
+        raise InputError(f"more than {outside[k]:.3g} {units} from the mesh surface (at most {max_distance:g} "
+                         f"{units}): outside the mesh's bounds (same coordinates and units as the mesh?)",
+                         source, names[k])
+    triangle, barycentric, distance = closest_surface_points(xyz, vertices, triangles)
     far = np.flatnonzero(distance > max_distance)
     if far.size:
         k = int(far[np.argmax(distance[far])])
