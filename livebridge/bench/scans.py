@@ -26,6 +26,8 @@ COLOUR_NOISE = 0.01
 """Per-point colour noise (0-1 scale)."""
 EXPOSURE = 0.05
 """Each scan's brightness is off by up to this fraction."""
+TEXTURED_NOISE_MM = 0.1
+"""Vertex noise of the simulated textured meshes (a scanner's meshing smooths its points' noise)."""
 COLOUR_FOOTPRINT_MM = 1.0
 """The scanner's colour camera sees the skin through pixels this wide (the skin's finest pores blur)."""
 QUICK_MUSCLES = ("frontalis_L", "zygomatic_major_L", "jaw")
@@ -48,18 +50,25 @@ class SyntheticScan:
         Where the head was: from the mesh's frame to the scanner's.
     colours : ndarray, shape (n, 3), or None
         RGB in [0, 1] per point (None: a scanner without colour).
+    triangles : ndarray of int, shape (m, 3), or None
+        A textured mesh's triangles (``points`` its vertices), None for a point cloud.
+    texture : Texture or None
+        A textured mesh's texture (:mod:`~livebridge.retarget.texture`).
     """
 
     points: np.ndarray
     landmarks: dict
     face2scanner: np.ndarray
     colours: np.ndarray | None = None
+    triangles: np.ndarray | None = None
+    texture: object = None
 
     def as_scan(self, colour: bool = True):
         """The :class:`~livebridge.retarget.scan.Scan` a reader would give (without colour if not ``colour``)."""
         from livebridge.retarget.scan import Scan
 
-        return Scan(self.points, np.zeros((0, 3)), self.colours if colour else None)
+        triangles = np.zeros((0, 3)) if self.triangles is None else self.triangles
+        return Scan(self.points, triangles, self.colours if colour else None, self.texture if colour else None)
 
 
 def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noise: float,
@@ -101,6 +110,49 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     return points, np.clip(colours, 0.0, 1.0)
 
 
+def textured_mesh(vertices: np.ndarray, triangles: np.ndarray, skin, rng: np.random.Generator,
+                  hole: tuple[np.ndarray, float] | None = None, exposure: float = 1.0):
+    """What a textured-mesh scanner looking along -z writes of a face mesh (``vertices`` (n, 3) in its frame):
+    (vertices with :data:`TEXTURED_NOISE_MM` noise, the triangles it sees (:func:`seen_triangles`; none within
+    ``hole`` = (centre, radius)), their :class:`~livebridge.retarget.texture.Texture`: ``skin`` (a
+    :class:`~livebridge.simulators.skin.SkinTexture` of the mesh's vertices) times :data:`SKIN_TONE` and
+    ``exposure``, with :data:`COLOUR_NOISE` per texel)."""
+    from livebridge.retarget.texture import Texture
+
+    noisy = vertices + rng.normal(0.0, TEXTURED_NOISE_MM, vertices.shape)
+    seen = seen_triangles(noisy, triangles, rng)
+    if hole is not None:
+        seen &= np.linalg.norm(noisy[triangles].mean(axis=1) - hole[0], axis=1) > hole[1]
+    height, width = skin.albedo.shape
+    uv = np.column_stack([(skin.vertex_texels[:, 0] + 0.5) / width, 1.0 - (skin.vertex_texels[:, 1] + 0.5) / height])
+    image = skin.albedo[..., None] * SKIN_TONE * exposure + rng.normal(0.0, COLOUR_NOISE, (height, width, 3))
+    kept = triangles[seen]
+    texture = Texture(uv[kept], np.zeros(len(kept), np.int64), (np.clip(image, 0, 1).astype(np.float32),),
+                      ("skin.png",))
+    return noisy, kept, texture
+
+
+def seen_triangles(vertices: np.ndarray, triangles: np.ndarray, rng: np.random.Generator,
+                   samples: int = 16) -> np.ndarray:
+    """Mask (m,) of the triangles a scanner looking along -z sees (what its mesh keeps): facing +z, and at
+    least half of ``samples`` random points on each on the front surface (as :func:`scan_surface` keeps
+    points)."""
+    from livebridge.face.meshio import triangle_normals
+    from livebridge.retarget.grid import front_surface
+
+    facing = np.flatnonzero(triangle_normals(vertices, triangles)[:, 2] > 0.05)
+    a, b = rng.random((2, len(facing), samples))
+    flip = a + b > 1
+    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+    corners = vertices[triangles[facing]]  # (k, 3, 3)
+    points = (corners[:, None, 0] + a[..., None] * (corners[:, None, 1] - corners[:, None, 0])
+              + b[..., None] * (corners[:, None, 2] - corners[:, None, 0]))
+    seen = front_surface(points.reshape(-1, 3), 0.5, 1.5).reshape(len(facing), samples).mean(axis=1) >= 0.5
+    mask = np.zeros(len(triangles), bool)
+    mask[facing[seen]] = True
+    return mask
+
+
 def random_pose(rng: np.random.Generator, degrees: float = 10.0, shift_mm: float = 30.0) -> np.ndarray:
     """A random rigid motion (4, 4): rotation up to ``degrees`` about a random axis, shift up to ``shift_mm``."""
     from livebridge.geometry.transforms import rotation_matrix
@@ -115,25 +167,33 @@ def random_pose(rng: np.random.Generator, degrees: float = 10.0, shift_mm: float
 def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = SCAN_POINTS,
                     noise: float = SCAN_NOISE_MM, landmark_noise: float = LANDMARK_NOISE_MM,
                     hole_muscle: str | None = HOLE_MUSCLE, colour: bool = True,
-                    muscles=None) -> tuple[SyntheticScan, dict[str, SyntheticScan]]:
+                    muscles=None, textured: bool = False) -> tuple[SyntheticScan, dict[str, SyntheticScan]]:
     """(neutral, {muscle: expression}) scans of ``basis`` (each element fully contracted), each with its own
     random head pose, sampling, noise and exposure; landmarks from ``landmarks`` (a LandmarkSet on the basis)
     plus Gaussian noise. The ``hole_muscle`` scan has a hole of :data:`HOLE_RADIUS_MM` on that side's cheek.
-    ``colour``: the scans carry the skin painted on the neutral face; ``muscles``: only these (default all)."""
+    ``colour``: the scans carry the skin painted on the neutral face; ``muscles``: only these (default all).
+    ``textured``: each scan is instead the mesh a scanner would write (:func:`textured_mesh`: the triangles it
+    sees, vertices with :data:`TEXTURED_NOISE_MM` noise, the skin as its texture; ``n_points`` unused)."""
     from livebridge.geometry.transforms import apply
     from livebridge.simulators.skin import make_skin
 
     skin = None
-    if colour:
+    if colour or textured:
         skin = make_skin(basis.neutral, int(rng.integers(1 << 30)), landmarks.as_dict(basis.neutral, basis.triangles))
         skin = skin.level(COLOUR_FOOTPRINT_MM)
 
     def one(shape, hole=None):
         pose = random_pose(rng)
         exposure = 1.0 + rng.uniform(-EXPOSURE, EXPOSURE)
-        points, colours = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin, exposure)
+        if textured:
+            seen_hole = None if hole is None else (apply(pose, hole[0][None])[0], hole[1])
+            mesh = textured_mesh(apply(pose, shape), basis.triangles, skin, rng, seen_hole, exposure)
+        else:
+            points, colours = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin, exposure)
         marks = landmarks.as_dict(shape, basis.triangles)
         marks = {name: apply(pose, p[None])[0] + rng.normal(0.0, landmark_noise, 3) for name, p in marks.items()}
+        if textured:
+            return SyntheticScan(mesh[0], marks, pose, None, mesh[1], mesh[2])
         return SyntheticScan(apply(pose, points), marks, pose, colours)
 
     neutral = one(basis.neutral)

@@ -11,8 +11,9 @@ from livebridge.cli.landmarks import UNITS_TO_MM
 
 LANDMARK_SUFFIXES = (".csv", ".toml")
 SCAN_HELP = ("Scans: PLY (ascii or binary, point cloud or mesh), OBJ, or XYZ/CSV text (x y z per line), with "
-             "per-point colour when the scanner recorded it (PLY red/green/blue, OBJ v x y z r g b, XYZ r g b "
-             "columns). Landmarks: "
+             "colour when the scanner recorded it: per point (PLY red/green/blue, OBJ v x y z r g b, XYZ r g b "
+             "columns) or as a textured OBJ mesh (vt coordinates, mtllib with map_Kd images next to it). "
+             "Landmarks: "
              "a CSV of name,x,y,z rows or a TOML of name = [x, y, z] lines, in the scan's coordinates and units; "
              "an expression's landmark file defaults to SCAN with the suffix .landmarks.csv.")
 
@@ -83,8 +84,12 @@ def reference_landmarks(spec: str, scale: float) -> dict:
 @click.option("--grid-obj", type=OutputFile(), default=None, help="Also write the neutral grid (OBJ with UVs).")
 @click.option("--landmarks-out", type=OutputFile(), default=None,
               help="Also write the landmarks on the neutral grid (landmark .toml, for retarget basis).")
+@click.option("--texture-spacing", type=FiniteFloat(0.05, 5.0), default=None,
+              help="A textured mesh is sampled into coloured points this far apart, mm (default: its texel size, "
+                   "0.3-0.5 mm; finer keeps more of a fine texture's pattern and takes longer).")
 def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, force: bool, reference: str,
-          method: str, grid_size, crop_radius, units: str, kernel: str, grid_obj, landmarks_out) -> None:
+          method: str, grid_size, crop_radius, units: str, kernel: str, grid_obj, landmarks_out,
+          texture_spacing: float | None) -> None:
     """Build an actuation basis for a scanned person from a neutral scan and one scan per muscle.
 
     Each scan is normalised (nose tip at the origin, facing +z), cropped to the face and resampled on a
@@ -103,12 +108,12 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     named = unique_names(expressions, "--expression")
     neutral = prepare_neutral(read_scan(neutral_scan, scale), read_landmark_points(neutral_landmarks, scale),
                               reference_landmarks(reference, 1.0), method, (rows, columns), crop_radius,
-                              neutral_landmarks, scan_source=neutral_scan)
+                              neutral_landmarks, scan_source=neutral_scan, texture_spacing=texture_spacing)
     faces, uncoloured = {}, []
     for name, spec in named.items():
         scan_path, landmark_path = split_scan_spec(spec)
         faces[name] = prepare_expression(read_scan(scan_path, scale), read_landmark_points(landmark_path, scale),
-                                         neutral, scan_path, landmark_path)
+                                         neutral, scan_path, landmark_path, texture_spacing)
         if neutral.skin is None or faces[name].skin is None:
             uncoloured.append(name)
     basis = basis_from_scans(neutral, faces, kernel)
@@ -126,4 +131,5 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     if uncoloured:
         which = "the neutral scan" if neutral.skin is None else ", ".join(uncoloured)
         click.echo(f"note: no colour in {which}: the motion along the skin (most of a brow raise or a smile) is "
-                   "then known only at the landmarks; scans with per-point colour let it be tracked everywhere")
+                   "then known only at the landmarks; scans with colour (per point, or a textured OBJ) let it be "
+                   "tracked everywhere")

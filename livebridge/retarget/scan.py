@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from livebridge.errors import InputError, file_error
+from livebridge.retarget.texture import Texture, sample_textured
 
 SCAN_SUFFIXES = (".ply", ".obj", ".xyz", ".csv", ".txt", ".pts", ".asc")
 """Suffixes :func:`read_scan` knows (all but .ply and .obj are read as x y z point lists)."""
@@ -36,12 +37,16 @@ class Scan:
     triangles : ndarray of int, shape (n_triangles, 3)
         Empty (0, 3) for a point cloud.
     colours : ndarray, shape (n_points, 3), or None
-        RGB in [0, 1] per point, None when the scan has no colour.
+        RGB in [0, 1] per point, None when the scan has no colour per point.
+    texture : Texture or None
+        Texture images on the triangles (:mod:`~livebridge.retarget.texture`): a textured mesh's colour, which
+        :meth:`coloured` samples into coloured points.
     """
 
     points: np.ndarray
     triangles: np.ndarray
     colours: np.ndarray | None = None
+    texture: Texture | None = None
 
     def __post_init__(self):
         for name, dtype in (("points", np.float64), ("triangles", np.int64), ("colours", np.float64)):
@@ -59,7 +64,22 @@ class Scan:
 
     @property
     def has_colour(self) -> bool:
-        return self.colours is not None
+        return self.colours is not None or self.texture is not None
+
+    def coloured(self, centre: np.ndarray | None = None, radius: float = np.inf,
+                 spacing: float | None = None) -> Scan:
+        """A textured mesh as a coloured point cloud: points every ``spacing`` mm (default: a texel, see
+        :func:`~livebridge.retarget.texture.sample_textured`) over its triangles with a corner within ``radius``
+        of ``centre`` (all without a centre), coloured from the texture; the scan itself when it has no
+        texture."""
+        if self.texture is None:
+            return self
+        keep = None
+        if centre is not None:
+            near = np.linalg.norm(self.points - np.asarray(centre, dtype=np.float64), axis=1) <= radius
+            keep = near[self.triangles].any(axis=1)
+        points, colours = sample_textured(self.points, self.triangles, self.texture, spacing, keep)
+        return Scan(points, np.zeros((0, 3), np.int64), colours)
 
 
 def read_scan(path: str | Path, scale: float = 1.0) -> Scan:
@@ -76,7 +96,7 @@ def read_scan(path: str | Path, scale: float = 1.0) -> Scan:
     if not data.strip():
         raise InputError("empty file: no points", path)
     reader = {".ply": _read_ply, ".obj": _read_obj}.get(suffix, _read_xyz)
-    points, triangles, colours = reader(data, path)
+    points, triangles, colours, *texture = reader(data, path)
     if not len(points):
         raise InputError("no points", path)
     _check_faces(triangles, len(points), path)
@@ -86,7 +106,7 @@ def read_scan(path: str | Path, scale: float = 1.0) -> Scan:
         if len(bad):
             raise InputError(f"point {bad[0]}: colour {colours[bad[0]].tolist()} is not in 0-1 ({len(bad)} such)",
                              path, "colour")
-    return Scan(points * scale, triangles, colours)
+    return Scan(points * scale, triangles, colours, texture[0] if texture else None)
 
 
 # ------------------------------------------------------------------------------------------------ XYZ / CSV
@@ -189,8 +209,11 @@ def _text(data: bytes, path: Path) -> str:
 
 # ------------------------------------------------------------------------------------------------ OBJ
 def _read_obj(data: bytes, path: Path):
-    """``v x y z [r g b]`` and ``f a b c ...`` lines (``a/t/n`` corners, negative = relative); the rest ignored."""
-    vertices, triangles, colours = [], [], []
+    """``v x y z [r g b]`` and ``f a b c ...`` lines (``a/t/n`` corners, negative = relative), and with ``vt``
+    lines, ``mtllib`` and ``usemtl`` the texture images of the faces' materials (their ``map_Kd``); the rest
+    ignored."""
+    vertices, triangles, colours, texcoords = [], [], [], []
+    corner_uv, face_material, libraries, material = [], [], [], None
     for number, line in enumerate(data.decode("utf-8", errors="replace").splitlines(), 1):
         parts = line.split()
         if not parts:
@@ -207,26 +230,96 @@ def _read_obj(data: bytes, path: Path):
                 raise InputError(f"line {number}: vertex {len(vertices) + 1} is not finite: {parts[1:4]}", path)
             vertices.append(xyz)
             colours.append(_obj_colour(parts[4:7], number, path))
+        elif parts[0] == "vt":
+            texcoords.append(_obj_texcoord(parts[1:3], number, path))
         elif parts[0] == "f":
-            try:
-                corners = [int(token.split("/")[0]) for token in parts[1:]]
-            except ValueError:
-                raise InputError(f"line {number}: malformed face {line.strip()!r}", path) from None
-            if len(corners) < 3 or 0 in corners:
-                raise InputError(f"line {number}: a face needs 3 or more vertex numbers from 1 (or negative), "
-                                 f"got {line.strip()!r}", path)
-            corners = [c - 1 if c > 0 else len(vertices) + c for c in corners]
-            bad = [c for c in corners if not 0 <= c < len(vertices)]
-            if bad:
-                raise InputError(f"line {number}: face refers to vertex {bad[0] + 1}, only {len(vertices)} "
-                                 "defined so far", path)
-            triangles.extend((corners[0], corners[k], corners[k + 1]) for k in range(1, len(corners) - 1))
+            corners, uv_corners = _obj_face(parts[1:], len(vertices), len(texcoords), line, number, path)
+            fan = [(0, k, k + 1) for k in range(1, len(corners) - 1)]
+            triangles.extend((corners[a], corners[b], corners[c]) for a, b, c in fan)
+            corner_uv.extend((uv_corners[a], uv_corners[b], uv_corners[c]) if uv_corners else (-1, -1, -1)
+                             for a, b, c in fan)
+            face_material.extend([material] * len(fan))
+        elif parts[0] == "mtllib" and len(parts) > 1:
+            libraries.append(line.split(maxsplit=1)[1].strip())
+        elif parts[0] == "usemtl":
+            material = line.split(maxsplit=1)[1].strip() if len(parts) > 1 else None
     points = np.array(vertices, dtype=np.float64).reshape(-1, 3)
     rgb = None
     if colours and all(c is not None for c in colours):  # colour only when every vertex has one
         rgb = np.array(colours, dtype=np.float64)
         rgb = rgb / 255.0 if rgb.max() > 1 else rgb  # 0-1 by the convention; some writers put 0-255
-    return points, np.array(triangles, dtype=np.int64).reshape(-1, 3), rgb
+    texture = None
+    if libraries and texcoords:
+        texture = _obj_texture(path, libraries, np.array(texcoords, dtype=np.float64),
+                               np.array(corner_uv, dtype=np.int64).reshape(-1, 3), face_material)
+        rgb = None if texture is not None else rgb  # the images hold the skin's pattern finer than the vertices
+    return points, np.array(triangles, dtype=np.int64).reshape(-1, 3), rgb, texture
+
+
+def _obj_face(tokens, n_vertices: int, n_texcoords: int, line: str, number: int, path: Path):
+    """The vertex indices (from 0) of an ``f`` line's corners, and their texture coordinate indices (from 0;
+    an empty list when the corners have none)."""
+    try:
+        fields = [token.split("/") for token in tokens]
+        corners = [int(field[0]) for field in fields]
+        uv = [int(field[1]) for field in fields] if all(len(f) > 1 and f[1] for f in fields) else []
+    except ValueError:
+        raise InputError(f"line {number}: malformed face {line.strip()!r}", path) from None
+    if len(corners) < 3 or 0 in corners or 0 in uv:
+        raise InputError(f"line {number}: a face needs 3 or more vertex numbers from 1 (or negative), "
+                         f"got {line.strip()!r}", path)
+    corners = [c - 1 if c > 0 else n_vertices + c for c in corners]
+    bad = [c for c in corners if not 0 <= c < n_vertices]
+    if bad:
+        raise InputError(f"line {number}: face refers to vertex {bad[0] + 1}, only {n_vertices} "
+                         "defined so far", path)
+    uv = [t - 1 if t > 0 else n_texcoords + t for t in uv]
+    bad = [t for t in uv if not 0 <= t < n_texcoords]
+    if bad:
+        raise InputError(f"line {number}: face refers to texture coordinate {bad[0] + 1}, only {n_texcoords} "
+                         "defined so far", path)
+    return corners, uv
+
+
+def _obj_texcoord(cells, number, path):
+    try:
+        uv = [float(value) for value in cells]
+    except ValueError:
+        raise InputError(f"line {number}: texture coordinates must be numbers, got {cells}", path) from None
+    if len(uv) < 2 or not all(map(math.isfinite, uv)):
+        raise InputError(f"line {number}: a texture coordinate needs finite u v, got {cells}", path)
+    return uv
+
+
+def _obj_texture(path: Path, libraries: list[str], texcoords: np.ndarray, corner_uv: np.ndarray,
+                 face_material: list):
+    """The :class:`~livebridge.retarget.texture.Texture` of an OBJ's faces: each material's ``map_Kd`` image
+    from the ``mtllib`` files (next to the OBJ); None when no material has an image."""
+    from livebridge.retarget.texture import Texture, read_image, read_materials
+
+    images_of = {}
+    for library in libraries:
+        images_of.update(read_materials(path.parent / library, path))
+    if not images_of:
+        return None
+    used = sorted({m for m in face_material if m in images_of})
+    index_of = {material: k for k, material in enumerate(used)}
+    images = tuple(read_image(images_of[m], path.parent / _library_of(path, libraries, m), f"{m}.map_Kd")
+                   for m in used)
+    image_index = np.array([index_of.get(m, -1) for m in face_material], dtype=np.int64)
+    image_index[(corner_uv < 0).any(axis=1)] = -1
+    uv = texcoords[np.clip(corner_uv, 0, None)][..., :2]
+    return Texture(uv, image_index, images, tuple(images_of[m].name for m in used))
+
+
+def _library_of(path: Path, libraries: list[str], material: str) -> str:
+    """The MTL file (of ``libraries``) that defines ``material``: named in a texture image's errors."""
+    from livebridge.retarget.texture import read_materials
+
+    for library in libraries:
+        if material in read_materials(path.parent / library, path):
+            return library
+    return libraries[0]
 
 
 def _obj_colour(cells, number, path):
@@ -525,3 +618,27 @@ def write_ply(path: str | Path, points: np.ndarray, triangles: np.ndarray | None
         faces = np.zeros(len(triangles), np.dtype([("n", "u1"), ("i", order + "i4", (3,))]))
         faces["n"], faces["i"] = 3, triangles
         stream.write(faces.tobytes())
+
+
+def write_textured_obj(path: str | Path, points: np.ndarray, triangles: np.ndarray, uv: np.ndarray,
+                       image: np.ndarray) -> None:
+    """Write a mesh with one texture as a scanner does: ``path`` (.obj: ``v``, ``vt`` and ``f v/vt`` lines),
+    its material file (``path`` with .mtl) and image (``path`` with .png, 16-bit RGB).
+
+    ``points`` (n, 3), ``triangles`` (m, 3), ``uv`` (n, 2) texture coordinates per vertex (OBJ convention: v
+    up), ``image`` (height, width, 3) RGB in [0, 1], row 0 at the top.
+    """
+    import cv2
+
+    path = Path(path)
+    mtl, png = path.with_suffix(".mtl"), path.with_suffix(".png")
+    bgr = np.round(np.clip(np.asarray(image, dtype=np.float64), 0, 1)[..., ::-1] * 65535).astype(np.uint16)
+    if not cv2.imwrite(str(png), bgr):
+        raise InputError("could not write the texture image", png)
+    mtl.write_text(f"newmtl skin\nKd 1 1 1\nmap_Kd {png.name}\n", encoding="utf-8")
+    lines = [f"mtllib {mtl.name}"]
+    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in np.asarray(points, dtype=np.float64)]
+    lines += [f"vt {u:.7f} {v:.7f}" for u, v in np.asarray(uv, dtype=np.float64)]
+    lines.append("usemtl skin")
+    lines += [f"f {a}/{a} {b}/{b} {c}/{c}" for a, b, c in np.asarray(triangles, dtype=np.int64) + 1]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")

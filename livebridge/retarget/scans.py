@@ -109,6 +109,9 @@ CONTROL_SMOOTHING = 0.1
 """TPS smoothing of the control-point warp (the snapped points carry the scanner's noise)."""
 SKIN_MARGIN_MM = 10.0
 """The skin images of coloured scans reach this far beyond the grid (tracking is poor at an image's edge)."""
+TEXTURE_REACH = 1.5
+"""A textured scan is sampled into points out to this times the face crop's radius from its nose tip (the
+expressions' crop is the neutral's, and an opened jaw reaches below it)."""
 TYPICAL_SPACING_MM = 0.35
 """The point spacing assumed for a face scan whose own is not known (60k points over a face)."""
 TRUSTED_TRACKING = 0.97
@@ -210,17 +213,20 @@ def crop_radius(landmarks: dict[str, np.ndarray]) -> float:
 
 def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dict[str, np.ndarray],
                     method: str = "rigid", shape: tuple[int, int] = GRID_SHAPE, radius: float | None = None,
-                    source=None, chart: str = CHART_KIND, scan_source=None) -> FaceScan:
+                    source=None, chart: str = CHART_KIND, scan_source=None,
+                    texture_spacing: float | None = None) -> FaceScan:
     """The neutral scan normalised onto ``reference`` by ``method`` (see
     :func:`~livebridge.retarget.normalise.normalisation`), cropped to a sphere of ``radius`` around the nose
     tip and resampled on a ``shape`` grid over ``[-radius, radius]^2``; its skin images in a ``chart`` fitted
     to it (:func:`~livebridge.retarget.chart.face_chart`); its surface fitted to its points at the grid's
-    vertices (:mod:`~livebridge.retarget.surface_fit`). Errors name ``source`` (the landmark file) or
-    ``scan_source`` (the scan file: a flat scan)."""
+    vertices (:mod:`~livebridge.retarget.surface_fit`). A textured mesh is first sampled into coloured points
+    every ``texture_spacing`` mm (default a texel: :mod:`~livebridge.retarget.texture`). Errors name
+    ``source`` (the landmark file) or ``scan_source`` (the scan file: a flat scan)."""
     scan2face = normalisation(landmarks, reference, method, source)
-    points = apply(scan2face, scan.points)
     moved = transform_landmarks(scan2face, landmarks)
     radius = crop_radius(moved) if radius is None else float(radius)
+    scan = _textured_as_points(scan, landmarks, radius / _scale_of(scan2face), texture_spacing)
+    points = apply(scan2face, scan.points)
     x, y = square_axes(radius, shape)
     face = _resampled(scan, points, x, y, radius, moved, scan2face, source, chart)
     off_plane = face.vertices - face.vertices.mean(axis=0)
@@ -231,6 +237,21 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     face.landmark_set(source)  # every landmark on the resampled face, or a clear error
     inside = crop_sphere(points, np.zeros(3), radius)
     return replace(face, fitted_heights=fitted_heights(points[inside], face.grid))
+
+
+def _textured_as_points(scan: Scan, landmarks: dict[str, np.ndarray], radius: float, spacing: float | None
+                        ) -> Scan:
+    """A textured mesh sampled into coloured points (:meth:`~livebridge.retarget.scan.Scan.coloured`) around its
+    nose tip, out to :data:`TEXTURE_REACH` times the crop ``radius`` (in the scan's units) and the skin images'
+    margin beyond; any other scan as it is."""
+    if scan.texture is None:
+        return scan
+    return scan.coloured(landmarks["nose_tip"], TEXTURE_REACH * radius + SKIN_MARGIN_MM, spacing)
+
+
+def _scale_of(transform: np.ndarray) -> float:
+    """The scale of a similarity or affine ``transform`` (4, 4): the cube root of its linear part's determinant."""
+    return float(np.cbrt(abs(np.linalg.det(transform[:3, :3]))))
 
 
 def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float, landmarks: dict,
@@ -297,7 +318,7 @@ def opening_gap_mm(spacing: float, step: float) -> float:
 
 
 def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: FaceScan, source=None,
-                       landmarks_source=None) -> FaceScan:
+                       landmarks_source=None, texture_spacing: float | None = None) -> FaceScan:
     """An expression scan of the neutral's person, registered onto it and resampled on its grid lines.
 
     Parameters
@@ -308,9 +329,13 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     neutral : FaceScan
     source, landmarks_source : str or Path, optional
         The scan file and its landmark file, named in errors.
+    texture_spacing : float, optional
+        A textured mesh is sampled into coloured points this far apart, mm (default a texel:
+        :mod:`~livebridge.retarget.texture`).
     """
     check_on_points(landmarks, scan.points, landmarks_source, source)
     radius = float(neutral.grid.x[-1])
+    scan = _textured_as_points(scan, landmarks, radius, texture_spacing)
     normals = vertex_normals(neutral.vertices, neutral.triangles)
     scan2face = register_rigid(scan.points, landmarks, neutral.vertices, normals, neutral.landmarks, radius,
                                source=source)

@@ -1,0 +1,220 @@
+"""Colour from a textured scan mesh: image maps on texture coordinates, sampled into coloured points.
+
+Most face scanners (structured light, photogrammetry, 3dMD-style stereo rigs) write a mesh with one or more
+texture images (OBJ ``vt`` coordinates and an MTL file's ``map_Kd``; PLY ``texcoord`` and ``TextureFile``)
+rather than a colour per vertex. The skin's pattern, which the skin tracking of
+:mod:`~livebridge.retarget.scans` follows, is in those images at a finer resolution than the mesh's vertices
+(a vertex every 0.5-2 mm, a texel every 0.05-0.3 mm), so per-vertex colours would blur it away. Instead the
+textured surface is sampled densely: every triangle is split into ``n^2`` equal sub-triangles
+(``n = ceil(sqrt(area) / spacing)``: a point per ``spacing^2`` of surface), each sub-triangle's centroid is a
+point, and its colour is the
+texture's at its texture coordinates, the image first blurred to the samples' footprint where its texels are
+much finer (pores finer than the samples would alias into false pattern). What the rest of the pipeline sees is
+a coloured point cloud with a point every ``spacing`` mm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from livebridge.errors import InputError
+
+SPACING_RANGE_MM = (0.3, 0.5)
+"""By default the points sampled on a textured mesh are a texel apart, within these bounds: no finer than the
+texture holds pattern, no coarser than the skin images' 0.5 mm pixels
+(:data:`~livebridge.retarget.skin_flow.FINE_MM`), and no finer than 0.3 mm (about what a 150k-point scan of a
+face gives; finer only costs time). On the bench's textured meshes (0.5 mm texels, `livebridge bench scans`):
+the brow, smile and jaw elements 0.034 / 0.026 / 0.057 relative RMS from points 0.3 mm apart (99 s for the
+neutral and three expressions), 0.034 / 0.024 / 0.055 from 0.5 mm (45 s)."""
+MAX_SPLITS = 256
+"""A triangle is split into at most this many parts along an edge (a scan's few very large triangles, off the
+face, do not cost millions of points)."""
+ANTI_ALIAS_TEXELS = 2.0
+"""The texture is blurred before it is sampled where a sample spacing spans more than this many texels."""
+
+
+@dataclass(frozen=True, eq=False)
+class Texture:
+    """Texture images on a triangle mesh.
+
+    Attributes
+    ----------
+    uv : ndarray, shape (n_triangles, 3, 2)
+        Texture coordinates of each triangle's corners (OBJ convention: u right, v up, the image in [0, 1]^2).
+    image_index : ndarray of int, shape (n_triangles,)
+        Which of ``images`` each triangle shows; -1: none (no texture coordinates or no image).
+    images : tuple of ndarray, each shape (height, width, 3)
+        RGB in [0, 1], float32, row 0 at the top.
+    names : tuple of str
+        The image files, for messages.
+    """
+
+    uv: np.ndarray
+    image_index: np.ndarray
+    images: tuple
+    names: tuple
+
+
+def read_materials(mtl: Path, obj: Path) -> dict[str, Path]:
+    """``{material: image}`` from the ``newmtl`` / ``map_Kd`` lines of an MTL file (image paths relative to it).
+
+    ``obj`` is the OBJ that named the MTL file (named in the error when the MTL file is missing).
+    """
+    try:
+        text = mtl.read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        raise InputError(f"its material file {mtl.name} (mtllib) is not there: put it next to the OBJ, or remove "
+                         "the mtllib line to read the scan without colour", obj, "mtllib") from None
+    images, current = {}, None
+    for line in text.splitlines():
+        parts = line.strip().split(maxsplit=1)
+        if len(parts) < 2:
+            continue
+        if parts[0] == "newmtl":
+            current = parts[1].strip()
+        elif parts[0] == "map_Kd" and current is not None:
+            images[current] = mtl.parent / _map_file(parts[1])
+    return images
+
+
+_MAP_OPTION_ARGUMENTS = {"-blendu": 1, "-blendv": 1, "-bm": 1, "-boost": 1, "-cc": 1, "-clamp": 1, "-imfchan": 1,
+                         "-mm": 2, "-o": 3, "-s": 3, "-t": 3, "-texres": 1}
+
+
+def _map_file(text: str) -> str:
+    """The file name of a ``map_Kd`` statement, after its options (``-s 1 1 1``, ``-clamp on`` ...)."""
+    words = text.split()
+    k = 0
+    while k < len(words) and words[k] in _MAP_OPTION_ARGUMENTS:
+        k += 1 + _MAP_OPTION_ARGUMENTS[words[k]]
+    # -o, -s and -t take 1 to 3 numbers: skip any that are left
+    while k < len(words) - 1 and _is_number(words[k]):
+        k += 1
+    return " ".join(words[k:])
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def read_image(path: Path, source: Path, field: str) -> np.ndarray:
+    """An image file as RGB (height, width, 3) float32 in [0, 1]; an error names ``source`` (the file that
+    named it) and ``field`` when it is missing or not an image."""
+    import cv2
+
+    if not path.is_file():
+        raise InputError(f"texture image {path.name} is not there (looked in {path.parent}): put it next to the "
+                         "material file, or remove the mtllib line to read the scan without colour", source, field)
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None or image.ndim not in (2, 3) or image.size == 0:
+        raise InputError(f"texture image {path.name} could not be read as an image", source, field)
+    scale = float(np.iinfo(image.dtype).max) if np.issubdtype(image.dtype, np.integer) else 1.0
+    image = image.astype(np.float32) / scale
+    if image.ndim == 2:
+        return np.repeat(image[..., None], 3, axis=2)
+    return np.ascontiguousarray(image[..., 2::-1] if image.shape[2] >= 3 else np.repeat(image[..., :1], 3, axis=2))
+
+
+def sample_textured(points: np.ndarray, triangles: np.ndarray, texture: Texture, spacing: float | None = None,
+                    keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Points every ``spacing`` mm over a textured mesh and their colours.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n_points, 3)
+        The mesh's vertices, mm.
+    triangles : ndarray of int, shape (n_triangles, 3)
+    texture : Texture
+    spacing : float, optional
+        mm; default the texture's texel size on the mesh within :data:`SPACING_RANGE_MM`.
+    keep : ndarray of bool, shape (n_triangles,), optional
+        Only these triangles are sampled (a crop).
+
+    Returns
+    -------
+    samples : ndarray, shape (n_samples, 3)
+    colours : ndarray, shape (n_samples, 3)
+        RGB in [0, 1]; NaN where the triangle has no texture.
+    """
+    chosen = np.flatnonzero(keep) if keep is not None else np.arange(len(triangles))
+    texels = [_texel_mm(points, triangles, texture, index, image.shape, chosen)
+              for index, image in enumerate(texture.images)]
+    if spacing is None:
+        spacing = float(np.clip(min(texels, default=SPACING_RANGE_MM[1]), *SPACING_RANGE_MM))
+    corners = points[triangles[chosen]]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    splits = np.clip(np.ceil(np.sqrt(area) / spacing), 1, MAX_SPLITS).astype(int)  # a point per spacing^2
+    samples, uvs, owners = [], [], []
+    for n in np.unique(splits):
+        rows = np.flatnonzero(splits == n)
+        bary = _centroids(int(n))  # (m, 3)
+        samples.append(np.einsum("mk,tkd->tmd", bary, corners[rows]).reshape(-1, 3))
+        uvs.append(np.einsum("mk,tkd->tmd", bary, texture.uv[chosen[rows]]).reshape(-1, 2))
+        owners.append(np.repeat(chosen[rows], len(bary)))
+    if not samples:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    samples, uv, owner = np.vstack(samples), np.vstack(uvs), np.concatenate(owners)
+    colours = np.full((len(samples), 3), np.nan)
+    for index, image in enumerate(texture.images):
+        mine = texture.image_index[owner] == index
+        if mine.any():
+            colours[mine] = _lookup(_blurred(image, spacing / texels[index]), uv[mine])
+    return samples, colours
+
+
+def _centroids(n: int) -> np.ndarray:
+    """Barycentric coordinates (n^2, 3) of the centroids of the n^2 sub-triangles of a triangle split n times."""
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    up = (i + j <= n - 1)
+    down = (i + j <= n - 2)
+    a = np.concatenate([i[up] + 1 / 3, i[down] + 2 / 3]) / n
+    b = np.concatenate([j[up] + 1 / 3, j[down] + 2 / 3]) / n
+    return np.stack([1 - a - b, a, b], axis=1)
+
+
+def _texel_mm(points: np.ndarray, triangles: np.ndarray, texture: Texture, index: int, shape: tuple,
+              chosen: np.ndarray) -> float:
+    """The median size of one texel of image ``index`` on the mesh, mm (over the ``chosen`` triangles)."""
+    mine = chosen[texture.image_index[chosen] == index]
+    corners = points[triangles[mine]]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    uv = texture.uv[mine] * np.array([shape[1], shape[0]])
+    d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    texels = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    fine = (texels > 0) & (area > 0)
+    return float(np.sqrt(np.median(area[fine] / texels[fine]))) if fine.any() else 1.0
+
+
+def _blurred(image: np.ndarray, footprint_texels: float) -> np.ndarray:
+    """``image`` blurred over a sample's footprint when that spans more than :data:`ANTI_ALIAS_TEXELS` texels."""
+    import cv2
+
+    if footprint_texels <= ANTI_ALIAS_TEXELS:
+        return image
+    return cv2.GaussianBlur(image, (0, 0), 0.5 * footprint_texels)
+
+
+def _lookup(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear colours (k, 3) of ``image`` at texture coordinates ``uv`` (k, 2; repeating outside [0, 1])."""
+    import cv2
+
+    height, width = image.shape[:2]
+    count = len(uv)
+    side = int(np.ceil(count / LOOKUP_COLUMNS)) * LOOKUP_COLUMNS  # remap's maps are images: keep them narrow
+    u = np.zeros(side, np.float32)
+    v = np.zeros(side, np.float32)
+    u[:count], v[:count] = np.mod(uv[:, 0], 1.0), np.mod(uv[:, 1], 1.0)
+    map_x = (u * width - 0.5).reshape(-1, LOOKUP_COLUMNS)
+    map_y = ((1.0 - v) * height - 0.5).reshape(-1, LOOKUP_COLUMNS)
+    looked = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    return looked.reshape(-1, 3)[:count].astype(np.float64)
+
+
+LOOKUP_COLUMNS = 1024
