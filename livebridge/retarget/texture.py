@@ -47,7 +47,8 @@ class Texture:
     image_index : ndarray of int, shape (n_triangles,)
         Which of ``images`` each triangle shows; -1: none (no texture coordinates or no image).
     images : tuple of ndarray, each shape (height, width, 3)
-        RGB in [0, 1], float32, row 0 at the top.
+        RGB, row 0 at the top: uint8 or uint16 as the file holds it (its full scale is 1), or floats in [0, 1]
+        (a photogrammetry texture of 8192 x 8192 texels takes 200 MB as bytes, 800 MB as floats).
     names : tuple of str
         The image files, for messages.
     """
@@ -105,8 +106,8 @@ def _is_number(text: str) -> bool:
 
 
 def read_image(path: Path, source: Path, field: str) -> np.ndarray:
-    """An image file as RGB (height, width, 3) float32 in [0, 1]; an error names ``source`` (the file that
-    named it) and ``field`` when it is missing or not an image."""
+    """An image file as RGB (height, width, 3), uint8 or uint16 as stored (floats kept as they are); an error
+    names ``source`` (the file that named it) and ``field`` when it is missing or not an image."""
     import cv2
 
     if not path.is_file():
@@ -115,11 +116,15 @@ def read_image(path: Path, source: Path, field: str) -> np.ndarray:
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None or image.ndim not in (2, 3) or image.size == 0:
         raise InputError(f"texture image {path.name} could not be read as an image", source, field)
-    scale = float(np.iinfo(image.dtype).max) if np.issubdtype(image.dtype, np.integer) else 1.0
-    image = image.astype(np.float32) / scale
     if image.ndim == 2:
         return np.repeat(image[..., None], 3, axis=2)
     return np.ascontiguousarray(image[..., 2::-1] if image.shape[2] >= 3 else np.repeat(image[..., :1], 3, axis=2))
+
+
+def _as_float(image: np.ndarray) -> np.ndarray:
+    """``image`` as float32 in [0, 1] (integers over their type's maximum)."""
+    scale = float(np.iinfo(image.dtype).max) if np.issubdtype(image.dtype, np.integer) else 1.0
+    return image.astype(np.float32) / np.float32(scale)
 
 
 def sample_textured(points: np.ndarray, triangles: np.ndarray, texture: Texture, spacing: float | None = None,
@@ -193,12 +198,20 @@ def _texel_mm(points: np.ndarray, triangles: np.ndarray, texture: Texture, index
 
 
 def _blurred(image: np.ndarray, footprint_texels: float) -> np.ndarray:
-    """``image`` blurred over a sample's footprint when that spans more than :data:`ANTI_ALIAS_TEXELS` texels."""
+    """``image`` as float32 in [0, 1], blurred over a sample's footprint when that spans more than
+    :data:`ANTI_ALIAS_TEXELS` texels: first shrunk by area averaging by a whole factor (so that a fine texture
+    is not held in floats at full size), the rest a Gaussian."""
     import cv2
 
     if footprint_texels <= ANTI_ALIAS_TEXELS:
-        return image
-    return cv2.GaussianBlur(image, (0, 0), 0.5 * footprint_texels)
+        return _as_float(image)
+    factor = int(footprint_texels // ANTI_ALIAS_TEXELS)
+    if factor > 1:
+        height, width = image.shape[:2]
+        size = (max(1, round(width / factor)), max(1, round(height / factor)))
+        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        footprint_texels *= size[0] / width
+    return cv2.GaussianBlur(_as_float(image), (0, 0), 0.5 * footprint_texels)
 
 
 def _lookup(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
