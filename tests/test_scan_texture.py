@@ -175,3 +175,17 @@ def test_retarget_scans_cli_tracks_the_skin_of_textured_meshes(tmp_path, ict):
     output_plain, error_plain = build(tmp_path / "plain.npz")
     assert "shape only" in output_plain
     assert error <= 0.10 and error < 0.5 * error_plain, (error, error_plain)
+
+
+@pytest.mark.parametrize("statement,image", [
+    ("map_Kd skin.png", "skin.png"),
+    ("map_Kd -s 1 1 1 -clamp on skin.png", "skin.png"),
+    ("map_Kd -o 0.5 0.5 skin.png", "skin.png"),  # -o, -s and -t take 1 to 3 numbers
+    ("map_Kd -bm 0.8 my skin.png", "my skin.png"),
+    ("map_Kd  textures/skin 2.jpg ", "textures/skin 2.jpg"),
+])
+def test_map_kd_options_are_skipped_to_the_image_name(tmp_path, statement, image):
+    from livebridge.retarget.texture import read_materials
+
+    (tmp_path / "m.mtl").write_text(f"# exported\nnewmtl face\nKd 1 1 1\n{statement}\n")
+    assert read_materials(tmp_path / "m.mtl", tmp_path / "m.obj") == {"face": tmp_path / image}

@@ -15,6 +15,7 @@ a coloured point cloud with a point every ``spacing`` mm.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -83,26 +84,24 @@ def read_materials(mtl: Path, obj: Path) -> dict[str, Path]:
 
 _MAP_OPTION_ARGUMENTS = {"-blendu": 1, "-blendv": 1, "-bm": 1, "-boost": 1, "-cc": 1, "-clamp": 1, "-imfchan": 1,
                          "-mm": 2, "-o": 3, "-s": 3, "-t": 3, "-texres": 1}
+"""The most words each ``map_Kd`` option takes (-o, -s and -t take 1 to 3 numbers)."""
+_NUMERIC_OPTIONS = ("-bm", "-boost", "-mm", "-o", "-s", "-t", "-texres")
 
 
 def _map_file(text: str) -> str:
     """The file name of a ``map_Kd`` statement, after its options (``-s 1 1 1``, ``-clamp on`` ...)."""
     words = text.split()
     k = 0
-    while k < len(words) and words[k] in _MAP_OPTION_ARGUMENTS:
-        k += 1 + _MAP_OPTION_ARGUMENTS[words[k]]
-    # -o, -s and -t take 1 to 3 numbers: skip any that are left
-    while k < len(words) - 1 and _is_number(words[k]):
-        k += 1
+    while k < len(words) - 1 and words[k] in _MAP_OPTION_ARGUMENTS:
+        option, k = words[k], k + 1
+        for _ in range(_MAP_OPTION_ARGUMENTS[option]):
+            if k >= len(words) - 1 or (option in _NUMERIC_OPTIONS and not _NUMBER.fullmatch(words[k])):
+                break
+            k += 1
     return " ".join(words[k:])
 
 
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
+_NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?")
 
 
 def read_image(path: Path, source: Path, field: str) -> np.ndarray:
