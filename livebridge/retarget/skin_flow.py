@@ -43,6 +43,19 @@ second-difference prior, over all pixels) cut the per-pixel flow noise 2-3x but 
 element's scale (0.124 either way, 6 s more per element), so what remains at 60k points is what the skin
 images themselves say, not the estimator: a low-pass of the images before normalising (0.3-0.8 mm) was
 worse (0.158-0.187 against 0.159), so the finest pattern still carries motion.
+
+The same holds on a closing eye's lid, whose skin stretches about twice as the lid comes down (the eyelid scans
+of seed 7 alone, 60k points a scan, 0.218 / 0.219 relative RMS): warped by the TRUE motion the expression's lid
+skin matches the neutral's worse (local RMS residual 0.71 / 0.75 over the lids) than warped by the flow (0.63 /
+0.67), both at the 0.6 two scans of one skin give, so the images do not pin the lid's motion; a Gauss-Newton
+refinement on a 1.5 mm lattice there moved the flow further from the truth (0.72 -> 0.75 mm RMS over the lids),
+and OpenCV's other dense flows were worse (DualTVL1 0.222 / 0.255, Farneback 0.241 / 0.259, DeepFlow 0.312 /
+0.342); DIS's smoothness 5, 10 or 40 instead of 20 gave 0.231 / 0.241, 0.214 / 0.227, 0.237 / 0.382, and patches
+of 4, 6 or 12 mm 0.206 / 0.225, 0.212 / 0.218, 0.234 / 0.313 (6 mm, the only one better for both eyes, with all
+16 scans 0.204 / 0.231 against 0.207 / 0.245, but the brow, the smile and the lip press worse: frontalis_L 0.062
+-> 0.066, zygomatic_major_R 0.047 -> 0.054, lips_pressor 0.111 -> 0.115). The true motion of every skin pixel
+(all three components) put through the rest of the pipeline gives 0.134 / 0.120: the lids' margins near the eye's
+corners and the lid's height change hold most of what is left.
 """
 
 from __future__ import annotations
