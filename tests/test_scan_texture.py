@@ -1,5 +1,6 @@
-"""Textured scan meshes: OBJ ``vt`` / MTL ``map_Kd`` read against the images written, the textured surface
-sampled into coloured points against the texture's known colours, and bad textured files refused by name."""
+"""Textured scan meshes: OBJ ``vt`` / MTL ``map_Kd`` and PLY ``TextureFile`` / ``texcoord`` read against the
+images written, the textured surface sampled into coloured points against the texture's known colours, and bad
+textured files refused by name."""
 
 from __future__ import annotations
 
@@ -189,3 +190,147 @@ def test_map_kd_options_are_skipped_to_the_image_name(tmp_path, statement, image
 
     (tmp_path / "m.mtl").write_text(f"# exported\nnewmtl face\nKd 1 1 1\n{statement}\n")
     assert read_materials(tmp_path / "m.mtl", tmp_path / "m.obj") == {"face": tmp_path / image}
+
+
+# ------------------------------------------------------------------------------------------------ PLY
+PLY_POINTS = np.vstack([SQUARE, [[20.0, 0.0, 0.0], [20.0, 30.0, 0.0], [20.0, 36.0, 0.0]]])
+""":data:`SQUARE`, its bottom and top middles and a point above the top: faces of every kind on the quad's map."""
+PLY_FACES = {
+    "triangles": [[0, 1, 2], [0, 2, 3]],
+    "quads": [[0, 4, 5, 3], [4, 1, 2, 5]],  # binary: rows of one length, read as one array
+    "quads and a triangle": [[0, 4, 5, 3], [4, 1, 2, 5], [3, 5, 6]],  # binary: ragged rows, read one by one
+}
+PLY_AREA = {"triangles": 1200.0, "quads": 1200.0, "quads and a triangle": 1200.0 + 0.5 * 40 * 6}
+
+
+def _write_image(path, rgb) -> None:
+    """``rgb`` (h, w, 3) in 0-1 as a 16-bit PNG."""
+    cv2.imwrite(str(path), np.round(np.asarray(rgb)[..., ::-1] * 65535).astype(np.uint16))
+
+
+def _write_textured_ply(path, encoding="ascii", faces=PLY_FACES["triangles"], texcoords="corners", texnumbers=None,
+                        vertex_uv=None, textures=("gradient.png",), vertex_colours=True, points=PLY_POINTS,
+                        vertex_uv_values=None):
+    """A PLY as MeshLab writes a textured mesh, by hand: a ``comment TextureFile`` per texture, vertices x y z
+    (with ``vertex_uv``: those two properties, ``vertex_uv_values`` or :func:`_uv_at` of the point) and uchar
+    red green blue, faces'
+    ``vertex_indices``, ``texcoord`` (``"corners"``: :func:`_uv_at` of each corner; a list: the values per face;
+    None: no texcoord) and ``texnumbers``."""
+    if isinstance(texcoords, str):
+        texcoords = [_uv_at(points[face]).ravel().tolist() for face in faces]
+    header = ["ply", f"format {encoding} 1.0", "comment made by a scanner"]
+    header += [f"comment TextureFile {name}" for name in textures]
+    header += [f"element vertex {len(points)}"] + [f"property float {axis}" for axis in "xyz"]
+    vertices = [list(point) for point in points]
+    if vertex_uv is not None:
+        header += [f"property float {name}" for name in vertex_uv]
+        uv = _uv_at(points) if vertex_uv_values is None else vertex_uv_values
+        vertices = [row + list(pair) for row, pair in zip(vertices, uv)]
+    if vertex_colours:
+        header += [f"property uchar {name}" for name in ("red", "green", "blue")]
+    header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    header += ["property list uchar float texcoord"] * (texcoords is not None)
+    header += ["property int texnumber"] * (texnumbers is not None) + ["end_header", ""]
+    if encoding == "ascii":
+        rows = [" ".join(f"{value:g}" for value in row) + " 200 10 10" * vertex_colours for row in vertices]
+        for k, face in enumerate(faces):
+            cells = [len(face), *face]
+            cells += [] if texcoords is None else [len(texcoords[k]), *texcoords[k]]
+            cells += [] if texnumbers is None else [texnumbers[k]]
+            rows.append(" ".join(f"{value:.9g}" for value in cells))
+        body = "".join(row + "\n" for row in rows).encode()
+    else:
+        parts = [np.array(row, "<f4").tobytes() + bytes([200, 10, 10] * vertex_colours) for row in vertices]
+        for k, face in enumerate(faces):
+            parts.append(bytes([len(face)]) + np.array(face, "<i4").tobytes())
+            if texcoords is not None:
+                parts.append(bytes([len(texcoords[k])]) + np.array(texcoords[k], "<f4").tobytes())
+            if texnumbers is not None:
+                parts.append(np.array(texnumbers[k], "<i4").tobytes())
+        body = b"".join(parts)
+    path.write_bytes("\n".join(header).encode() + body)
+
+
+@pytest.mark.parametrize("layout", list(PLY_FACES))
+@pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian"])
+def test_textured_ply_is_sampled_into_points_coloured_as_its_image(tmp_path, encoding, layout):
+    """Triangles, quads and a mix (each quad's texcoord fanned as its vertices), colours per vertex ignored
+    for the texture's."""
+    _write_image(tmp_path / "gradient.png", _gradient())
+    _write_textured_ply(tmp_path / "mesh.ply", encoding, PLY_FACES[layout])
+    scan = read_scan(tmp_path / "mesh.ply")
+    assert scan.texture is not None and scan.colours is None
+    assert scan.texture.names == ("gradient.png",) and len(scan.texture.uv) == len(scan.triangles)
+    np.testing.assert_allclose(scan.texture.uv, _uv_at(PLY_POINTS[scan.triangles].reshape(-1, 3)).reshape(-1, 3, 2),
+                               atol=1e-6)
+
+    points = scan.coloured(spacing=0.5)
+    assert abs(len(points.points) / (PLY_AREA[layout] / 0.5 ** 2) - 1) < 0.1
+    expected = np.column_stack([_uv_at(points.points), np.full(len(points.points), 0.5)])
+    np.testing.assert_allclose(points.colours, expected, atol=2e-4)  # float32 texcoords and 16-bit PNG rounding
+
+
+@pytest.mark.parametrize("names", [("s", "t"), ("u", "v"), ("texture_u", "texture_v"), ("texture_s", "texture_t")])
+@pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian"])
+def test_ply_texture_coordinates_per_vertex(tmp_path, encoding, names):
+    _write_image(tmp_path / "gradient.png", _gradient())
+    _write_textured_ply(tmp_path / "mesh.ply", encoding, PLY_FACES["quads"], texcoords=None, vertex_uv=names)
+    points = read_scan(tmp_path / "mesh.ply").coloured(spacing=1.0)
+    expected = np.column_stack([_uv_at(points.points), np.full(len(points.points), 0.5)])
+    np.testing.assert_allclose(points.colours, expected, atol=2e-4)
+
+
+@pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian"])
+def test_ply_texnumber_picks_each_face_its_texture_file(tmp_path, encoding):
+    """Two ``comment TextureFile`` lines (one name not ASCII) naming images in a folder beside the PLY (paths
+    are relative to the PLY's folder): face 0 shows the second, face 1 the first."""
+    (tmp_path / "maps").mkdir()
+    _write_image(tmp_path / "maps" / "red.png", np.full((8, 8, 3), [1.0, 0.0, 0.0]))
+    _write_image(tmp_path / "maps" / "blué.png", np.full((8, 8, 3), [0.0, 0.0, 1.0]))
+    _write_textured_ply(tmp_path / "two.ply", encoding, texnumbers=[1, 0], textures=("maps/red.png", "maps/blué.png"))
+    scan = read_scan(tmp_path / "two.ply")
+    assert scan.texture.names == ("red.png", "blué.png")
+    points = scan.coloured(spacing=1.0)
+    lower = points.points[:, 0] * 30 / 40 > points.points[:, 1]  # face 0: 0 1 2
+    np.testing.assert_allclose(points.colours[lower], [[0, 0, 1]] * lower.sum(), atol=1e-6)
+    np.testing.assert_allclose(points.colours[~lower], [[1, 0, 0]] * (~lower).sum(), atol=1e-6)
+
+
+def test_ply_without_a_texture_file_keeps_its_vertex_colours(tmp_path):
+    _write_textured_ply(tmp_path / "plain.ply", textures=())
+    scan = read_scan(tmp_path / "plain.ply")
+    assert scan.texture is None
+    np.testing.assert_allclose(scan.colours, [[200 / 255, 10 / 255, 10 / 255]] * len(PLY_POINTS))
+
+
+NAN_CORNERS = [[0.1, 0.2, 0.9, 0.2, 0.9, 0.8], [0.1, 0.2, 0.9, float("nan"), 0.1, 0.8]]
+
+
+@pytest.mark.parametrize("case,options,edit,words", [
+    ("the image missing", {}, lambda d: (d / "gradient.png").unlink(),
+     ("mesh.ply", "TextureFile", "gradient.png", "not there", "next to the PLY", "remove the TextureFile comment")),
+    ("the image not an image", {}, lambda d: (d / "gradient.png").write_text("not a png"),
+     ("mesh.ply", "TextureFile", "gradient.png", "could not be read")),
+    ("texnumber out of range", {"texnumbers": [0, 1]}, None, ("mesh.ply", "texnumber", "face 1", "texnumber 1")),
+    ("a negative texnumber", {"texnumbers": [-1, 0]}, None, ("mesh.ply", "texnumber", "face 0")),
+    ("a texcoord list too short", {"texcoords": [[0.1] * 6, [0.1] * 5]}, None, ("mesh.ply", "texcoord", "face 1", "5")),
+    ("texcoord lists all too long", {"texcoords": [[0.1] * 8, [0.1] * 8]}, None,
+     ("mesh.ply", "texcoord", "face 0", "8 texcoord values for 3 corners")),
+    ("a quad's texcoord for a triangle", {"faces": PLY_FACES["quads"], "texcoords": [[0.1] * 8, [0.1] * 6]}, None,
+     ("mesh.ply", "texcoord", "face 1", "6 texcoord values for 4 corners")),
+    ("a texcoord not finite", {"texcoords": NAN_CORNERS}, None, ("mesh.ply", "texcoord", "face 1", "not finite")),
+    ("a vertex's s t not finite", {"texcoords": None, "vertex_uv": ("s", "t"),
+                                   "vertex_uv_values": _uv_at(PLY_POINTS) + np.array([[0, 0]] * 3 + [[np.inf, 0]] * 4)},
+     None, ("mesh.ply", "s t", "vertex 3", "not finite")),
+])
+@pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian"])
+def test_a_bad_textured_ply_names_the_file_and_what_is_wrong(tmp_path, encoding, case, options, edit, words):
+    _write_image(tmp_path / "gradient.png", _gradient())
+    _write_textured_ply(tmp_path / "mesh.ply", encoding, **options)
+    if edit is not None:
+        edit(tmp_path)
+    with pytest.raises(InputError) as error:
+        read_scan(tmp_path / "mesh.ply")
+    message = str(error.value)
+    for word in words:
+        assert word in message, (case, message)

@@ -12,7 +12,8 @@ from livebridge.cli.landmarks import UNITS_TO_MM
 LANDMARK_SUFFIXES = (".csv", ".toml")
 SCAN_HELP = ("Scans: PLY (ascii or binary, point cloud or mesh), OBJ, or XYZ/CSV text (x y z per line), with "
              "colour when the scanner recorded it: per point (PLY red/green/blue, OBJ v x y z r g b, XYZ r g b "
-             "columns) or as a textured OBJ mesh (vt coordinates, mtllib with map_Kd images next to it). "
+             "columns) or as a textured OBJ mesh (vt coordinates, mtllib with map_Kd images next to it) or PLY mesh "
+             "(comment TextureFile images next to it, face texcoord or vertex s t). "
              "Landmarks: "
              "a CSV of name,x,y,z rows or a TOML of name = [x, y, z] lines, in the scan's coordinates and units; "
              "an expression's landmark file defaults to SCAN with the suffix .landmarks.csv.")
@@ -131,5 +132,5 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     if uncoloured:
         which = "the neutral scan" if neutral.skin is None else ", ".join(uncoloured)
         click.echo(f"note: no colour in {which}: the motion along the skin (most of a brow raise or a smile) is "
-                   "then known only at the landmarks; scans with colour (per point, or a textured OBJ) let it be "
-                   "tracked everywhere")
+                   "then known only at the landmarks; scans with colour (per point, or a textured OBJ or PLY) let it "
+                   "be tracked everywhere")

@@ -5,13 +5,15 @@ photogrammetry and depth cameras with a colour camera do), and triangles when th
 with more than three corners become triangle fans). Colour is read from PLY ``red green blue`` (or
 ``diffuse_red ..``; integers scaled by their type's maximum, floats taken as 0-1), OBJ ``v x y z r g b`` and
 XYZ/CSV columns named ``r g b`` / ``red green blue`` (or, without a header, three whole numbers 0-255 after
-x y z on every line). Every reader checks what it reads and names the file and the line
-(text) or the element (binary) of the first bad value: a truncated file, a wrong count, NaN or infinity, a
-face that points at a vertex that does not exist.
+x y z on every line), or from the texture images of a textured mesh (OBJ ``vt`` with ``mtllib`` / ``map_Kd``;
+PLY ``comment TextureFile`` with face ``texcoord`` lists or vertex ``s t``). Every reader checks what it reads
+and names the file and the line (text) or the element (binary) of the first bad value: a truncated file, a
+wrong count, NaN or infinity, a face that points at a vertex that does not exist.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 from dataclasses import dataclass
@@ -360,8 +362,9 @@ class _Element:
 
 
 def _read_ply(data: bytes, path: Path):
-    """The ``vertex`` element's x, y, z and the ``face`` element's vertex index lists; other elements skipped."""
-    order, elements, body = _ply_header(data, path)
+    """The ``vertex`` element's x, y, z (and colour), the ``face`` element's vertex index lists and, with
+    ``comment TextureFile`` lines, their texture (:func:`_ply_texture`); other elements skipped."""
+    order, elements, body, comments = _ply_header(data, path)
     names = [element.name for element in elements]
     if "vertex" not in names:
         raise InputError("no 'element vertex' in the PLY header", path)
@@ -381,10 +384,80 @@ def _read_ply(data: bytes, path: Path):
                          "vertex")
     faces = tables.get("face", {})
     lists = [faces[name] for name in _FACE_LISTS if name in faces]
-    triangles = np.zeros((0, 3), np.int64)
+    triangles, texture = np.zeros((0, 3), np.int64), None
     if lists:
-        triangles = _fan(lists[0], path)
-    return points, triangles, _ply_colours(vertex, table)
+        triangles, corners, face_of = _fan(lists[0], path)
+        _check_faces(triangles, len(points), path)  # before the vertices' texture coordinates are indexed
+        texture = _ply_texture(path, comments, table, faces, triangles, corners, face_of)
+    colours = _ply_colours(vertex, table)
+    # as for OBJ: the images hold the skin's pattern finer than the vertices
+    return points, triangles, None if texture is not None else colours, texture
+
+
+_PLY_TEXCOORDS = (("s", "t"), ("u", "v"), ("texture_u", "texture_v"), ("texture_s", "texture_t"))
+
+
+def _ply_texture(path: Path, comments: list[str], vertex_table: dict, faces: dict, triangles: np.ndarray,
+                 corners: np.ndarray, face_of: np.ndarray) -> Texture | None:
+    """The :class:`~livebridge.retarget.texture.Texture` of a PLY mesh (as MeshLab writes it): the images of its
+    ``comment TextureFile`` lines (next to the PLY), one per face by its ``texnumber`` (default the first), on
+    the faces' ``texcoord`` lists (u v per corner, v up as in OBJ) or else the vertices' ``s t`` (or ``u v``,
+    ``texture_u texture_v``, ``texture_s texture_t``); None without images or texture coordinates.
+
+    ``triangles``, ``corners`` and ``face_of``: the faces' fans (:func:`_fan`).
+    """
+    from livebridge.retarget.texture import read_image
+
+    files = [words[1].strip() for words in (comment.split(maxsplit=1) for comment in comments)
+             if len(words) == 2 and words[0].lower() == "texturefile"]
+    if not files:
+        return None
+    if "texcoord" in faces:
+        uv = _ply_face_uv(path, faces["texcoord"], corners, face_of)
+    else:
+        uv = _ply_vertex_uv(path, vertex_table, triangles)
+    if uv is None:
+        return None
+    number = np.zeros(len(face_of))
+    if "texnumber" in faces:
+        number = np.asarray(faces["texnumber"], dtype=np.float64)[face_of]
+    bad = np.flatnonzero(~((number == np.round(number)) & (number >= 0) & (number < len(files))))
+    if len(bad):
+        raise InputError(f"face {face_of[bad[0]]}: texnumber {number[bad[0]]:g} picks none of the {len(files)} "
+                         f"TextureFile comments (0..{len(files) - 1})", path, "texnumber")
+    used, image_index = np.unique(number.astype(np.int64), return_inverse=True)
+    remedy = "put it next to the PLY, or remove the TextureFile comment to read the scan as shape only"
+    images = tuple(read_image(path.parent / files[k], path, "TextureFile", remedy) for k in used)
+    return Texture(uv, image_index.reshape(-1).astype(np.int64), images, tuple(Path(files[k]).name for k in used))
+
+
+def _ply_face_uv(path: Path, texcoord, corners: np.ndarray, face_of: np.ndarray) -> np.ndarray:
+    """Texture coordinates (n_triangles, 3, 2) from the faces' ``texcoord`` lists, fanned as their vertices."""
+    lengths = _lengths(texcoord)
+    n_corners = np.bincount(face_of, minlength=len(lengths)) + 2  # a polygon of k corners fans into k - 2
+    bad = np.flatnonzero(lengths != 2 * n_corners)
+    if len(bad):
+        raise InputError(f"face {bad[0]}: {lengths[bad[0]]} texcoord values for {n_corners[bad[0]]} corners (u v "
+                         f"for each; {len(bad)} such faces)", path, "texcoord")
+    uv = _flat(texcoord, np.float64).reshape(-1, 2)[corners]
+    bad = np.flatnonzero(~np.isfinite(uv).all(axis=(1, 2)))
+    if len(bad):
+        raise InputError(f"face {face_of[bad[0]]}: texcoord is not finite ({uv[bad[0]].ravel().tolist()})", path,
+                         "texcoord")
+    return uv
+
+
+def _ply_vertex_uv(path: Path, table: dict, triangles: np.ndarray) -> np.ndarray | None:
+    """Texture coordinates (n_triangles, 3, 2) from the vertices' (:data:`_PLY_TEXCOORDS`); None without."""
+    for names in _PLY_TEXCOORDS:
+        if all(name in table for name in names):
+            uv = np.stack([np.asarray(table[name], dtype=np.float64) for name in names], axis=1)
+            bad = np.flatnonzero(~np.isfinite(uv).all(axis=1))
+            if len(bad):
+                raise InputError(f"vertex {bad[0]}: texture coordinates {uv[bad[0]].tolist()} are not finite "
+                                 f"({len(bad)} such)", path, " ".join(names))
+            return uv[triangles]
+    return None
 
 
 _PLY_COLOURS = (("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue"), ("r", "g", "b"))
@@ -406,16 +479,20 @@ def _ply_colours(vertex: _Element, table: dict) -> np.ndarray | None:
 
 
 def _ply_header(data: bytes, path: Path):
+    """The body's byte order (None: ascii), the elements, the body and the ``comment`` lines' text."""
     if not data.startswith(b"ply"):
         raise InputError("not a PLY file (it must start with 'ply')", path)
     end = re.search(rb"end_header[ \t]*\r?\n", data)
     if end is None:
         raise InputError("the PLY header has no 'end_header' line", path)
-    order, elements = "missing", []
-    lines = data[:end.start()].decode("ascii", errors="replace").splitlines()
+    order, elements, comments = "missing", [], []
+    lines = data[:end.start()].decode("utf-8", errors="replace").splitlines()  # TextureFile names may be UTF-8
     for number, line in enumerate(lines[1:], 2):
         words = line.split()
-        if not words or words[0] in ("comment", "obj_info"):
+        if words[:1] == ["comment"]:
+            comments.append(line.split(maxsplit=1)[1] if len(words) > 1 else "")  # TextureFile names are here
+            continue
+        if not words or words[0] == "obj_info":
             continue
         where = f"header line {number}"
         if words[0] == "format":
@@ -437,7 +514,7 @@ def _ply_header(data: bytes, path: Path):
             raise InputError(f"{where}: unknown header keyword {words[0]!r}", path)
     if order == "missing":
         raise InputError("the PLY header has no 'format' line", path)
-    return order, elements, data[end.end():]
+    return order, elements, data[end.end():], comments
 
 
 def _ply_property(words, where, path) -> _Property:
@@ -559,18 +636,46 @@ def _binary_fixed_rows(body: bytes, at: int, element: _Element, order: str):
     return {p.name: table[p.name] for p in element.properties}, at + dtype.itemsize * element.count
 
 
-def _fan(faces, path: Path) -> np.ndarray:
-    """Triangles from face index lists (an (m, k) array or a list of lists): polygons become fans."""
+def _fan(faces, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Triangles from face index lists (an (m, k) array or a list of lists): polygons become fans.
+
+    Returns
+    -------
+    triangles : ndarray of int, shape (n_triangles, 3)
+    corners : ndarray of int, shape (n_triangles, 3)
+        Each triangle corner's place among all the faces' corners in file order: values per face corner
+        (``texcoord``), flattened, are fanned exactly as the vertices by indexing them with it.
+    face_of : ndarray of int, shape (n_triangles,)
+        The face each triangle is part of.
+    """
+    lengths = _lengths(faces)
     if isinstance(faces, np.ndarray) and faces.ndim == 2:
-        rows = [faces]
+        rows = [np.arange(faces.size).reshape(faces.shape)]
     else:
-        rows = [np.asarray(face, dtype=np.int64)[None] for face in faces]
-    triangles = []
+        starts = np.cumsum(lengths) - lengths
+        rows = [np.arange(start, start + n)[None] for start, n in zip(starts, lengths)]
+    fans = []
     for k, row in enumerate(rows):
         if row.shape[1] < 3:
             raise InputError(f"face {k} has {row.shape[1]} corners (at least 3)", path, "face")
-        triangles += [np.stack([row[:, 0], row[:, j], row[:, j + 1]], axis=1) for j in range(1, row.shape[1] - 1)]
-    return np.concatenate(triangles).astype(np.int64) if triangles else np.zeros((0, 3), np.int64)
+        fans += [np.stack([row[:, 0], row[:, j], row[:, j + 1]], axis=1) for j in range(1, row.shape[1] - 1)]
+    corners = np.concatenate(fans) if fans else np.zeros((0, 3), np.int64)
+    face_of = np.repeat(np.arange(len(lengths)), lengths)[corners[:, 0]]
+    return _flat(faces, np.int64)[corners], corners, face_of
+
+
+def _lengths(lists) -> np.ndarray:
+    """The length of each list of a list property (an (m, k) array or a list of lists)."""
+    if isinstance(lists, np.ndarray) and lists.ndim == 2:
+        return np.full(len(lists), lists.shape[1], dtype=np.int64)
+    return np.array([len(items) for items in lists], dtype=np.int64)
+
+
+def _flat(lists, dtype) -> np.ndarray:
+    """A list property's values, all rows one after the other."""
+    if isinstance(lists, np.ndarray):
+        return lists.astype(dtype).reshape(-1)
+    return np.fromiter(itertools.chain.from_iterable(lists), dtype=dtype)
 
 
 def _check_faces(triangles: np.ndarray, n_points: int, path: Path) -> None:

@@ -104,14 +104,17 @@ def _map_file(text: str) -> str:
 _NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?")
 
 
-def read_image(path: Path, source: Path, field: str) -> np.ndarray:
+def read_image(path: Path, source: Path, field: str,
+               remedy: str = "put it next to the material file, or remove the mtllib line to read the scan "
+                             "without colour") -> np.ndarray:
     """An image file as RGB (height, width, 3), uint8 or uint16 as stored (floats kept as they are); an error
-    names ``source`` (the file that named it) and ``field`` when it is missing or not an image."""
+    names ``source`` (the file that named it) and ``field`` when it is missing (saying ``remedy``: how to go on)
+    or not an image."""
     import cv2
 
     if not path.is_file():
-        raise InputError(f"texture image {path.name} is not there (looked in {path.parent}): put it next to the "
-                         "material file, or remove the mtllib line to read the scan without colour", source, field)
+        raise InputError(f"texture image {path.name} is not there (looked in {path.parent}): {remedy}", source,
+                         field)
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None or image.ndim not in (2, 3) or image.size == 0:
         raise InputError(f"texture image {path.name} could not be read as an image", source, field)
