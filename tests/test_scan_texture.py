@@ -334,3 +334,18 @@ def test_a_bad_textured_ply_names_the_file_and_what_is_wrong(tmp_path, encoding,
     message = str(error.value)
     for word in words:
         assert word in message, (case, message)
+
+
+@pytest.mark.parametrize("name,stored", [
+    ("textures\\skin.png", "textures/skin.png"),  # written on Windows
+    ("C:\\Users\\scan\\Desktop\\skin.png", "skin.png"),  # an absolute path on the machine that made the scan
+    ("/home/scan/skin.png", "skin.png"),
+])
+def test_an_image_named_the_windows_way_or_by_another_machine_s_path_is_found_next_to_the_file(tmp_path, name,
+                                                                                                stored):
+    from livebridge.retarget.texture import read_materials
+
+    (tmp_path / stored).parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(tmp_path / stored), np.zeros((2, 2, 3), np.uint8))
+    (tmp_path / "m.mtl").write_text(f"newmtl face\nmap_Kd {name}\n")
+    assert read_materials(tmp_path / "m.mtl", tmp_path / "m.obj") == {"face": tmp_path / stored}

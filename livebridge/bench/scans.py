@@ -313,6 +313,8 @@ def run(quick: bool, log) -> dict:
     if not quick:
         result[f"at_{DENSE_SCAN_POINTS}_points"] = _measure_density(basis, DENSE_SCAN_POINTS, options, log)
         result["eyelids_with_lid_landmarks"] = _measure_lid_landmarks(basis, log)
+        result["textured_meshes"] = _measure(basis, "textured meshes (the triangles a scanner sees, 0.1 mm vertex "
+                                             "noise, the skin as their texture)", {"textured": True}, log)
     return result
 
 
@@ -345,11 +347,17 @@ def with_landmarks(landmarks, more, names):
 
 def _measure_density(basis, n_points: int, options: dict, log) -> dict:
     """The figures of one bench run with scans of ``n_points`` points each, as the JSON result."""
+    return {"scan_points": n_points} | _measure(basis, f"{n_points} points a scan", options | {"n_points": n_points},
+                                                 log)
+
+
+def _measure(basis, what: str, options: dict, log) -> dict:
+    """The figures of one bench run with scans made with ``options`` (of :func:`synthetic_scans`; ``what`` they
+    are, for the log), as the JSON result."""
     from livebridge.retarget.landmarks import load_landmark_set
 
-    figures = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), n_points=n_points,
-                                **options)
-    log(f"scans: {n_points} points a scan, {figures.n_vertices} grid vertices, {len(figures.names)} elements; "
+    figures = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), **options)
+    log(f"scans: {what}, {figures.n_vertices} grid vertices, {len(figures.names)} elements; "
         f"built in {figures.build_s:.1f} s with skin tracking, {figures.build_without_colour_s:.1f} s from shape "
         "alone")
     log(f"  {'element':24s} {'RMS mm':>7s} {'error':>7s} {'no colour':>9s} {'surface':>8s} {'no colour':>9s}")
@@ -363,7 +371,7 @@ def _measure_density(basis, n_points: int, options: dict, log) -> dict:
     def per_element(values):
         return dict(zip(figures.names, (round(float(v), 4) for v in values)))
 
-    return {"scan_points": n_points, "n_vertices": figures.n_vertices, "limit": ERROR_LIMIT,
+    return {"n_vertices": figures.n_vertices, "limit": ERROR_LIMIT,
             "build_s": figures.build_s, "build_without_colour_s": figures.build_without_colour_s,
             "max_relative_error": float(np.nanmax(figures.errors)),
             "max_relative_error_without_colour": float(np.nanmax(figures.errors_without_colour)),

@@ -406,7 +406,7 @@ def _ply_texture(path: Path, comments: list[str], vertex_table: dict, faces: dic
 
     ``triangles``, ``corners`` and ``face_of``: the faces' fans (:func:`_fan`).
     """
-    from livebridge.retarget.texture import read_image
+    from livebridge.retarget.texture import image_path, read_image
 
     files = [words[1].strip() for words in (comment.split(maxsplit=1) for comment in comments)
              if len(words) == 2 and words[0].lower() == "texturefile"]
@@ -427,7 +427,7 @@ def _ply_texture(path: Path, comments: list[str], vertex_table: dict, faces: dic
                          f"TextureFile comments (0..{len(files) - 1})", path, "texnumber")
     used, image_index = np.unique(number.astype(np.int64), return_inverse=True)
     remedy = "put it next to the PLY, or remove the TextureFile comment to read the scan as shape only"
-    images = tuple(read_image(path.parent / files[k], path, "TextureFile", remedy) for k in used)
+    images = tuple(read_image(image_path(path.parent, files[k]), path, "TextureFile", remedy) for k in used)
     return Texture(uv, image_index.reshape(-1).astype(np.int64), images, tuple(Path(files[k]).name for k in used))
 
 

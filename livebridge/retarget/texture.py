@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PureWindowsPath
 
 import numpy as np
 
@@ -78,7 +78,7 @@ def read_materials(mtl: Path, obj: Path) -> dict[str, Path]:
         if parts[0] == "newmtl":
             current = parts[1].strip()
         elif parts[0] == "map_Kd" and current is not None:
-            images[current] = mtl.parent / _map_file(parts[1])
+            images[current] = image_path(mtl.parent, _map_file(parts[1]))
     return images
 
 
@@ -102,6 +102,17 @@ def _map_file(text: str) -> str:
 
 
 _NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?")
+
+
+def image_path(folder: Path, name: str) -> Path:
+    """Where the texture image ``name`` that a file in ``folder`` names is: relative to ``folder``, Windows
+    separators read as such; a name not found there (an absolute path on the machine that made the scan) falls
+    back to its bare file name in ``folder``."""
+    named = folder / name.replace("\\", "/")
+    if named.is_file():
+        return named
+    bare = folder / PureWindowsPath(name).name
+    return bare if bare.is_file() else named
 
 
 def read_image(path: Path, source: Path, field: str,
