@@ -115,8 +115,13 @@ def test_texels_finer_than_the_samples_are_averaged_not_aliased():
 def test_a_bad_textured_scan_names_the_file_and_what_is_wrong(tmp_path, case, edit, words):
     write_textured_obj(tmp_path / "quad.obj", SQUARE, SQUARE_TRIANGLES, SQUARE_UV, _gradient())
     edit(tmp_path)
+    _assert_refused(tmp_path / "quad.obj", case, words)
+
+
+def _assert_refused(path, case: str, words) -> None:
+    """Reading the scan at ``path`` is one :class:`InputError` holding every one of ``words``."""
     with pytest.raises(InputError) as error:
-        read_scan(tmp_path / "quad.obj")
+        read_scan(path)
     message = str(error.value)
     for word in words:
         assert word in message, (case, message)
@@ -329,11 +334,7 @@ def test_a_bad_textured_ply_names_the_file_and_what_is_wrong(tmp_path, encoding,
     _write_textured_ply(tmp_path / "mesh.ply", encoding, **options)
     if edit is not None:
         edit(tmp_path)
-    with pytest.raises(InputError) as error:
-        read_scan(tmp_path / "mesh.ply")
-    message = str(error.value)
-    for word in words:
-        assert word in message, (case, message)
+    _assert_refused(tmp_path / "mesh.ply", case, words)
 
 
 @pytest.mark.parametrize("name,stored", [
