@@ -350,3 +350,15 @@ def test_an_image_named_the_windows_way_or_by_another_machine_s_path_is_found_ne
     cv2.imwrite(str(tmp_path / stored), np.zeros((2, 2, 3), np.uint8))
     (tmp_path / "m.mtl").write_text(f"newmtl face\nmap_Kd {name}\n")
     assert read_materials(tmp_path / "m.mtl", tmp_path / "m.obj") == {"face": tmp_path / stored}
+
+
+def test_retarget_scans_help_names_the_colour_sources():
+    from click.testing import CliRunner
+
+    from livebridge.cli import main
+
+    result = CliRunner().invoke(main, ["retarget", "scans", "--help"])
+    assert result.exit_code == 0
+    text = " ".join(result.output.split())
+    for words in ("textured OBJ", "map_Kd", "TextureFile", "--texture-spacing", ".landmarks.csv"):
+        assert words in text, words

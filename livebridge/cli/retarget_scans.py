@@ -62,7 +62,7 @@ def reference_landmarks(spec: str, scale: float) -> dict:
     return load_landmark_set("builtin-22").as_dict(face.neutral, face.triangles)
 
 
-@click.command("scans")
+@click.command("scans", epilog=SCAN_HELP)
 @click.option("--neutral", "neutral_scan", required=True, type=InputPath(), help="The neutral scan.")
 @click.option("--neutral-landmarks", required=True, type=InputPath(), help="Landmarks of the neutral scan.")
 @click.option("--expression", "expressions", multiple=True, required=True, type=Named(click.STRING, "SCAN[:LM]"),
