@@ -276,6 +276,11 @@ def place_at_vertices(vertex_ids: dict[str, int], n_vertices: int, triangles: np
                        ("face",) * len(names))
 
 
+FAR_MESH_SIZES = 1000.0
+"""A point this many mesh sizes outside the mesh's bounds is refused by that gap alone (see
+:func:`place_at_points`)."""
+
+
 def place_at_points(points: dict[str, np.ndarray], vertices: np.ndarray, triangles: np.ndarray,
                     max_distance: float, source=None, units: str = "mm") -> LandmarkSet:
     """Landmarks at the surface points nearest 3D points (``{name: (3,)}``).
@@ -285,10 +290,11 @@ def place_at_points(points: dict[str, np.ndarray], vertices: np.ndarray, triangl
     """
     names = tuple(points)
     xyz = np.array([points[n] for n in names], dtype=np.float64)
-    # the largest gap to the mesh's bounding box along any axis: a lower bound of the distance found without
-    # squaring (a point at 1e300 mm would overflow the closest-point search)
+    # the largest gap to the mesh's bounding box along any axis, a lower bound of the distance found without
+    # squaring: a point thousands of mesh sizes away (1e300 mm) would overflow the closest-point search
+    extent = float(np.ptp(vertices, axis=0).max())
     outside = np.maximum(vertices.min(axis=0) - xyz, xyz - vertices.max(axis=0)).clip(min=0.0).max(axis=1)
-    if (outside > max_distance).any():
+    if (outside > max(max_distance, FAR_MESH_SIZES * extent)).any():
         k = int(np.argmax(outside))
         raise InputError(f"more than {outside[k]:.3g} {units} from the mesh surface (at most {max_distance:g} "
                          f"{units}): outside the mesh's bounds (same coordinates and units as the mesh?)",
