@@ -362,3 +362,15 @@ def test_retarget_scans_help_names_the_colour_sources():
     text = " ".join(result.output.split())
     for words in ("textured OBJ", "map_Kd", "TextureFile", "--texture-spacing", ".landmarks.csv"):
         assert words in text, words
+
+
+def test_a_textured_quad_face_is_fanned_with_its_texture_coordinates(tmp_path):
+    _write_image(tmp_path / "quad.png", _gradient())
+    (tmp_path / "quad.mtl").write_text("newmtl skin\nmap_Kd quad.png\n")
+    (tmp_path / "quad.obj").write_text(
+        "mtllib quad.mtl\n" + "".join(f"v {x} {y} {z}\n" for x, y, z in SQUARE)
+        + "".join(f"vt {u} {v}\n" for u, v in SQUARE_UV[::-1]) + "usemtl skin\nf 1/4 2/3 3/2 4/1\n")
+    points = read_scan(tmp_path / "quad.obj").coloured(spacing=1.0)
+    assert len(points.points) > 1000
+    expected = np.column_stack([_uv_at(points.points), np.full(len(points.points), 0.5)])
+    np.testing.assert_allclose(points.colours, expected, atol=2e-4)
