@@ -374,3 +374,14 @@ def test_a_textured_quad_face_is_fanned_with_its_texture_coordinates(tmp_path):
     assert len(points.points) > 1000
     expected = np.column_stack([_uv_at(points.points), np.full(len(points.points), 0.5)])
     np.testing.assert_allclose(points.colours, expected, atol=2e-4)
+
+
+def test_a_texture_coordinate_at_the_image_edge_takes_the_edge_texel():
+    """u = 1 is the right edge of the atlas: its colour, not a blend with the left edge's (no wrapping)."""
+    from livebridge.retarget.texture import Texture
+
+    image = np.array([[[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]]], np.float32)  # 4 x 1: red ... white
+    for u, colour in ((1.0, [1, 1, 1]), (0.0, [1, 0, 0]), (1.2, [1, 1, 1])):
+        texture = Texture(np.full((1, 3, 2), [u, 0.5]), np.zeros(1, int), (image,), ("strip.png",))
+        _, colours = sample_textured(SQUARE, SQUARE_TRIANGLES[:1], texture, spacing=5.0)
+        np.testing.assert_allclose(colours, [colour] * len(colours), atol=1e-6)

@@ -1,16 +1,15 @@
 """Colour from a textured scan mesh: image maps on texture coordinates, sampled into coloured points.
 
 Most face scanners (structured light, photogrammetry, 3dMD-style stereo rigs) write a mesh with one or more
-texture images (OBJ ``vt`` coordinates and an MTL file's ``map_Kd``; PLY ``texcoord`` and ``TextureFile``)
-rather than a colour per vertex. The skin's pattern, which the skin tracking of
-:mod:`~livebridge.retarget.scans` follows, is in those images at a finer resolution than the mesh's vertices
-(a vertex every 0.5-2 mm, a texel every 0.05-0.3 mm), so per-vertex colours would blur it away. Instead the
-textured surface is sampled densely: every triangle is split into ``n^2`` equal sub-triangles
-(``n = ceil(sqrt(area) / spacing)``: a point per ``spacing^2`` of surface), each sub-triangle's centroid is a
-point, and its colour is the
-texture's at its texture coordinates, the image first blurred to the samples' footprint where its texels are
-much finer (pores finer than the samples would alias into false pattern). What the rest of the pipeline sees is
-a coloured point cloud with a point every ``spacing`` mm.
+texture images (OBJ ``vt`` coordinates and an MTL file's ``map_Kd``; PLY ``texcoord`` and ``TextureFile``) rather
+than a colour per vertex. The skin's pattern, which the skin tracking of :mod:`~livebridge.retarget.scans`
+follows, is in those images at a finer resolution than the mesh's vertices (a vertex every 0.5-2 mm, a texel
+every 0.05-0.3 mm), so per-vertex colours would blur it away. Instead the textured surface is sampled densely:
+every triangle is split into ``n^2`` equal sub-triangles (``n = ceil(sqrt(area) / spacing)``: a point per
+``spacing^2`` of surface), each sub-triangle's centroid is a point, and its colour is the texture's at its
+texture coordinates, the image first blurred to the samples' footprint where its texels are much finer (pores
+finer than the samples would alias into false pattern). What the rest of the pipeline sees is a coloured point
+cloud with a point every ``spacing`` mm.
 """
 
 from __future__ import annotations
@@ -35,6 +34,8 @@ MAX_SPLITS = 256
 face, do not cost millions of points)."""
 ANTI_ALIAS_TEXELS = 2.0
 """The texture is blurred before it is sampled where a sample spacing spans more than this many texels."""
+LOOKUP_COLUMNS = 1024
+"""Texture lookups go through OpenCV's remap in rows of this many samples (its maps are images)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -228,19 +229,18 @@ def _blurred(image: np.ndarray, footprint_texels: float) -> np.ndarray:
 
 
 def _lookup(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear colours (k, 3) of ``image`` at texture coordinates ``uv`` (k, 2; repeating outside [0, 1])."""
+    """Bilinear colours (k, 3) of ``image`` at texture coordinates ``uv`` (k, 2), clamped to the image: a scan's
+    texture atlas does not repeat, and a coordinate at its edge (u = 1) takes the edge's texels."""
     import cv2
 
     height, width = image.shape[:2]
     count = len(uv)
-    side = int(np.ceil(count / LOOKUP_COLUMNS)) * LOOKUP_COLUMNS  # remap's maps are images: keep them narrow
+    side = int(np.ceil(count / LOOKUP_COLUMNS)) * LOOKUP_COLUMNS
     u = np.zeros(side, np.float32)
     v = np.zeros(side, np.float32)
-    u[:count], v[:count] = np.mod(uv[:, 0], 1.0), np.mod(uv[:, 1], 1.0)
+    u[:count], v[:count] = np.clip(uv[:, 0], 0.0, 1.0), np.clip(uv[:, 1], 0.0, 1.0)
     map_x = (u * width - 0.5).reshape(-1, LOOKUP_COLUMNS)
     map_y = ((1.0 - v) * height - 0.5).reshape(-1, LOOKUP_COLUMNS)
-    looked = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    looked = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return looked.reshape(-1, 3)[:count].astype(np.float64)
 
-
-LOOKUP_COLUMNS = 1024
