@@ -383,5 +383,5 @@ def test_a_texture_coordinate_at_the_image_edge_takes_the_edge_texel():
     image = np.array([[[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]]], np.float32)  # 4 x 1: red ... white
     for u, colour in ((1.0, [1, 1, 1]), (0.0, [1, 0, 0]), (1.2, [1, 1, 1])):
         texture = Texture(np.full((1, 3, 2), [u, 0.5]), np.zeros(1, int), (image,), ("strip.png",))
-        _, colours = sample_textured(SQUARE, SQUARE_TRIANGLES[:1], texture, spacing=5.0)
+        _, colours = sample_textured(SQUARE, SQUARE_TRIANGLES[:1], texture, spacing=0.5)
         np.testing.assert_allclose(colours, [colour] * len(colours), atol=1e-6)
