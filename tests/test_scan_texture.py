@@ -245,19 +245,20 @@ def _write_textured_ply(path, encoding="ascii", faces=PLY_FACES["triangles"], te
             rows.append(" ".join(f"{value:.9g}" for value in cells))
         body = "".join(row + "\n" for row in rows).encode()
     else:
-        parts = [np.array(row, "<f4").tobytes() + bytes([200, 10, 10] * vertex_colours) for row in vertices]
+        order = "<" if encoding == "binary_little_endian" else ">"
+        parts = [np.array(row, order + "f4").tobytes() + bytes([200, 10, 10] * vertex_colours) for row in vertices]
         for k, face in enumerate(faces):
-            parts.append(bytes([len(face)]) + np.array(face, "<i4").tobytes())
+            parts.append(bytes([len(face)]) + np.array(face, order + "i4").tobytes())
             if texcoords is not None:
-                parts.append(bytes([len(texcoords[k])]) + np.array(texcoords[k], "<f4").tobytes())
+                parts.append(bytes([len(texcoords[k])]) + np.array(texcoords[k], order + "f4").tobytes())
             if texnumbers is not None:
-                parts.append(np.array(texnumbers[k], "<i4").tobytes())
+                parts.append(np.array(texnumbers[k], order + "i4").tobytes())
         body = b"".join(parts)
     path.write_bytes("\n".join(header).encode() + body)
 
 
 @pytest.mark.parametrize("layout", list(PLY_FACES))
-@pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian"])
+@pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian", "binary_big_endian"])
 def test_textured_ply_is_sampled_into_points_coloured_as_its_image(tmp_path, encoding, layout):
     """Triangles, quads and a mix (each quad's texcoord fanned as its vertices), colours per vertex ignored
     for the texture's."""
