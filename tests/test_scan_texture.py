@@ -386,3 +386,17 @@ def test_a_texture_coordinate_at_the_image_edge_takes_the_edge_texel():
         texture = Texture(np.full((1, 3, 2), [u, 0.5]), np.zeros(1, int), (image,), ("strip.png",))
         _, colours = sample_textured(SQUARE, SQUARE_TRIANGLES[:1], texture, spacing=0.5)
         np.testing.assert_allclose(colours, [colour] * len(colours), atol=1e-6)
+
+
+def test_the_anti_alias_blur_does_not_bleed_the_atlas_padding_into_the_skin():
+    """A 4 x 4 mm quad on the right edge of a red chart (texels 0.05 mm, samples 0.5 mm apart: blurred), black
+    padding beyond it: the samples stay red (the blur over all texels darkened the edge's to about half)."""
+    from livebridge.retarget.texture import Texture
+
+    image = np.zeros((400, 400, 3), np.uint8)
+    image[:, :200] = (255, 0, 0)
+    uv = np.array([[0.3, 0.3], [0.4995, 0.3], [0.4995, 0.5], [0.3, 0.5]])
+    corners = SQUARE * [0.1, 4 / 30, 1.0]  # 4 x 4 mm
+    texture = Texture(uv[SQUARE_TRIANGLES], np.zeros(2, int), (image,), ("atlas.png",))
+    _, colours = sample_textured(corners, SQUARE_TRIANGLES, texture, spacing=0.5)
+    np.testing.assert_allclose(colours, [[1, 0, 0]] * len(colours), atol=0.02)

@@ -184,7 +184,11 @@ def sample_textured(points: np.ndarray, triangles: np.ndarray, texture: Texture,
     for index, image in enumerate(texture.images):
         mine = texture.image_index[owner] == index
         if mine.any():
-            colours[mine] = _lookup(_blurred(image, spacing / texels[index]), uv[mine])
+            footprint = spacing / texels[index]
+            covered = None
+            if footprint > ANTI_ALIAS_TEXELS:  # the blur must not reach past the atlas's charts
+                covered = _coverage(texture.uv[chosen[texture.image_index[chosen] == index]], image.shape[:2])
+            colours[mine] = _lookup(_blurred(image, footprint, covered), uv[mine])
     return samples, colours
 
 
@@ -211,21 +215,45 @@ def _texel_mm(points: np.ndarray, triangles: np.ndarray, texture: Texture, index
     return float(np.sqrt(np.median(area[fine] / texels[fine]))) if fine.any() else 1.0
 
 
-def _blurred(image: np.ndarray, footprint_texels: float) -> np.ndarray:
+def _coverage(uv: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The texels (height, width) uint8 1/0 that triangles with texture coordinates ``uv`` (k, 3, 2) cover (a
+    blur normalised by them leaves the texels just outside a chart, which a lookup at its edge reads, an average
+    of the chart's own)."""
+    import cv2
+
+    height, width = shape
+    corners = np.round(np.stack([uv[..., 0] * width - 0.5, (1.0 - uv[..., 1]) * height - 0.5], axis=-1))
+    mask = np.zeros((height, width), np.uint8)
+    cv2.fillPoly(mask, list(corners.astype(np.int32)), 1)
+    return mask
+
+
+def _blurred(image: np.ndarray, footprint_texels: float, covered: np.ndarray | None = None) -> np.ndarray:
     """``image`` as float32 in [0, 1], blurred over a sample's footprint when that spans more than
-    :data:`ANTI_ALIAS_TEXELS` texels: first shrunk by area averaging by a whole factor (so that a fine texture
-    is not held in floats at full size), the rest a Gaussian."""
+    :data:`ANTI_ALIAS_TEXELS` texels: first shrunk by area averaging by a whole factor (in the image's own type,
+    so that a fine texture is not held in floats at full size), the rest a Gaussian; both averaging only the
+    ``covered`` texels (height, width; uint8 1/0) when given, so that an atlas's padding (black, or another
+    chart's skin) does not bleed into the skin at its charts' edges."""
     import cv2
 
     if footprint_texels <= ANTI_ALIAS_TEXELS:
         return _as_float(image)
+    covered = np.ones(image.shape[:2], np.uint8) if covered is None else covered
     factor = int(footprint_texels // ANTI_ALIAS_TEXELS)
     if factor > 1:
         height, width = image.shape[:2]
         size = (max(1, round(width / factor)), max(1, round(height / factor)))
-        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        colour = _as_float(cv2.resize(image * covered[..., None].astype(image.dtype), size,
+                                      interpolation=cv2.INTER_AREA))
+        weight = cv2.resize(covered * np.uint8(255), size, interpolation=cv2.INTER_AREA).astype(np.float32) / 255
         footprint_texels *= size[0] / width
-    return cv2.GaussianBlur(_as_float(image), (0, 0), 0.5 * footprint_texels)
+    else:
+        weight = covered.astype(np.float32)
+        colour = _as_float(image) * weight[..., None]
+    sigma = 0.5 * footprint_texels
+    total = cv2.GaussianBlur(colour, (0, 0), sigma)
+    share = cv2.GaussianBlur(weight, (0, 0), sigma)
+    return total / np.maximum(share, 1e-6)[..., None]
 
 
 def _lookup(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
