@@ -86,8 +86,8 @@ def reference_landmarks(spec: str, scale: float) -> dict:
 @click.option("--landmarks-out", type=OutputFile(), default=None,
               help="Also write the landmarks on the neutral grid (landmark .toml, for retarget basis).")
 @click.option("--texture-spacing", type=FiniteFloat(0.05, 5.0), default=None,
-              help="A textured mesh is sampled into coloured points this far apart, mm (default: its texel size, "
-                   "0.3-0.5 mm; finer keeps more of a fine texture's pattern and takes longer).")
+              help="A textured mesh is sampled into coloured points this far apart, mm (default 0.5, the skin "
+                   "images' pixel; a finer texture is blurred to it).")
 def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, force: bool, reference: str,
           method: str, grid_size, crop_radius, units: str, kernel: str, grid_obj, landmarks_out,
           texture_spacing: float | None) -> None:

@@ -220,7 +220,7 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     tip and resampled on a ``shape`` grid over ``[-radius, radius]^2``; its skin images in a ``chart`` fitted
     to it (:func:`~livebridge.retarget.chart.face_chart`); its surface fitted to its points at the grid's
     vertices (:mod:`~livebridge.retarget.surface_fit`). A textured mesh is first sampled into coloured points
-    every ``texture_spacing`` mm (default a texel: :mod:`~livebridge.retarget.texture`). Errors name
+    every ``texture_spacing`` mm (default 0.5: :mod:`~livebridge.retarget.texture`). Errors name
     ``source`` (the landmark file) or ``scan_source`` (the scan file: a flat scan)."""
     scan2face = normalisation(landmarks, reference, method, source)
     moved = transform_landmarks(scan2face, landmarks)
@@ -330,7 +330,7 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     source, landmarks_source : str or Path, optional
         The scan file and its landmark file, named in errors.
     texture_spacing : float, optional
-        A textured mesh is sampled into coloured points this far apart, mm (default a texel:
+        A textured mesh is sampled into coloured points this far apart, mm (default 0.5:
         :mod:`~livebridge.retarget.texture`).
     """
     check_on_points(landmarks, scan.points, landmarks_source, source)

@@ -22,13 +22,14 @@ import numpy as np
 
 from livebridge.errors import InputError
 
-SPACING_RANGE_MM = (0.3, 0.5)
-"""By default the points sampled on a textured mesh are a texel apart, within these bounds: no finer than the
-texture holds pattern, no coarser than the skin images' 0.5 mm pixels
-(:data:`~livebridge.retarget.skin_flow.FINE_MM`), and no finer than 0.3 mm (about what a 150k-point scan of a
-face gives; finer only costs time). On the bench's textured meshes (0.5 mm texels, `livebridge bench scans`):
-the brow, smile and jaw elements 0.034 / 0.026 / 0.057 relative RMS from points 0.3 mm apart (99 s for the
-neutral and three expressions), 0.034 / 0.024 / 0.055 from 0.5 mm (45 s)."""
+SAMPLE_SPACING_MM = 0.5
+"""Default distance between the points sampled on a textured mesh: the skin images' pixel
+(:data:`~livebridge.retarget.skin_flow.FINE_MM`), finer textures blurred to it. Finer sampling bought nothing
+(`livebridge bench scans`' textured meshes, seed 7, the brow, smile and jaw elements and the eyelids, relative
+RMS): on 0.5 mm texels 0.034 / 0.026 / 0.057 from points 0.3 mm apart (99 s for the neutral and three
+expressions), 0.034 / 0.024 / 0.055 from 0.5 mm (45 s); on 0.25 mm texels 0.034 / 0.027 / 0.059 and eyelids
+0.151 / 0.170 from 0.3 mm, 0.033 / 0.024 / 0.054 and 0.149 / 0.169 from 0.5 mm, 0.035 / 0.024 / 0.054 and 0.149 /
+0.165 from 0.6 mm (blurred)."""
 MAX_SPLITS = 256
 """A triangle is split into at most this many parts along an edge (a scan's few very large triangles, off the
 face, do not cost millions of points)."""
@@ -152,7 +153,7 @@ def sample_textured(points: np.ndarray, triangles: np.ndarray, texture: Texture,
     triangles : ndarray of int, shape (n_triangles, 3)
     texture : Texture
     spacing : float, optional
-        mm; default the texture's texel size on the mesh within :data:`SPACING_RANGE_MM`.
+        mm (default :data:`SAMPLE_SPACING_MM`).
     keep : ndarray of bool, shape (n_triangles,), optional
         Only these triangles are sampled (a crop).
 
@@ -163,10 +164,9 @@ def sample_textured(points: np.ndarray, triangles: np.ndarray, texture: Texture,
         RGB in [0, 1]; NaN where the triangle has no texture.
     """
     chosen = np.flatnonzero(keep) if keep is not None else np.arange(len(triangles))
+    spacing = SAMPLE_SPACING_MM if spacing is None else spacing
     texels = [_texel_mm(points, triangles, texture, index, image.shape, chosen)
               for index, image in enumerate(texture.images)]
-    if spacing is None:
-        spacing = float(np.clip(min(texels, default=SPACING_RANGE_MM[1]), *SPACING_RANGE_MM))
     corners = points[triangles[chosen]]
     area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
     splits = np.clip(np.ceil(np.sqrt(area) / spacing), 1, MAX_SPLITS).astype(int)  # a point per spacing^2
