@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from livebridge.errors import InputError
-from livebridge.geometry.transforms import apply, rotation_matrix, umeyama
+from livebridge.geometry.transforms import apply, rotation_matrix, transform_scale, umeyama
 
 NORMALISATION_LANDMARKS = ("eye_outer_L", "eye_outer_R", "chin", "nose_tip")
 """``l_1 .. l_4`` of eq. 5.1: the landmarks the normalisation maps onto the reference face's."""
@@ -125,7 +125,7 @@ def register_rigid(points: np.ndarray, landmarks: dict[str, np.ndarray], target_
     own, theirs = np.array([landmarks[n] for n in shared]), np.array([target_landmarks[n] for n in shared])
     # a rigid motion cannot undo a change of size: a scan in other units (or of another person) registers
     # nowhere near the face, so say so before the registration lands it there
-    size = np.cbrt(abs(np.linalg.det(umeyama(own, theirs, with_scale=True)[:3, :3])))
+    size = abs(transform_scale(umeyama(own, theirs, with_scale=True)))
     if not 1 / SIZE_RATIO <= size <= SIZE_RATIO:
         raise InputError(f"its landmarks {', '.join(shared)} are {1 / size:.3g} times as far apart as the neutral's "
                          "(scans of one person, in one unit, are the same size: --units applies to every scan)",

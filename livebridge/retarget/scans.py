@@ -69,7 +69,7 @@ import numpy as np
 from livebridge.errors import InputError
 from livebridge.face.basis import CHOE_KO_BY_NAME, Basis, Muscle
 from livebridge.face.meshio import vertex_normals
-from livebridge.geometry.transforms import apply
+from livebridge.geometry.transforms import apply, transform_scale
 from livebridge.retarget.chart import PLANAR, SkinChart, face_chart
 from livebridge.retarget.eyelids import closing_openings, eyelid_guess, moving_lids
 from livebridge.retarget.grid import (
@@ -225,7 +225,7 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     scan2face = normalisation(landmarks, reference, method, source)
     moved = transform_landmarks(scan2face, landmarks)
     radius = crop_radius(moved) if radius is None else float(radius)
-    scan = _textured_as_points(scan, landmarks, radius / _scale_of(scan2face), texture_spacing)
+    scan = _textured_as_points(scan, landmarks, radius / abs(transform_scale(scan2face)), texture_spacing)
     points = apply(scan2face, scan.points)
     x, y = square_axes(radius, shape)
     face = _resampled(scan, points, x, y, radius, moved, scan2face, source, chart)
@@ -247,11 +247,6 @@ def _textured_as_points(scan: Scan, landmarks: dict[str, np.ndarray], radius: fl
     if scan.texture is None:
         return scan
     return scan.coloured(landmarks["nose_tip"], TEXTURE_REACH * radius + SKIN_MARGIN_MM, spacing)
-
-
-def _scale_of(transform: np.ndarray) -> float:
-    """The scale of a similarity or affine ``transform`` (4, 4): the cube root of its linear part's determinant."""
-    return float(np.cbrt(abs(np.linalg.det(transform[:3, :3]))))
 
 
 def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float, landmarks: dict,
