@@ -70,7 +70,7 @@ class Scan:
 
     def coloured(self, centre: np.ndarray | None = None, radius: float = np.inf,
                  spacing: float | None = None) -> Scan:
-        """A textured mesh as a coloured point cloud: points every ``spacing`` mm (default: a texel, see
+        """A textured mesh as a coloured point cloud: points every ``spacing`` mm (default 0.5, see
         :func:`~livebridge.retarget.texture.sample_textured`) over its triangles with a corner within ``radius``
         of ``centre`` (all without a centre), coloured from the texture; the scan itself when it has no
         texture."""
@@ -299,29 +299,20 @@ def _obj_texture(path: Path, libraries: list[str], texcoords: np.ndarray, corner
     from the ``mtllib`` files (next to the OBJ); None when no material has an image."""
     from livebridge.retarget.texture import Texture, read_image, read_materials
 
-    images_of = {}
+    images_of, library_of = {}, {}  # a material's image, and the MTL file that named it (for errors)
     for library in libraries:
-        images_of.update(read_materials(path.parent / library, path))
+        found = read_materials(path.parent / library, path)
+        images_of.update(found)
+        library_of.update(dict.fromkeys(found, library))
     if not images_of:
         return None
     used = sorted({m for m in face_material if m in images_of})
     index_of = {material: k for k, material in enumerate(used)}
-    images = tuple(read_image(images_of[m], path.parent / _library_of(path, libraries, m), f"{m}.map_Kd")
-                   for m in used)
+    images = tuple(read_image(images_of[m], path.parent / library_of[m], f"{m}.map_Kd") for m in used)
     image_index = np.array([index_of.get(m, -1) for m in face_material], dtype=np.int64)
     image_index[(corner_uv < 0).any(axis=1)] = -1
     uv = texcoords[np.clip(corner_uv, 0, None)][..., :2]
     return Texture(uv, image_index, images, tuple(images_of[m].name for m in used))
-
-
-def _library_of(path: Path, libraries: list[str], material: str) -> str:
-    """The MTL file (of ``libraries``) that defines ``material``: named in a texture image's errors."""
-    from livebridge.retarget.texture import read_materials
-
-    for library in libraries:
-        if material in read_materials(path.parent / library, path):
-            return library
-    return libraries[0]
 
 
 def _obj_colour(cells, number, path):
