@@ -165,8 +165,6 @@ def sample_textured(points: np.ndarray, triangles: np.ndarray, texture: Texture,
     """
     chosen = np.flatnonzero(keep) if keep is not None else np.arange(len(triangles))
     spacing = SAMPLE_SPACING_MM if spacing is None else spacing
-    texels = [_texel_mm(points, triangles, texture, index, image.shape, chosen)
-              for index, image in enumerate(texture.images)]
     corners = points[triangles[chosen]]
     area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
     splits = np.clip(np.ceil(np.sqrt(area) / spacing), 1, MAX_SPLITS).astype(int)  # a point per spacing^2
@@ -184,11 +182,10 @@ def sample_textured(points: np.ndarray, triangles: np.ndarray, texture: Texture,
     for index, image in enumerate(texture.images):
         mine = texture.image_index[owner] == index
         if mine.any():
-            footprint = spacing / texels[index]
-            covered = None
-            if footprint > ANTI_ALIAS_TEXELS:  # the blur must not reach past the atlas's charts
-                covered = _coverage(texture.uv[chosen[texture.image_index[chosen] == index]], image.shape[:2])
-            colours[mine] = _lookup(_blurred(image, footprint, covered), uv[mine])
+            on_image = texture.image_index[chosen] == index
+            own_uv = texture.uv[chosen[on_image]]
+            footprint = spacing / _texel_mm(area[on_image], own_uv, image.shape)
+            colours[mine] = _lookup(_blurred(image, footprint, own_uv), uv[mine])
     return samples, colours
 
 
@@ -202,13 +199,10 @@ def _centroids(n: int) -> np.ndarray:
     return np.stack([1 - a - b, a, b], axis=1)
 
 
-def _texel_mm(points: np.ndarray, triangles: np.ndarray, texture: Texture, index: int, shape: tuple,
-              chosen: np.ndarray) -> float:
-    """The median size of one texel of image ``index`` on the mesh, mm (over the ``chosen`` triangles)."""
-    mine = chosen[texture.image_index[chosen] == index]
-    corners = points[triangles[mine]]
-    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-    uv = texture.uv[mine] * np.array([shape[1], shape[0]])
+def _texel_mm(area: np.ndarray, uv: np.ndarray, shape: tuple) -> float:
+    """The median size (mm) of one texel of an image of ``shape`` on triangles of ``area`` (k,) mm^2 with
+    texture coordinates ``uv`` (k, 3, 2) in it."""
+    uv = uv * np.array([shape[1], shape[0]])
     d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
     texels = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
     fine = (texels > 0) & (area > 0)
@@ -228,17 +222,17 @@ def _coverage(uv: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return mask
 
 
-def _blurred(image: np.ndarray, footprint_texels: float, covered: np.ndarray | None = None) -> np.ndarray:
+def _blurred(image: np.ndarray, footprint_texels: float, uv: np.ndarray) -> np.ndarray:
     """``image`` as float32 in [0, 1], blurred over a sample's footprint when that spans more than
     :data:`ANTI_ALIAS_TEXELS` texels: first shrunk by area averaging by a whole factor (in the image's own type,
     so that a fine texture is not held in floats at full size), the rest a Gaussian; both averaging only the
-    ``covered`` texels (height, width; uint8 1/0) when given, so that an atlas's padding (black, or another
-    chart's skin) does not bleed into the skin at its charts' edges."""
+    texels the triangles with texture coordinates ``uv`` (k, 3, 2) cover (:func:`_coverage`), so that an
+    atlas's padding (black, or another chart's skin) does not bleed into the skin at its charts' edges."""
     import cv2
 
     if footprint_texels <= ANTI_ALIAS_TEXELS:
         return _as_float(image)
-    covered = np.ones(image.shape[:2], np.uint8) if covered is None else covered
+    covered = _coverage(uv, image.shape[:2])
     factor = int(footprint_texels // ANTI_ALIAS_TEXELS)
     if factor > 1:
         height, width = image.shape[:2]
