@@ -93,10 +93,7 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     facing = triangle_normals(vertices, triangles)[:, 2] > 0.05
     weight = np.where(facing, area, 0.0)
     chosen = rng.choice(len(triangles), n_points, p=weight / weight.sum())
-    a, b = rng.random(n_points), rng.random(n_points)
-    flip = a + b > 1
-    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
-    bary = np.stack([1 - a - b, a, b], axis=1)
+    bary = random_barycentric(rng, (n_points,))
     points = np.einsum("nk,nkd->nd", bary, corners[chosen])
     keep = front_surface(points, 0.5, 1.5)
     if hole is not None:
@@ -108,6 +105,15 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     albedo = map_coordinates(skin.albedo, [texels[:, 1], texels[:, 0]], order=1, mode="nearest")
     colours = albedo[:, None] * SKIN_TONE * exposure + rng.normal(0.0, COLOUR_NOISE, (len(points), 3))
     return points, np.clip(colours, 0.0, 1.0)
+
+
+def random_barycentric(rng: np.random.Generator, shape: tuple) -> np.ndarray:
+    """Barycentric coordinates (*shape, 3) of points uniform over a triangle: two uniform numbers, folded back
+    into the triangle where they sum past 1."""
+    a, b = rng.random((2, *shape))
+    flip = a + b > 1
+    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+    return np.stack([1 - a - b, a, b], axis=-1)
 
 
 def textured_mesh(vertices: np.ndarray, triangles: np.ndarray, skin, rng: np.random.Generator,
@@ -141,12 +147,8 @@ def seen_triangles(vertices: np.ndarray, triangles: np.ndarray, rng: np.random.G
     from livebridge.retarget.grid import front_surface
 
     facing = np.flatnonzero(triangle_normals(vertices, triangles)[:, 2] > 0.05)
-    a, b = rng.random((2, len(facing), samples))
-    flip = a + b > 1
-    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
-    corners = vertices[triangles[facing]]  # (k, 3, 3)
-    points = (corners[:, None, 0] + a[..., None] * (corners[:, None, 1] - corners[:, None, 0])
-              + b[..., None] * (corners[:, None, 2] - corners[:, None, 0]))
+    bary = random_barycentric(rng, (len(facing), samples))
+    points = np.einsum("tsk,tkd->tsd", bary, vertices[triangles[facing]])
     seen = front_surface(points.reshape(-1, 3), 0.5, 1.5).reshape(len(facing), samples).mean(axis=1) >= 0.5
     mask = np.zeros(len(triangles), bool)
     mask[facing[seen]] = True
