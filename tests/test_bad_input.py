@@ -540,6 +540,36 @@ LANDMARK_POINTS_CASES = _common_cases() + (
     Case("far off the surface", _text(_ON_FACE + "nose_tip,0,-7,160\n"), ("nose_tip", "mm from the mesh surface")),
 )
 
+_PICKED_CHIN = 'x="0" y="-80" z="89.94" name="chin" active="1"'
+
+
+def _picked(*points: str, root: str = "PickedPoints") -> Callable[[Path], None]:
+    """A MeshLab PickPoints file (as MeshLab writes it) of ``points``' attribute texts."""
+    body = "".join(f" <point {attributes}/>\n" for attributes in points)
+    return _text(f"<!DOCTYPE {root}>\n<{root}>\n <DocumentData>\n  <DataFileName name=\"builtin\"/>\n"
+                 f" </DocumentData>\n{body}</{root}>\n")
+
+
+PICKED_POINTS_CASES = _common_cases() + (
+    Case("not xml", _text(_ON_FACE), ("PickPoints", "line 1")),
+    Case("binary", _bytes(bytes(range(256))), ("PickPoints", "line 1")),
+    Case("cut short", _text('<PickedPoints>\n <point x="0" y="1"'), ("PickPoints", "line 2")),
+    Case("a template, not picked points", _picked('name="chin"', root="PickPointsTemplate"),
+         ("<PickPointsTemplate>", "<PickedPoints>")),
+    Case("no points", _picked(), ("no picked landmarks", "0 <point>")),
+    Case("none picked", _picked('x="0" y="-80" z="89.94" name="chin" active="0"'), ("no picked landmarks",
+                                                                                   "none of them active")),
+    Case("a point without a name", _picked(_PICKED_CHIN, 'x="0" y="-7" z="120" active="1"'), ("point 2", "no name")),
+    Case("no z", _picked(_PICKED_CHIN, 'x="0" y="-7" name="nose_tip"'), ("point 2", "nose_tip", "x=, y= and z=")),
+    Case("text coordinate", _picked(_PICKED_CHIN, 'x="0" y="up" z="120" name="nose_tip"'),
+         ("point 2", "nose_tip", "numbers")),
+    Case("NaN coordinate", _picked(_PICKED_CHIN, 'x="0" y="nan" z="120" name="nose_tip"'),
+         ("point 2", "nose_tip", "finite")),
+    Case("a landmark twice", _picked(_PICKED_CHIN, _PICKED_CHIN), ("point 2", "'chin'", "twice")),
+    Case("far off the surface", _picked(_PICKED_CHIN, 'x="0" y="-7" z="160" name="nose_tip" active="1"'),
+         ("nose_tip", "mm from the mesh surface")),
+)
+
 # ------------------------------------------------------------------------------------------------ character folder
 def _write_character_parts(folder: Path) -> None:
     """A character folder's images (the case writes its character.toml) and a contraction take."""
@@ -771,6 +801,9 @@ FORMATS = (
     Format("landmark points", "points.csv", lambda path, folder: ["landmarks", "place", "builtin", "--points",
                                                                  str(path), "--out", str(folder / "lm.toml")],
            LANDMARK_POINTS_CASES),
+    Format("picked points", "points.pp", lambda path, folder: ["landmarks", "place", "builtin", "--points",
+                                                               str(path), "--out", str(folder / "lm.toml")],
+           PICKED_POINTS_CASES),
     Format("landmarks", "landmarks.toml", lambda path, folder: ["landmarks", "show", str(folder / "basis.npz"),
                                                                str(path), "--out", str(folder / "out.png")],
            MARKER_CASES, setup=_write_basis),

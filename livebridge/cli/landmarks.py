@@ -50,7 +50,8 @@ def landmarks() -> None:
 @click.option("--vertices", "vertices_file", type=InputPath(), default=None,
               help="TOML file of 'name = vertex id' lines (ids from 0).")
 @click.option("--points", "points_file", type=InputPath(), default=None,
-              help="CSV file of name,x,y,z rows (in --units): each snapped to the nearest surface point.")
+              help="Named points (in --units), each snapped to the nearest surface point: a CSV of name,x,y,z "
+                   "rows, a TOML of name = [x, y, z] lines or a MeshLab PickPoints file (.pp).")
 @click.option("--out", required=True, type=OutputFile(), help="Landmark file to write (.toml).")
 @force_option
 @click.option("--units", type=click.Choice(sorted(UNITS_TO_MM)), default="mm", show_default=True,
@@ -65,7 +66,8 @@ def place(mesh, vertices_file: Path | None, points_file: Path | None, out: Path,
     MESH: a basis (.npz), an OBJ mesh or 'builtin'. Names are free; the thesis's 22 are brow_outer_L ...
     chin (see the README).
     """
-    from livebridge.retarget.landmarks import place_at_points, place_at_vertices, read_points_csv, read_vertex_ids
+    from livebridge.retarget.landmarks import place_at_points, place_at_vertices, read_vertex_ids
+    from livebridge.retarget.point_files import read_points
 
     if (vertices_file is None) == (points_file is None):
         raise click.UsageError("give one of --vertices and --points")
@@ -76,12 +78,35 @@ def place(mesh, vertices_file: Path | None, points_file: Path | None, out: Path,
                                    vertices)
     else:
         source = points_file
-        points = {name: xyz * UNITS_TO_MM[units] for name, xyz in read_points_csv(points_file).items()}
+        points = {name: xyz * UNITS_TO_MM[units] for name, xyz in read_points(points_file).items()}
         placed = place_at_points(points, vertices, triangles, max_distance, points_file)
     if require_22:
         placed.require_thesis_22(source)
     placed.save(out)
     click.echo(f"wrote {out}: {len(placed)} landmarks on {mesh}")
+
+
+@landmarks.command("template")
+@click.option("--out", required=True, type=OutputFile(), help="MeshLab PickPoints template to write (.pptpl).")
+@force_option
+@click.option("--lids", is_flag=True, help="Add the 8 eyelid points of the 68-point iBUG layout (lm_37 ... lm_47): "
+                                           "retarget scans reads an eye's lid motion from them when its scans show "
+                                           "no eye opening.")
+def template(out: Path, force: bool, lids: bool) -> None:
+    """Write the thesis's 22 landmark names as a MeshLab PickPoints template, to pick them on scans.
+
+    In MeshLab: open a scan, Edit > PickPoints, load this template, click each named point in turn, and save
+    (MeshLab's default name, SCAN_picked_points.pp, is where retarget scans looks for an expression's landmarks).
+    """
+    from livebridge.retarget.eyelids import LID_LANDMARKS
+    from livebridge.retarget.landmarks import THESIS_22_NAMES
+    from livebridge.retarget.point_files import write_pick_template
+
+    names = list(THESIS_22_NAMES)
+    if lids:
+        names += sorted(name for side in LID_LANDMARKS.values() for margin in side for name in margin)
+    write_pick_template(out, names)
+    click.echo(f"wrote {out}: {len(names)} names to pick (MeshLab: Edit > PickPoints, Load Template)")
 
 
 @landmarks.command("show")

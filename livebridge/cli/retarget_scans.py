@@ -9,46 +9,36 @@ import click
 from livebridge.cli._options import FiniteFloat, InputPath, Named, OutputFile, Size, force_option, unique_names
 from livebridge.cli.landmarks import UNITS_TO_MM
 
-LANDMARK_SUFFIXES = (".csv", ".toml")
 SCAN_HELP = ("Scans: PLY (ascii or binary, point cloud or mesh), OBJ, or XYZ/CSV text (x y z per line), with "
              "colour when the scanner recorded it: per point (PLY red/green/blue, OBJ v x y z r g b, XYZ r g b "
              "columns) or as a textured OBJ mesh (vt coordinates, mtllib with map_Kd images next to it) or PLY mesh "
              "(comment TextureFile images next to it, face texcoord or vertex s t). "
              "Landmarks: "
-             "a CSV of name,x,y,z rows or a TOML of name = [x, y, z] lines, in the scan's coordinates and units; "
-             "an expression's landmark file defaults to SCAN with the suffix .landmarks.csv.")
+             "a CSV of name,x,y,z rows, a TOML of name = [x, y, z] lines, or a MeshLab PickPoints file (.pp; "
+             "'livebridge landmarks template' writes the names to pick), in the scan's coordinates and units; "
+             "an expression's landmark file defaults to SCAN with the suffix .landmarks.csv, or else MeshLab's "
+             "SCAN_picked_points.pp.")
 
 
 def split_scan_spec(text: str) -> tuple[Path, Path]:
-    """``SCAN[:LANDMARKS]`` -> (scan, landmarks); the default landmarks are ``SCAN.landmarks.csv``."""
+    """``SCAN[:LANDMARKS]`` -> (scan, landmarks); the default landmarks are ``SCAN.landmarks.csv``, or MeshLab's
+    ``SCAN_picked_points.pp`` when only that one is there."""
+    from livebridge.retarget.point_files import POINT_FILE_SUFFIXES, picked_points_file
+
     scan, sep, landmarks = text.rpartition(":")
-    if sep and Path(landmarks).suffix.lower() in LANDMARK_SUFFIXES and scan:
+    if sep and Path(landmarks).suffix.lower() in POINT_FILE_SUFFIXES and scan:
         return Path(scan), Path(landmarks)
-    return Path(text), Path(text).with_suffix(".landmarks.csv")
+    default = Path(text).with_suffix(".landmarks.csv")
+    picked = picked_points_file(text)
+    return Path(text), picked if picked.exists() and not default.exists() else default
 
 
 def read_landmark_points(path: Path, scale: float) -> dict:
-    """Named 3D points from a CSV (``name,x,y,z``) or TOML (``name = [x, y, z]``) file, times ``scale``."""
-    import math
+    """Named 3D points of a landmark file (:func:`~livebridge.retarget.point_files.read_points`), times
+    ``scale``."""
+    from livebridge.retarget.point_files import read_points
 
-    import numpy as np
-
-    from livebridge.errors import InputError
-    from livebridge.retarget.landmarks import read_points_csv
-    from livebridge.tomlio import load_toml
-
-    if path.suffix.lower() != ".toml":
-        return {name: xyz * scale for name, xyz in read_points_csv(path).items()}
-    points = {}
-    for name, value in load_toml(path).items():
-        if (not isinstance(value, list) or len(value) != 3
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                           for v in value)):
-            raise InputError(f"expected [x, y, z] (three finite numbers), got {value!r}", path, name)
-        points[name] = np.array(value, dtype=np.float64) * scale
-    if not points:
-        raise InputError("no landmarks (expected lines like 'nose_tip = [0.0, 0.0, 0.0]')", path)
-    return points
+    return {name: xyz * scale for name, xyz in read_points(path).items()}
 
 
 def reference_landmarks(spec: str, scale: float) -> dict:
@@ -101,18 +91,26 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     """
     import numpy as np
 
+    from livebridge.retarget.point_files import picked_points_file
     from livebridge.retarget.scan import read_scan
     from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
 
     scale = UNITS_TO_MM[units]
     columns, rows = grid_size
     named = unique_names(expressions, "--expression")
-    neutral = prepare_neutral(read_scan(neutral_scan, scale), read_landmark_points(neutral_landmarks, scale),
+    neutral_points, neutral_marks = read_scan(neutral_scan, scale), read_landmark_points(neutral_landmarks, scale)
+    files = {name: split_scan_spec(spec) for name, spec in named.items()}
+    for name, (scan_path, landmark_path) in files.items():  # before the neutral's preparation, not after it
+        for path, what in ((scan_path, "scan"), (landmark_path, "landmark file")):
+            if not path.exists():
+                defaulted = what != "scan" and path == scan_path.with_suffix(".landmarks.csv")
+                also = f" (nor {picked_points_file(scan_path).name}; or give SCAN:LANDMARKS)" if defaulted else ""
+                raise click.BadParameter(f"{name}: no {what} {path}{also}", param_hint="--expression")
+    neutral = prepare_neutral(neutral_points, neutral_marks,
                               reference_landmarks(reference, 1.0), method, (rows, columns), crop_radius,
                               neutral_landmarks, scan_source=neutral_scan, texture_spacing=texture_spacing)
     faces, uncoloured = {}, []
-    for name, spec in named.items():
-        scan_path, landmark_path = split_scan_spec(spec)
+    for name, (scan_path, landmark_path) in files.items():
         faces[name] = prepare_expression(read_scan(scan_path, scale), read_landmark_points(landmark_path, scale),
                                          neutral, scan_path, landmark_path, texture_spacing)
         if neutral.skin is None or faces[name].skin is None:

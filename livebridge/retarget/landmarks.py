@@ -14,8 +14,6 @@ upper nose bridge (iBUG 28) and that side's inner eye corner (39, 42).
 
 from __future__ import annotations
 
-import csv
-import math
 from pathlib import Path
 
 import numpy as np
@@ -319,37 +317,3 @@ def read_vertex_ids(path: str | Path) -> dict[str, int]:
         if value < 0:
             raise InputError(f"expected a vertex id >= 0, got {value}", path, name)
     return dict(data)
-
-
-def read_points_csv(path: str | Path) -> dict[str, np.ndarray]:
-    """``name,x,y,z`` rows of a CSV file (a first row ``name,x,y,z`` is a header), in file order."""
-    path = Path(path)
-    try:
-        with path.open(newline="", encoding="utf-8") as stream:
-            rows = list(csv.reader(stream))
-    except UnicodeDecodeError as error:
-        raise InputError(f"not UTF-8 text (byte {error.object[error.start:error.start + 1]!r} at offset "
-                         f"{error.start})", path) from None
-    points = {}
-    for line, row in enumerate(rows, 1):
-        cells = [cell.strip() for cell in row]
-        header = line == 1 and [cell.lower() for cell in cells] == ["name", "x", "y", "z"]
-        if header or not any(cells) or cells[0].startswith("#"):
-            continue
-        if len(cells) != 4:
-            raise InputError(f"line {line}: expected 4 fields name,x,y,z, got {len(cells)}", path)
-        name = cells[0]
-        if not name:  # an unnamed landmark cannot be matched to another face's, nor named in an error
-            raise InputError(f"line {line}: the landmark has no name (expected name,x,y,z)", path)
-        if name in points:
-            raise InputError(f"line {line}: landmark {name!r} appears twice", path, name)
-        try:
-            xyz = [float(cell) for cell in cells[1:]]
-        except ValueError:
-            raise InputError(f"line {line}: x, y, z must be numbers, got {cells[1:]}", path, name) from None
-        if not all(map(math.isfinite, xyz)):
-            raise InputError(f"line {line}: x, y, z must be finite, got {cells[1:]}", path, name)
-        points[name] = np.array(xyz)
-    if not points:
-        raise InputError("no landmarks (expected rows name,x,y,z)", path)
-    return points
