@@ -91,6 +91,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     """
     import numpy as np
 
+    from livebridge.retarget.muscle_place import misplaced
     from livebridge.retarget.point_files import picked_points_file
     from livebridge.retarget.scan import read_scan
     from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
@@ -127,6 +128,10 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     for muscle, size in zip(basis.muscles, largest):
         how = "shape only" if muscle.name in uncoloured else "skin tracked"
         click.echo(f"  {muscle.name:24s} {muscle.region:5s} largest motion {size:6.2f} mm  ({how})")
+    for muscle, element in zip(basis.muscles, basis.elements):
+        why = misplaced(muscle, element, neutral.vertices, neutral.landmarks)
+        if why is not None:
+            click.echo(f"warning: {muscle.name}: {why}")
     if uncoloured:
         which = "the neutral scan" if neutral.skin is None else ", ".join(uncoloured)
         click.echo(f"note: no colour in {which}: the motion along the skin (most of a brow raise or a smile) is "

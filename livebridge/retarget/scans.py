@@ -67,7 +67,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from livebridge.errors import InputError
-from livebridge.face.basis import CHOE_KO_BY_NAME, Basis, Muscle
+from livebridge.face.basis import Basis
 from livebridge.face.meshio import vertex_normals
 from livebridge.geometry.transforms import apply, transform_scale
 from livebridge.retarget.chart import PLANAR, SkinChart, face_chart
@@ -83,6 +83,7 @@ from livebridge.retarget.grid import (
     square_axes,
 )
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points, place_at_points
+from livebridge.retarget.muscle_place import muscle_for
 from livebridge.retarget.normalise import RIGID_LANDMARKS, normalisation, register_rigid, transform_landmarks
 from livebridge.retarget.scan import Scan
 from livebridge.retarget.seams import LipSeam
@@ -574,23 +575,6 @@ def _with_templates(neutral: FaceScan, expressions: dict[str, FaceScan], kernel:
         trusts.append(trust)
     templates = skin_templates(neutral.skin, neutral.skin_pixels(), tracked)
     return [replace(neutral, template=template) for template in templates], motions, trusts
-
-
-def muscle_for(name: str, element: np.ndarray, vertices: np.ndarray, landmarks: dict[str, np.ndarray]) -> Muscle:
-    """The Choe-Ko muscle of that name, or a new one placed by where ``element`` (n, 3) moves ``vertices``.
-
-    A new muscle's region is ``upper`` when its motion-weighted centre is above the outer eye corners, its
-    side ``L`` / ``R`` (+x / -x) when that centre is off the midline by more than a tenth of the eyes' distance.
-    """
-    if name in CHOE_KO_BY_NAME:
-        return CHOE_KO_BY_NAME[name]
-    weight = np.linalg.norm(element, axis=1)
-    centre = weight @ vertices / max(float(weight.sum()), np.finfo(float).tiny)
-    eyes = np.array([landmarks["eye_outer_L"], landmarks["eye_outer_R"]])
-    region = "upper" if centre[1] > eyes[:, 1].mean() else "lower"
-    off = centre[0] - eyes[:, 0].mean()
-    side = None if abs(off) <= 0.1 * np.linalg.norm(eyes[0] - eyes[1]) else ("L" if off > 0 else "R")
-    return Muscle(name, region, side, "from a scan")
 
 
 def _control_vertices(grid: FaceGrid, stride: int) -> np.ndarray:
