@@ -8,8 +8,8 @@ import pytest
 from click.testing import CliRunner
 
 from livebridge.face.basis import CHOE_KO_BY_NAME, Muscle
+from livebridge.face.muscle_place import misplaced, muscle_for
 from livebridge.retarget.landmarks import load_landmark_set
-from livebridge.retarget.muscle_place import misplaced, muscle_for
 
 
 @pytest.fixture(scope="module", params=["ict", "builtin"])
@@ -109,3 +109,40 @@ def test_retarget_scans_warns_of_a_scan_given_for_the_other_side(tmp_path):
     assert len(warnings) == 1 and "zygomatic_major_R" in warnings[0], warnings
     assert "the subject's left side" in warnings[0] and "is its scan zygomatic_major_L's?" in warnings[0]
     assert (tmp_path / "zygomatic_major_R.npz").exists()  # a warning: the basis is still written
+
+
+def _import(tmp_path, shapes, swap_brows: bool = False):
+    from livebridge.cli import main
+    from livebridge.face.basis_import import shipped_manifest
+
+    text = shipped_manifest("choe-ko-ict").read_text()
+    if swap_brows:  # an artist's rig whose brow shapes are named by the viewer's side
+        text = text.replace("browInnerUp_L = 1.0, browOuterUp_L", "browInnerUp_X = 1.0, browOuterUp_X")
+        text = text.replace("browInnerUp_R = 1.0, browOuterUp_R", "browInnerUp_L = 1.0, browOuterUp_L")
+        text = text.replace("browInnerUp_X = 1.0, browOuterUp_X", "browInnerUp_R = 1.0, browOuterUp_R")
+    (tmp_path / "manifest.toml").write_text(text)
+    result = CliRunner().invoke(main, ["basis", "import", str(tmp_path / "manifest.toml"), "--shapes", str(shapes),
+                                       "--out", str(tmp_path / "basis.npz"), "--force"])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "basis.npz").exists()
+    return [line for line in result.output.splitlines() if line.startswith("warning:")]
+
+
+def test_basis_import_warns_of_shapes_named_by_the_other_side(tmp_path, shared_data):
+    shapes = shared_data / "ict-facekit" / "face_region.npz"
+    assert _import(tmp_path, shapes) == []
+    warnings = _import(tmp_path, shapes, swap_brows=True)
+    assert len(warnings) == 2, warnings
+    assert "frontalis_L: it moves the subject's right side" in warnings[0]
+    assert "frontalis_R: it moves the subject's left side" in warnings[1]
+
+
+def test_basis_import_of_a_mirrored_mesh_says_so_once(tmp_path, shared_data):
+    with np.load(shared_data / "ict-facekit" / "face_region.npz") as data:
+        kit = dict(data)
+    flip = np.array([-1.0, 1.0, 1.0], dtype=np.float32)  # a mesh whose +x is the subject's right
+    kit["neutral"], kit["deltas"] = kit["neutral"] * flip, kit["deltas"] * flip
+    kit["triangles"] = kit["triangles"][:, ::-1]
+    np.savez(tmp_path / "mirrored.npz", **kit)
+    warnings = _import(tmp_path, tmp_path / "mirrored.npz")
+    assert len(warnings) == 1 and "every one-sided element (12)" in warnings[0] and "x -> -x" in warnings[0]

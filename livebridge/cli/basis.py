@@ -24,11 +24,14 @@ def basis() -> None:
 def import_(manifest: str, shapes: Path | None, out: Path, force: bool) -> None:
     """Build a basis from MANIFEST (a TOML file, or a shipped name such as choe-ko-ict)."""
     from livebridge.face.basis_import import import_basis
+    from livebridge.face.muscle_place import side_warnings
 
     result = import_basis(manifest, shapes)
     result.save(out)
     click.echo(f"wrote {out}: {result.n_muscles} muscles, {result.n_vertices} vertices, "
                f"{len(result.triangles)} triangles")
+    for warning in side_warnings(result.muscles, result.elements, result.neutral):
+        click.echo(f"warning: {warning}")
 
 
 attach(basis, (

@@ -91,7 +91,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     """
     import numpy as np
 
-    from livebridge.retarget.muscle_place import misplaced
+    from livebridge.face.muscle_place import misplaced
     from livebridge.retarget.point_files import picked_points_file
     from livebridge.retarget.scan import read_scan
     from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral

@@ -69,6 +69,7 @@ import numpy as np
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.face.meshio import vertex_normals
+from livebridge.face.muscle_place import muscle_for
 from livebridge.geometry.transforms import apply, transform_scale
 from livebridge.retarget.chart import PLANAR, SkinChart, face_chart
 from livebridge.retarget.eyelids import closing_openings, eyelid_guess, moving_lids
@@ -83,7 +84,6 @@ from livebridge.retarget.grid import (
     square_axes,
 )
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points, place_at_points
-from livebridge.retarget.muscle_place import muscle_for
 from livebridge.retarget.normalise import RIGID_LANDMARKS, normalisation, register_rigid, transform_landmarks
 from livebridge.retarget.scan import Scan
 from livebridge.retarget.seams import LipSeam

@@ -1,9 +1,12 @@
-"""Where an element built from a scan moves the face, against where its muscle is.
+"""Where an element moves the face, against where its muscle is.
 
 A basis from scans names each element by the muscle the user gave its scan for. A new name gets its region and
 side from where the element moves the face (:func:`muscle_for`); a Choe-Ko name has them already, and a scan
 given for the wrong muscle or the wrong side (a right smile as ``zygomatic_major_L``, a brow raise as ``jaw``)
-would pass silently into a basis the solver then splits the face by. :func:`misplaced` says so.
+would pass silently into a basis the solver then splits the face by. :func:`misplaced` says so. A basis imported
+from an artist's shapes has no landmarks, but its sides can still be told (:func:`side_warnings`): a rig whose
+``_L`` shapes are the viewer's left, or a mesh whose +x is the subject's right, would drive the animatronic
+head's right brow with the performer's left.
 
 The place of an element's motion is its centre weighted by the squared motion: the element's tracking noise
 (0.1-0.2 mm over the whole face) weighs next to nothing there. Weighted by the motion itself (as new muscles
@@ -21,6 +24,9 @@ from livebridge.face.basis import CHOE_KO_BY_NAME, Muscle
 
 SIDE_EYE_DISTANCES = 0.1
 """A centre further than this many outer-eye-corner distances off the midline is on one side."""
+SIDE_WIDTHS = 0.05
+"""Without landmarks, a centre further than this share of the face's width (the neutral's 5th to 95th
+percentile in x) off the midline (the median x) is on one side."""
 ONE_SIDED_EYE_DISTANCES = 0.25
 """A two-sided muscle whose centre is further than this off the midline moves mostly one side (a real face's
 symmetric expression is rarely exactly so)."""
@@ -86,6 +92,28 @@ def misplaced(muscle: Muscle, element: np.ndarray, vertices: np.ndarray, landmar
 
 def _mm(value: float) -> str:
     return f"{value:.1f}" if abs(value) >= 0.05 else "0.0"
+
+
+def side_warnings(muscles, elements: np.ndarray, vertices: np.ndarray) -> list[str]:
+    """Warnings for the one-sided muscles whose elements (n_muscles, n, 3) move the other side of ``vertices``
+    (n, 3; +x the subject's left), without landmarks: the midline is the median x, the margin
+    :data:`SIDE_WIDTHS` of the width. When every one-sided element does (two or more), one warning: the mesh's
+    x axis or the shapes' side names are the other way round."""
+    x = vertices[:, 0]
+    midline, width = float(np.median(x)), float(np.subtract(*np.percentile(x, [95, 5])))
+    sided = [(muscle, element) for muscle, element in zip(muscles, elements) if muscle.side is not None]
+    swapped = []
+    for muscle, element in sided:
+        off = float(motion_centre(element, vertices)[0] - midline)
+        if (1.0 if muscle.side == "L" else -1.0) * off < -SIDE_WIDTHS * width:
+            swapped.append((muscle, off))
+    if len(swapped) == len(sided) > 1:
+        return [f"every one-sided element ({len(sided)}) moves the other side of the face: livebridge's +x is the "
+                "subject's left, and _L the subject's left; mirror the meshes (x -> -x) or give each muscle the "
+                "other side's shapes"]
+    return [f"{muscle.name}: it moves the subject's {'left' if off > 0 else 'right'} side (its motion's centre is "
+            f"{abs(off):.1f} mm from the neutral's midline), and the muscle is on the "
+            f"{'left' if muscle.side == 'L' else 'right'}: are its shapes the other side's?" for muscle, off in swapped]
 
 
 def _outer_eye_corners(landmarks: dict[str, np.ndarray]) -> np.ndarray:
