@@ -39,7 +39,7 @@ def test_textured_obj_is_sampled_into_points_coloured_as_its_image(tmp_path):
     assert scan.texture.names == ("quad.png",) and scan.texture.images[0].shape == (64, 64, 3)
     np.testing.assert_allclose(scan.texture.uv[0], SQUARE_UV[[0, 1, 2]], atol=1e-6)
 
-    points = scan.coloured(spacing=0.5)
+    points = scan.as_points(spacing=0.5)
     assert not points.texture and not points.is_mesh
     assert abs(len(points.points) - 40 * 30 / 0.5 ** 2) < 0.1 * 40 * 30 / 0.5 ** 2  # a point per spacing^2
     assert np.all((points.points[:, 0] > 0) & (points.points[:, 0] < 40) & (points.points[:, 1] > 0)
@@ -52,7 +52,7 @@ def test_textured_obj_is_sampled_into_points_coloured_as_its_image(tmp_path):
 def test_only_the_triangles_near_the_centre_are_sampled(tmp_path):
     write_textured_obj(tmp_path / "quad.obj", SQUARE, SQUARE_TRIANGLES, SQUARE_UV, _gradient())
     scan = read_scan(tmp_path / "quad.obj")
-    near_corner = scan.coloured(np.array([40.0, 0.0, 0.0]), 5.0, spacing=1.0)  # only triangle 0 has that corner
+    near_corner = scan.as_points(np.array([40.0, 0.0, 0.0]), 5.0, spacing=1.0)  # only triangle 0 has that corner
     inside = near_corner.points[:, 0] > near_corner.points[:, 1] * 40 / 30
     assert len(near_corner.points) > 0 and inside.all()
 
@@ -67,7 +67,7 @@ def test_materials_with_map_options_each_colour_their_own_faces(tmp_path):
         + "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nusemtl a\nf 1/1 2/2 3/3\nusemtl b\nf 1/1/1 3/3/1 4/4/1\n")
     scan = read_scan(tmp_path / "two.obj")
     assert scan.texture.names == ("red.png", "blue.png")
-    points = scan.coloured(spacing=1.0)
+    points = scan.as_points(spacing=1.0)
     lower = points.points[:, 0] * 30 / 40 > points.points[:, 1]  # triangle 1 2 3 (material a)
     np.testing.assert_allclose(points.colours[lower], [[1, 0, 0]] * lower.sum(), atol=1e-6)
     np.testing.assert_allclose(points.colours[~lower], [[0, 0, 1]] * (~lower).sum(), atol=1e-6)
@@ -79,7 +79,7 @@ def test_faces_without_texture_coordinates_give_points_without_colour(tmp_path):
     (tmp_path / "part.obj").write_text(
         "mtllib m.mtl\nusemtl skin\n" + "".join(f"v {x} {y} {z}\n" for x, y, z in SQUARE)
         + "vt 0 0\nvt 1 0\nvt 1 1\nf 1/1 2/2 3/3\nf 1 3 4\n")
-    points = read_scan(tmp_path / "part.obj").coloured(spacing=1.0)
+    points = read_scan(tmp_path / "part.obj").as_points(spacing=1.0)
     coloured = np.isfinite(points.colours).all(axis=1)
     assert coloured.any() and not coloured.all()
     np.testing.assert_allclose(points.colours[coloured], 128 / 255, atol=1e-6)
@@ -131,7 +131,7 @@ def _assert_refused(path, case: str, words) -> None:
 def test_the_default_spacing_is_half_a_millimetre_whatever_the_texels(tmp_path, size):
     """Texels of 0.78 mm (a 64 px image on the quad) or 0.024 mm (2048 px): a point per 0.5^2 mm^2 either way."""
     write_textured_obj(tmp_path / "quad.obj", SQUARE, SQUARE_TRIANGLES, SQUARE_UV, _gradient(size))
-    points = read_scan(tmp_path / "quad.obj").coloured()
+    points = read_scan(tmp_path / "quad.obj").as_points()
     assert abs(len(points.points) / (40 * 30 / 0.5 ** 2) - 1) < 0.1
 
 
@@ -269,7 +269,7 @@ def test_textured_ply_is_sampled_into_points_coloured_as_its_image(tmp_path, enc
     np.testing.assert_allclose(scan.texture.uv, _uv_at(PLY_POINTS[scan.triangles].reshape(-1, 3)).reshape(-1, 3, 2),
                                atol=1e-6)
 
-    points = scan.coloured(spacing=0.5)
+    points = scan.as_points(spacing=0.5)
     assert abs(len(points.points) / (PLY_AREA[layout] / 0.5 ** 2) - 1) < 0.1
     expected = np.column_stack([_uv_at(points.points), np.full(len(points.points), 0.5)])
     np.testing.assert_allclose(points.colours, expected, atol=2e-4)  # float32 texcoords and 16-bit PNG rounding
@@ -280,7 +280,7 @@ def test_textured_ply_is_sampled_into_points_coloured_as_its_image(tmp_path, enc
 def test_ply_texture_coordinates_per_vertex(tmp_path, encoding, names):
     _write_image(tmp_path / "gradient.png", _gradient())
     _write_textured_ply(tmp_path / "mesh.ply", encoding, PLY_FACES["quads"], texcoords=None, vertex_uv=names)
-    points = read_scan(tmp_path / "mesh.ply").coloured(spacing=1.0)
+    points = read_scan(tmp_path / "mesh.ply").as_points(spacing=1.0)
     expected = np.column_stack([_uv_at(points.points), np.full(len(points.points), 0.5)])
     np.testing.assert_allclose(points.colours, expected, atol=2e-4)
 
@@ -295,7 +295,7 @@ def test_ply_texnumber_picks_each_face_its_texture_file(tmp_path, encoding):
     _write_textured_ply(tmp_path / "two.ply", encoding, texnumbers=[1, 0], textures=("maps/red.png", "maps/blué.png"))
     scan = read_scan(tmp_path / "two.ply")
     assert scan.texture.names == ("red.png", "blué.png")
-    points = scan.coloured(spacing=1.0)
+    points = scan.as_points(spacing=1.0)
     lower = points.points[:, 0] * 30 / 40 > points.points[:, 1]  # face 0: 0 1 2
     np.testing.assert_allclose(points.colours[lower], [[0, 0, 1]] * lower.sum(), atol=1e-6)
     np.testing.assert_allclose(points.colours[~lower], [[1, 0, 0]] * (~lower).sum(), atol=1e-6)
@@ -370,7 +370,7 @@ def test_a_textured_quad_face_is_fanned_with_its_texture_coordinates(tmp_path):
     (tmp_path / "quad.obj").write_text(
         "mtllib quad.mtl\n" + "".join(f"v {x} {y} {z}\n" for x, y, z in SQUARE)
         + "".join(f"vt {u} {v}\n" for u, v in SQUARE_UV[::-1]) + "usemtl skin\nf 1/4 2/3 3/2 4/1\n")
-    points = read_scan(tmp_path / "quad.obj").coloured(spacing=1.0)
+    points = read_scan(tmp_path / "quad.obj").as_points(spacing=1.0)
     assert len(points.points) > 1000
     expected = np.column_stack([_uv_at(points.points), np.full(len(points.points), 0.5)])
     np.testing.assert_allclose(points.colours, expected, atol=2e-4)

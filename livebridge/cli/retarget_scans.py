@@ -75,12 +75,13 @@ def reference_landmarks(spec: str, scale: float) -> dict:
 @click.option("--grid-obj", type=OutputFile(), default=None, help="Also write the neutral grid (OBJ with UVs).")
 @click.option("--landmarks-out", type=OutputFile(), default=None,
               help="Also write the landmarks on the neutral grid (landmark .toml, for retarget basis).")
-@click.option("--texture-spacing", type=FiniteFloat(0.05, 5.0), default=None,
-              help="A textured mesh is sampled into coloured points this far apart, mm (default 0.5, the skin "
-                   "images' pixel; a finer texture is blurred to it).")
+@click.option("--mesh-spacing", "--texture-spacing", "mesh_spacing", type=FiniteFloat(0.05, 5.0), default=None,
+              help="A mesh scan is sampled into points this far apart, mm (default 0.5, the skin images' pixel; a "
+                   "finer texture is blurred to it): its vertices, dense where it curves and sparse where it "
+                   "does not, are no even sample of its surface.")
 def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, force: bool, reference: str,
           method: str, grid_size, crop_radius, units: str, kernel: str, grid_obj, landmarks_out,
-          texture_spacing: float | None) -> None:
+          mesh_spacing: float | None) -> None:
     """Build an actuation basis for a scanned person from a neutral scan and one scan per muscle.
 
     Each scan is normalised (nose tip at the origin, facing +z), cropped to the face and resampled on a
@@ -109,11 +110,11 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
                 raise click.BadParameter(f"{name}: no {what} {path}{also}", param_hint="--expression")
     neutral = prepare_neutral(neutral_points, neutral_marks,
                               reference_landmarks(reference, 1.0), method, (rows, columns), crop_radius,
-                              neutral_landmarks, scan_source=neutral_scan, texture_spacing=texture_spacing)
+                              neutral_landmarks, scan_source=neutral_scan, mesh_spacing=mesh_spacing)
     faces, uncoloured = {}, []
     for name, (scan_path, landmark_path) in files.items():
         faces[name] = prepare_expression(read_scan(scan_path, scale), read_landmark_points(landmark_path, scale),
-                                         neutral, scan_path, landmark_path, texture_spacing)
+                                         neutral, scan_path, landmark_path, mesh_spacing)
         if neutral.skin is None or faces[name].skin is None:
             uncoloured.append(name)
     basis = basis_from_scans(neutral, faces, kernel)

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from livebridge.errors import InputError, file_error
+from livebridge.retarget.mesh_samples import surface_samples
 from livebridge.retarget.texture import Texture, sample_textured
 
 SCAN_SUFFIXES = (".ply", ".obj", ".xyz", ".csv", ".txt", ".pts", ".asc")
@@ -68,19 +69,23 @@ class Scan:
     def has_colour(self) -> bool:
         return self.colours is not None or self.texture is not None
 
-    def coloured(self, centre: np.ndarray | None = None, radius: float = np.inf,
-                 spacing: float | None = None) -> Scan:
-        """A textured mesh as a coloured point cloud: points every ``spacing`` mm (default 0.5, see
-        :func:`~livebridge.retarget.texture.sample_textured`) over its triangles with a corner within ``radius``
-        of ``centre`` (all without a centre), coloured from the texture; the scan itself when it has no
-        texture."""
-        if self.texture is None:
+    def as_points(self, centre: np.ndarray | None = None, radius: float = np.inf,
+                  spacing: float | None = None) -> Scan:
+        """A mesh as a point cloud: points every ``spacing`` mm (default 0.5, see
+        :mod:`~livebridge.retarget.mesh_samples`) over its triangles with a corner within ``radius`` of
+        ``centre`` (all without a centre), coloured from its texture
+        (:func:`~livebridge.retarget.texture.sample_textured`) or its vertices' colours; a point cloud as it is."""
+        if not self.is_mesh:
             return self
         keep = None
         if centre is not None:
             near = np.linalg.norm(self.points - np.asarray(centre, dtype=np.float64), axis=1) <= radius
             keep = near[self.triangles].any(axis=1)
-        points, colours = sample_textured(self.points, self.triangles, self.texture, spacing, keep)
+        if self.texture is not None:
+            points, colours = sample_textured(self.points, self.triangles, self.texture, spacing, keep)
+            return Scan(points, np.zeros((0, 3), np.int64), colours)
+        points, owner, bary = surface_samples(self.points, self.triangles, spacing, keep)
+        colours = None if self.colours is None else np.einsum("sk,skd->sd", bary, self.colours[self.triangles[owner]])
         return Scan(points, np.zeros((0, 3), np.int64), colours)
 
 

@@ -21,18 +21,8 @@ from pathlib import Path, PureWindowsPath
 import numpy as np
 
 from livebridge.errors import InputError
+from livebridge.retarget.mesh_samples import SAMPLE_SPACING_MM, surface_samples, triangle_areas
 
-SAMPLE_SPACING_MM = 0.5
-"""Default distance between the points sampled on a textured mesh: the skin images' pixel
-(:data:`~livebridge.retarget.skin_flow.FINE_MM`), finer textures blurred to it. Finer sampling bought nothing
-(`livebridge bench scans`' textured meshes, seed 7, the brow, smile and jaw elements and the eyelids, relative
-RMS): on 0.5 mm texels 0.034 / 0.026 / 0.057 from points 0.3 mm apart (99 s for the neutral and three
-expressions), 0.034 / 0.024 / 0.055 from 0.5 mm (45 s); on 0.25 mm texels 0.034 / 0.027 / 0.059 and eyelids
-0.151 / 0.170 from 0.3 mm, 0.033 / 0.024 / 0.054 and 0.149 / 0.169 from 0.5 mm, 0.035 / 0.024 / 0.054 and 0.149 /
-0.165 from 0.6 mm (blurred)."""
-MAX_SPLITS = 256
-"""A triangle is split into at most this many parts along an edge (a scan's few very large triangles, off the
-face, do not cost millions of points)."""
 ANTI_ALIAS_TEXELS = 2.0
 """The texture is blurred before it is sampled where a sample spacing spans more than this many texels."""
 LOOKUP_COLUMNS = 1024
@@ -163,21 +153,11 @@ def sample_textured(points: np.ndarray, triangles: np.ndarray, texture: Texture,
     colours : ndarray, shape (n_samples, 3)
         RGB in [0, 1]; NaN where the triangle has no texture.
     """
-    chosen = np.flatnonzero(keep) if keep is not None else np.arange(len(triangles))
     spacing = SAMPLE_SPACING_MM if spacing is None else spacing
-    corners = points[triangles[chosen]]
-    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-    splits = np.clip(np.ceil(np.sqrt(area) / spacing), 1, MAX_SPLITS).astype(int)  # a point per spacing^2
-    samples, uvs, owners = [], [], []
-    for n in np.unique(splits):
-        rows = np.flatnonzero(splits == n)
-        bary = _centroids(int(n))  # (m, 3)
-        samples.append(np.einsum("mk,tkd->tmd", bary, corners[rows]).reshape(-1, 3))
-        uvs.append(np.einsum("mk,tkd->tmd", bary, texture.uv[chosen[rows]]).reshape(-1, 2))
-        owners.append(np.repeat(chosen[rows], len(bary)))
-    if not samples:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    samples, uv, owner = np.vstack(samples), np.vstack(uvs), np.concatenate(owners)
+    samples, owner, bary = surface_samples(points, triangles, spacing, keep)
+    uv = np.einsum("sk,skd->sd", bary, texture.uv[owner])
+    chosen = np.flatnonzero(keep) if keep is not None else np.arange(len(triangles))
+    area = triangle_areas(points, triangles[chosen])
     colours = np.full((len(samples), 3), np.nan)
     for index, image in enumerate(texture.images):
         mine = texture.image_index[owner] == index
@@ -187,16 +167,6 @@ def sample_textured(points: np.ndarray, triangles: np.ndarray, texture: Texture,
             footprint = spacing / _texel_mm(area[on_image], own_uv, image.shape)
             colours[mine] = _lookup(_blurred(image, footprint, own_uv), uv[mine])
     return samples, colours
-
-
-def _centroids(n: int) -> np.ndarray:
-    """Barycentric coordinates (n^2, 3) of the centroids of the n^2 sub-triangles of a triangle split n times."""
-    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-    up = (i + j <= n - 1)
-    down = (i + j <= n - 2)
-    a = np.concatenate([i[up] + 1 / 3, i[down] + 2 / 3]) / n
-    b = np.concatenate([j[up] + 1 / 3, j[down] + 2 / 3]) / n
-    return np.stack([1 - a - b, a, b], axis=1)
 
 
 def _texel_mm(area: np.ndarray, uv: np.ndarray, shape: tuple) -> float:

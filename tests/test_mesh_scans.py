@@ -1,0 +1,109 @@
+"""Mesh scans are read by their surface, not their vertices: a mesh dense in places and sparse in others
+resamples without holes, its leftover vertices are no surface, what the face's front hides (a modelled head's
+teeth and eyeballs) is cut, and vertex colours are carried over the triangles."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from livebridge.face.builtin import builtin_basis
+from livebridge.retarget.landmarks import load_landmark_set
+from livebridge.retarget.mesh_samples import surface_samples
+from livebridge.retarget.scan import Scan
+from livebridge.retarget.scans import prepare_expression, prepare_neutral
+
+GRID = (60, 60)
+
+
+@pytest.fixture(scope="module")
+def face():
+    """(the built-in face's basis, its 22 landmarks as a dict)."""
+    basis = builtin_basis()
+    return basis, load_landmark_set("builtin-22").as_dict(basis.neutral, basis.triangles)
+
+
+def _neutral(scan: Scan, landmarks: dict):
+    return prepare_neutral(scan, landmarks, landmarks, shape=GRID)
+
+
+def _split(vertices: np.ndarray, triangles: np.ndarray, chosen: np.ndarray, n: int):
+    """The mesh with each ``chosen`` triangle split into n^2 (its own new vertices: cracks at the edges, as a
+    scanner's decimated mesh has none, but the surface is the same)."""
+    i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+    keep = i + j <= n
+    bary = np.stack([1 - (i[keep] + j[keep]) / n, i[keep] / n, j[keep] / n], axis=1)  # (k, 3)
+    index = -np.ones((n + 1, n + 1), int)
+    index[keep] = np.arange(keep.sum())
+    small = [(index[a, b], index[a + 1, b], index[a, b + 1]) for a in range(n) for b in range(n - a)]
+    small += [(index[a + 1, b], index[a + 1, b + 1], index[a, b + 1]) for a in range(n) for b in range(n - a - 1)]
+    small = np.array(small)
+    new_vertices, new_triangles = [vertices], [triangles[~chosen]]
+    count = len(vertices)
+    for triangle in triangles[chosen]:
+        new_vertices.append(bary @ vertices[triangle])
+        new_triangles.append(small + count)
+        count += len(bary)
+    return np.vstack(new_vertices), np.vstack(new_triangles)
+
+
+def test_a_mesh_dense_in_places_resamples_without_holes_where_it_is_sparse(face):
+    """On the default grid (cells finer than the face's sparse vertices), as a scanner's decimated mesh is."""
+    basis, landmarks = face
+
+    def neutral(scan):
+        return prepare_neutral(scan, landmarks, landmarks, mesh_spacing=1.0)
+
+    uniform = neutral(Scan(basis.neutral, basis.triangles))
+    near = np.linalg.norm(basis.neutral[basis.triangles].mean(axis=1) - landmarks["nose_tip"], axis=1) < 30
+    vertices, triangles = _split(basis.neutral, basis.triangles, near, 6)  # the nose and around it 36 times denser
+    assert len(vertices) > 2.5 * len(basis.neutral)
+    leftovers = landmarks["nose_tip"] + np.random.default_rng(0).normal(0, 20, (500, 3))  # no triangle uses them
+    adaptive = neutral(Scan(np.vstack([vertices, leftovers]), triangles))
+    assert adaptive.grid.valid.sum() >= 0.995 * uniform.grid.valid.sum()  # from its vertices: 0.96 of it
+    both = adaptive.grid.valid & uniform.grid.valid
+    assert np.percentile(np.abs(adaptive.grid.heights[both] - uniform.grid.heights[both]), 99) < 0.05
+
+
+def test_what_the_face_hides_is_cut_from_a_modelled_head(face):
+    """Teeth behind the closed lips (the lower face's skin 4 mm further in) change no grid height, of the neutral
+    nor of a smile. (Through an opened mouth they are seen, as a scanner sees them.)"""
+    basis, landmarks = face
+    mouth = 0.5 * (landmarks["mouth_corner_L"] + landmarks["mouth_corner_R"])
+    inside = np.linalg.norm(basis.neutral[basis.triangles].mean(axis=1) - mouth, axis=1) < 25
+
+    def head(vertices):
+        teeth = vertices[basis.triangles[inside]].reshape(-1, 3) - [0.0, 0.0, 4.0]
+        return Scan(np.vstack([vertices, teeth]),
+                    np.vstack([basis.triangles, len(vertices) + np.arange(len(teeth)).reshape(-1, 3)]))
+
+    neutral, modelled = _neutral(Scan(basis.neutral, basis.triangles), landmarks), _neutral(head(basis.neutral),
+                                                                                          landmarks)
+    assert np.array_equal(neutral.grid.valid, modelled.grid.valid)
+    assert np.abs(modelled.grid.heights - neutral.grid.heights)[neutral.grid.valid].max() < 1e-9
+    smile = basis.neutral + basis.elements[basis.index("zygomatic_major_L")]
+    smile_landmarks = load_landmark_set("builtin-22").as_dict(smile, basis.triangles)
+    skin = prepare_expression(Scan(smile, basis.triangles), smile_landmarks, neutral)
+    with_teeth = prepare_expression(head(smile), smile_landmarks, neutral)
+    assert np.array_equal(skin.grid.valid, with_teeth.grid.valid)
+    assert np.abs(with_teeth.grid.heights - skin.grid.heights)[skin.grid.valid].max() < 1e-9
+
+
+def test_vertex_colours_are_carried_over_the_triangles(face):
+    basis, _ = face
+    colours = (basis.neutral - basis.neutral.min(axis=0)) / np.ptp(basis.neutral, axis=0)  # linear in position
+    points = Scan(basis.neutral, basis.triangles, colours).as_points(spacing=1.0)
+    assert not points.is_mesh and len(points.points) > 2 * len(basis.neutral)
+    expected = (points.points - basis.neutral.min(axis=0)) / np.ptp(basis.neutral, axis=0)
+    assert np.abs(points.colours - expected).max() < 1e-9
+
+
+def test_samples_cover_each_triangle_once_per_spacing_squared():
+    corners = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [10.0, 10.0, 5.0]])
+    triangles = np.array([[0, 1, 2], [1, 3, 2]])
+    samples, owner, bary = surface_samples(corners, triangles, spacing=0.5)
+    area = np.array([50.0, 0.5 * np.linalg.norm(np.cross(corners[3] - corners[1], corners[2] - corners[1]))])
+    counts = np.bincount(owner, minlength=2)
+    assert np.allclose(counts, np.ceil(np.sqrt(area) / 0.5) ** 2)
+    assert np.allclose(samples, np.einsum("sk,skd->sd", bary, corners[triangles[owner]]))
+    assert (bary > 0).all() and np.allclose(bary.sum(axis=1), 1.0)  # centroids: inside, never on an edge
