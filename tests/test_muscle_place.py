@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from factories import write_builtin_scans
 
 from livebridge.face.basis import CHOE_KO_BY_NAME, Muscle
 from livebridge.face.muscle_place import misplaced, muscle_for
@@ -83,18 +84,9 @@ def test_noise_over_the_face_does_not_move_a_small_elements_centre(face):
 
 
 def test_retarget_scans_warns_of_a_scan_given_for_the_other_side(tmp_path):
-    from livebridge.bench.scans import synthetic_scans
     from livebridge.cli import main
-    from livebridge.face.builtin import builtin_basis
-    from livebridge.retarget.scan import write_ply
 
-    neutral, expressions = synthetic_scans(builtin_basis(), load_landmark_set("builtin-22"),
-                                           np.random.default_rng(4), n_points=8000, hole_muscle=None, colour=False,
-                                           muscles=("zygomatic_major_L",))
-    for name, scan in (("neutral", neutral), ("smile_L", expressions["zygomatic_major_L"])):
-        write_ply(tmp_path / f"{name}.ply", scan.points, None, "ascii")
-        (tmp_path / f"{name}.landmarks.csv").write_text("".join(f"{k},{x},{y},{z}\n"
-                                                                for k, (x, y, z) in scan.landmarks.items()))
+    write_builtin_scans(tmp_path, 4, {"neutral": "neutral", "zygomatic_major_L": "smile_L"})
 
     def build(muscle):
         result = CliRunner().invoke(main, [

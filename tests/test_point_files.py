@@ -9,15 +9,13 @@ from xml.etree import ElementTree
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from factories import assert_cli_refused
+from factories import assert_cli_refused, write_builtin_scans
 
-from livebridge.bench.scans import synthetic_scans
 from livebridge.cli import main
 from livebridge.face.basis import Basis
 from livebridge.retarget.eyelids import LID_LANDMARKS
 from livebridge.retarget.landmarks import THESIS_22_NAMES, load_landmark_set
 from livebridge.retarget.point_files import read_points, write_pick_template
-from livebridge.retarget.scan import write_ply
 
 # A file as MeshLab 2023.12's PickPoints editor saves one (QDomDocument, indent 1, attributes x y z active name)
 MESHLAB_PP = """<!DOCTYPE PickedPoints>
@@ -102,15 +100,8 @@ def test_landmarks_place_puts_picked_points_where_the_same_csv_puts_them(tmp_pat
 @pytest.fixture(scope="module")
 def scan_folder(tmp_path_factory):
     """A neutral and a jaw scan of the built-in face (8000 points, no colour) with CSV landmark files."""
-    from livebridge.face.builtin import builtin_basis
-
     folder = tmp_path_factory.mktemp("picked")
-    neutral, expressions = synthetic_scans(builtin_basis(), load_landmark_set("builtin-22"),
-                                           np.random.default_rng(5), n_points=8000, hole_muscle=None, colour=False,
-                                           muscles=("jaw",))
-    for name, scan in (("neutral", neutral), ("jaw", expressions["jaw"])):
-        write_ply(folder / f"{name}.ply", scan.points, None, "ascii")
-        _write_csv(folder / f"{name}.landmarks.csv", scan.landmarks)
+    write_builtin_scans(folder, 5, {"neutral": "neutral", "jaw": "jaw"})
     return folder
 
 

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from factories import assert_cli_refused
+from factories import assert_cli_refused, write_builtin_scans
 
 from livebridge.bench.scans import ERROR_LIMIT, build_and_measure, synthetic_scans
 from livebridge.geometry.transforms import apply
@@ -893,17 +893,8 @@ def test_retarget_scans_cli_writes_a_basis(tmp_path, ict):
 @pytest.fixture(scope="module")
 def small_scans(tmp_path_factory):
     """A neutral and a jaw scan of the built-in face (8000 points, no colour) with their landmark files."""
-    from livebridge.face.builtin import builtin_basis
-    from livebridge.retarget.landmarks import load_landmark_set
-
     folder = tmp_path_factory.mktemp("scans")
-    neutral, expressions = synthetic_scans(builtin_basis(), load_landmark_set("builtin-22"),
-                                           np.random.default_rng(3), n_points=8000, hole_muscle=None, colour=False,
-                                           muscles=("jaw",))
-    for name, scan in (("neutral", neutral), ("jaw", expressions["jaw"])):
-        write_ply(folder / f"{name}.ply", scan.points, None, "ascii")
-        (folder / f"{name}.landmarks.csv").write_text("".join(f"{k},{x},{y},{z}\n"
-                                                              for k, (x, y, z) in scan.landmarks.items()))
+    write_builtin_scans(folder, 3, {"neutral": "neutral", "jaw": "jaw"})
     return folder
 
 
@@ -912,8 +903,9 @@ def _spoil(folder, name, points=None, landmarks=None):
     if points is not None:
         write_ply(folder / f"{name}.ply", points(read_scan(folder / f"{name}.ply").points), None, "ascii")
     if landmarks is not None:
-        rows = [line.split(",") for line in (folder / f"{name}.landmarks.csv").read_text().splitlines()]
-        marks = landmarks({row[0]: np.array([float(v) for v in row[1:]]) for row in rows})
+        from livebridge.retarget.point_files import read_points_csv
+
+        marks = landmarks(read_points_csv(folder / f"{name}.landmarks.csv"))
         (folder / f"{name}.landmarks.csv").write_text("".join(f"{k},{x},{y},{z}\n" for k, (x, y, z) in marks.items()))
 
 
