@@ -136,16 +136,8 @@ def sample_textured(points: np.ndarray, triangles: np.ndarray, texture: Texture,
                     keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Points every ``spacing`` mm over a textured mesh and their colours.
 
-    Parameters
-    ----------
-    points : ndarray, shape (n_points, 3)
-        The mesh's vertices, mm.
-    triangles : ndarray of int, shape (n_triangles, 3)
-    texture : Texture
-    spacing : float, optional
-        mm (default :data:`SAMPLE_SPACING_MM`).
-    keep : ndarray of bool, shape (n_triangles,), optional
-        Only these triangles are sampled (a crop).
+    ``points`` (n_points, 3), ``triangles`` (n_triangles, 3), ``spacing`` and ``keep`` as in
+    :func:`~livebridge.retarget.mesh_samples.surface_samples`; ``texture`` on those triangles.
 
     Returns
     -------
