@@ -127,6 +127,17 @@ def test_ctrl_c_before_the_pipeline_runs_exits_130_without_aborted(tmp_path, rng
     assert not _error_lines(result.output) and not list(crash_dir.iterdir())
 
 
+def test_output_read_by_a_command_that_stops_reading_ends_quietly_with_141(tmp_path):
+    """`livebridge ... | head -1`: the reader gone, the command exits as Unix tools do (128 + SIGPIPE), without an
+    error line (it printed "Error: Broken pipe")."""
+    reader_gone = subprocess.Popen([sys.executable, "-m", "livebridge", "landmarks", "template", "--out",
+                                    str(tmp_path / "t.pptpl")], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    reader_gone.stdout.close()  # before the interpreter has started: its first line meets a closed pipe
+    _, stderr = reader_gone.communicate(timeout=120)
+    assert reader_gone.returncode == 141 and b"Error" not in stderr and b"Traceback" not in stderr, stderr
+    assert (tmp_path / "t.pptpl").exists()  # the work was done; only its report had no reader
+
+
 def test_python_dash_m_livebridge_runs_the_same_command_line(tmp_path):
     missing = tmp_path / "nothing.npz"
     result = subprocess.run([sys.executable, "-m", "livebridge", "basis", "show", str(missing), "--out",

@@ -8,7 +8,9 @@ Errors meet the user in one place, :meth:`_Livebridge.invoke`: bad input
 (:class:`~livebridge.errors.InputError`, a file that cannot be read, a port
 in use) prints one ``Error:`` line naming the file, field, option or port;
 anything else is a bug, reported in one line with the path of a file that
-holds the full traceback. Ctrl-C outside a running pipeline exits with 130.
+holds the full traceback. Ctrl-C outside a running pipeline exits with 130;
+output whose reader went away (``livebridge ... | head -1``) ends the command
+quietly with 141.
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ _COMMANDS = (
     ("livebridge.cli.character", "character"),
 )
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a command stopped by Ctrl-C
+EXIT_OUTPUT_CLOSED = 141  # 128 + SIGPIPE, as shells report a command whose reader went away (`... | head`)
 
 
 def user_error_message(error: BaseException) -> str | None:
@@ -83,6 +86,25 @@ def _one_line(text: str, limit: int = 300) -> str:
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
+def _stdout_closed() -> bool:
+    """Whether standard output is a pipe whose reader has gone (the kernel reports an error on its write end);
+    then it is pointed at the null device, so that Python's own flush at exit does not fail again."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a file: a test's captured output
+        return False
+    if not hasattr(select, "poll"):
+        return False
+    poller = select.poll()
+    poller.register(fd, select.POLLOUT)
+    closed = any(event & select.POLLERR for _, event in poller.poll(0))
+    if closed:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+    return closed
+
+
 class _Livebridge(click.Group):
     """The top-level group; its :meth:`invoke` is the command line's one error boundary."""
 
@@ -95,6 +117,8 @@ class _Livebridge(click.Group):
             click.echo("\ninterrupted", err=True)
             ctx.exit(EXIT_INTERRUPTED)
         except Exception as error:  # the boundary: every failure becomes one line, bugs keep a traceback file
+            if isinstance(error, BrokenPipeError) and _stdout_closed():
+                ctx.exit(EXIT_OUTPUT_CLOSED)  # the reader of our output went away: quietly, as any Unix tool
             message = user_error_message(error)
             if message is None:
                 path = write_crash_report(error)
