@@ -874,8 +874,11 @@ def test_retarget_scans_cli_writes_a_basis(tmp_path, ict):
         "--landmarks-out", str(tmp_path / "lm.toml")])
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
-    assert "shape only" in next(line for line in lines if line.strip().startswith("jaw"))
-    assert "skin tracked" in next(line for line in lines if line.strip().startswith("zygomatic_major_L"))
+    table = [line.strip() for line in lines if "largest motion" in line]
+    assert "shape only" in next(line for line in table if line.startswith("jaw"))
+    assert "skin tracked" in next(line for line in table if line.startswith("zygomatic_major_L"))
+    progress = [line.strip() for line in lines if line.startswith("  ") and "/2" in line]
+    assert progress == ["jaw: shape only (1/2)", "zygomatic_major_L: tracking the skin (2/2)"], lines
     assert "note: no colour in jaw" in result.output
     basis = Basis.load(tmp_path / "b.npz")
     assert basis.names == ("jaw", "zygomatic_major_L")
@@ -962,3 +965,24 @@ def test_retarget_scans_refuses_a_bad_scan_naming_the_file_and_landmark(tmp_path
         "--out", str(tmp_path / "b.npz"), *extra])
     assert_cli_refused(result, *words)
     assert not (tmp_path / "b.npz").exists()
+
+
+def test_the_build_tells_of_each_element_in_both_passes():
+    """Coloured scans are tracked twice (against the neutral, then against the template of all the scans' skin):
+    each pass names each element as it starts, so a build of minutes shows where it is."""
+    from livebridge.face.builtin import builtin_basis
+    from livebridge.retarget.landmarks import load_landmark_set
+    from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
+
+    neutral_scan, scans = synthetic_scans(builtin_basis(), load_landmark_set("builtin-22"), np.random.default_rng(6),
+                                          n_points=8000, hole_muscle=None, muscles=("jaw", "zygomatic_major_L"))
+    neutral = prepare_neutral(neutral_scan.as_scan(), neutral_scan.landmarks, neutral_scan.landmarks, shape=(40, 40))
+    faces = {name: prepare_expression(scan.as_scan(), scan.landmarks, neutral) for name, scan in scans.items()}
+    lines = []
+    basis_from_scans(neutral, faces, log=lines.append)
+    first, second = faces
+    assert [line.strip() for line in lines] == [
+        f"{first}: tracking the skin (1/2, first pass, against the neutral)",
+        f"{second}: tracking the skin (2/2, first pass, against the neutral)",
+        f"{first}: tracking the skin (1/2, second pass, against the template)",
+        f"{second}: tracking the skin (2/2, second pass, against the template)"]

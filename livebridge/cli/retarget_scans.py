@@ -108,6 +108,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
                 defaulted = what != "scan" and path == scan_path.with_suffix(".landmarks.csv")
                 also = f" (nor {picked_points_file(scan_path).name}; or give SCAN:LANDMARKS)" if defaulted else ""
                 raise click.BadParameter(f"{name}: no {what} {path}{also}", param_hint="--expression")
+    click.echo(f"preparing {neutral_scan.name} and {len(files)} expression scan{'s' * (len(files) > 1)}")
     neutral = prepare_neutral(neutral_points, neutral_marks,
                               reference_landmarks(reference, 1.0), method, (rows, columns), crop_radius,
                               neutral_landmarks, scan_source=neutral_scan, mesh_spacing=mesh_spacing)
@@ -117,7 +118,8 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
                                          neutral, scan_path, landmark_path, mesh_spacing)
         if neutral.skin is None or faces[name].skin is None:
             uncoloured.append(name)
-    basis = basis_from_scans(neutral, faces, kernel)
+    click.echo("building the elements")
+    basis = basis_from_scans(neutral, faces, kernel, log=click.echo)
     basis.save(out)
     if grid_obj is not None:
         neutral.mesh_grid.write_obj(grid_obj)

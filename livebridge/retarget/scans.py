@@ -558,33 +558,43 @@ def geometric_element(neutral: FaceScan, expression: FaceScan, stride: int = CON
 
 
 def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
-                     kernel: Kernel | str = Kernel.BIHARMONIC, colour: bool = True) -> Basis:
+                     kernel: Kernel | str = Kernel.BIHARMONIC, colour: bool = True, log=None) -> Basis:
     """One element per expression scan (by muscle name) on the neutral's grid mesh (skin tracked where the
     scans have colour, unless not ``colour``). With colour, each expression is tracked against a template
-    of the neutral skin averaged from all the scans (:mod:`~livebridge.retarget.skin_template`)."""
+    of the neutral skin averaged from all the scans (:mod:`~livebridge.retarget.skin_template`). ``log``
+    (a callable taking a line) hears of each element as it is built: the build takes tens of seconds each."""
     names = list(expressions)
     neutrals = [neutral] * len(names)
     coloured = [face for face in expressions.values() if face.skin is not None]
     starts = trusts = [None] * len(names)
+    say = log or (lambda line: None)
+    passes = 1
     if colour and neutral.skin is not None and len(coloured) == len(names) > 1:
-        neutrals, starts, trusts = _with_templates(neutral, expressions, kernel)
-    elements = np.stack([expression_element(own, expressions[name], kernel=kernel, source=name, colour=colour,
-                                            start=start, start_trust=trust)
-                         for own, name, start, trust in zip(neutrals, names, starts, trusts)])
+        passes = 2
+        neutrals, starts, trusts = _with_templates(neutral, expressions, kernel, say)
+    elements = []
+    for k, (own, name, start, trust) in enumerate(zip(neutrals, names, starts, trusts), 1):
+        tracking = colour and own.skin is not None and expressions[name].skin is not None
+        say(f"  {name}: {'tracking the skin' if tracking else 'shape only'} "
+            f"({k}/{len(names)}{', second pass, against the template' if passes == 2 else ''})")
+        elements.append(expression_element(own, expressions[name], kernel=kernel, source=name, colour=colour,
+                                           start=start, start_trust=trust))
+    elements = np.stack(elements)
     muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks)
                     for name, element in zip(expressions, elements))
     return Basis(neutral.mesh_vertices, neutral.triangles, elements, muscles)
 
 
-def _with_templates(neutral: FaceScan, expressions: dict[str, FaceScan], kernel: Kernel | str
+def _with_templates(neutral: FaceScan, expressions: dict[str, FaceScan], kernel: Kernel | str, say
                     ) -> tuple[list[FaceScan], list[np.ndarray], list[np.ndarray]]:
     """The neutral once per expression, with the template of the other scans' skin to track against, each
     expression warped back by its tracked motion (one round of groupwise registration); each expression's
     tracked motion (n_vertices, 3), where its second tracking starts; and how much that motion is trusted
-    (n_vertices,), the most its second tracking may trust (:func:`_within`)."""
+    (n_vertices,), the most its second tracking may trust (:func:`_within`); ``say`` hears of each."""
     vertices, chart = neutral.vertices, neutral.chart
     tracked, motions, trusts = [], [], []
-    for name, face in expressions.items():
+    for k, (name, face) in enumerate(expressions.items(), 1):
+        say(f"  {name}: tracking the skin ({k}/{len(expressions)}, first pass, against the neutral)")
         motion, trust = tracked_motion(neutral, face, kernel=kernel, source=name)
         tracked.append((face.skin, chart.motion_to_chart(vertices, motion), trust))
         motions.append(motion)
