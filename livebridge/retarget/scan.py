@@ -23,6 +23,7 @@ import numpy as np
 
 from livebridge.errors import InputError, file_error
 from livebridge.retarget.mesh_samples import surface_samples
+from livebridge.retarget.obj_bulk import ObjData, read_obj_bulk
 from livebridge.retarget.texture import Texture, sample_textured
 
 SCAN_SUFFIXES = (".ply", ".obj", ".xyz", ".csv", ".txt", ".pts", ".asc")
@@ -218,7 +219,21 @@ def _text(data: bytes, path: Path) -> str:
 def _read_obj(data: bytes, path: Path):
     """``v x y z [r g b]`` and ``f a b c ...`` lines (``a/t/n`` corners, negative = relative), and with ``vt``
     lines, ``mtllib`` and ``usemtl`` the texture images of the faces' materials (their ``map_Kd``); the rest
-    ignored."""
+    ignored. A scanner's regular layout is parsed in bulk (:mod:`~livebridge.retarget.obj_bulk`), any other line
+    by line."""
+    obj = read_obj_bulk(data) or _obj_lines(data, path)
+    rgb = obj.colours
+    if rgb is not None:
+        rgb = rgb / 255.0 if rgb.max() > 1 else rgb  # 0-1 by the convention; some writers put 0-255
+    texture = None
+    if obj.libraries and len(obj.texcoords):
+        texture = _obj_texture(path, obj.libraries, obj.texcoords, obj.corner_uv, obj.face_material)
+        rgb = None if texture is not None else rgb  # the images hold the skin's pattern finer than the vertices
+    return obj.points, obj.triangles, rgb, texture
+
+
+def _obj_lines(data: bytes, path: Path) -> ObjData:
+    """An OBJ file read line by line: any layout, and an error naming the line at fault."""
     vertices, triangles, colours, texcoords = [], [], [], []
     corner_uv, face_material, libraries, material = [], [], [], None
     for number, line in enumerate(data.decode("utf-8", errors="replace").splitlines(), 1):
@@ -250,17 +265,12 @@ def _read_obj(data: bytes, path: Path):
             libraries.append(line.split(maxsplit=1)[1].strip())
         elif parts[0] == "usemtl":
             material = line.split(maxsplit=1)[1].strip() if len(parts) > 1 else None
-    points = np.array(vertices, dtype=np.float64).reshape(-1, 3)
-    rgb = None
-    if colours and all(c is not None for c in colours):  # colour only when every vertex has one
-        rgb = np.array(colours, dtype=np.float64)
-        rgb = rgb / 255.0 if rgb.max() > 1 else rgb  # 0-1 by the convention; some writers put 0-255
-    texture = None
-    if libraries and texcoords:
-        texture = _obj_texture(path, libraries, np.array(texcoords, dtype=np.float64),
-                               np.array(corner_uv, dtype=np.int64).reshape(-1, 3), face_material)
-        rgb = None if texture is not None else rgb  # the images hold the skin's pattern finer than the vertices
-    return points, np.array(triangles, dtype=np.int64).reshape(-1, 3), rgb, texture
+    every_colour = colours and all(c is not None for c in colours)  # colour only when every vertex has one
+    return ObjData(np.array(vertices, dtype=np.float64).reshape(-1, 3),
+                   np.array(colours, dtype=np.float64) if every_colour else None,
+                   np.array(texcoords, dtype=np.float64).reshape(-1, 2),
+                   np.array(triangles, dtype=np.int64).reshape(-1, 3),
+                   np.array(corner_uv, dtype=np.int64).reshape(-1, 3), face_material, libraries)
 
 
 def _obj_face(tokens, n_vertices: int, n_texcoords: int, line: str, number: int, path: Path):

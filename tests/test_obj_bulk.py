@@ -1,0 +1,94 @@
+"""The bulk OBJ parser reads a scanner's regular layout exactly as the line-by-line reader does, and leaves every
+other layout to it (which names the line at fault)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from livebridge.retarget.obj_bulk import read_obj_bulk
+from livebridge.retarget.scan import _obj_lines
+
+FORMS = {"a": "{v}", "a/b": "{v}/{t}", "a//c": "{v}//{n}", "a/b/c": "{v}/{t}/{n}"}
+
+
+def _obj(form: str, rng: np.random.Generator, colours: bool = False, polygons=(3,), crlf: bool = False,
+         texcoord_w: bool = False) -> bytes:
+    """An OBJ of 60 vertices and 40 faces of ``polygons`` corners in ``form``, two materials, comments, groups
+    and normals between."""
+    lines = ["# scanner export", "mtllib skin.mtl", "o face"]
+    for _ in range(60):
+        x, y, z = rng.normal(0, 30, 3)
+        lines.append(f"v {x:.6f} {y:.6f} {z:.6f}" + (f" {rng.integers(0, 256)} {rng.integers(0, 256)} 7" if colours
+                                                      else ""))
+        lines.append(f"vt {rng.random():.5f} {rng.random():.5f}" + (" 0" if texcoord_w else ""))
+        lines.append("vn 0 0 1")
+    for k in range(40):
+        if k % 13 == 0:
+            lines += ["g part", f"usemtl skin_{k % 2}", "s 1"]
+        n = polygons[k % len(polygons)]
+        corners = rng.choice(60, n, replace=False) + 1
+        lines.append("f " + " ".join(FORMS[form].format(v=c, t=c, n=c) for c in corners))
+    return (("\r\n" if crlf else "\n").join(lines) + "\n").encode()
+
+
+def _same(a, b) -> None:
+    assert np.array_equal(a.points, b.points)
+    assert (a.colours is None and b.colours is None) or np.array_equal(a.colours, b.colours)
+    assert np.array_equal(a.texcoords, b.texcoords)
+    assert np.array_equal(a.triangles, b.triangles) and np.array_equal(a.corner_uv, b.corner_uv)
+    assert a.face_material == b.face_material and a.libraries == b.libraries
+
+
+@pytest.mark.parametrize("form", sorted(FORMS))
+@pytest.mark.parametrize("layout", [dict(), dict(colours=True), dict(polygons=(3, 4, 5)), dict(crlf=True),
+                                    dict(texcoord_w=True, polygons=(4,))])
+def test_the_regular_layouts_are_read_in_bulk_as_line_by_line(form, layout):
+    data = _obj(form, np.random.default_rng(len(form)), **layout)
+    bulk = read_obj_bulk(data)
+    assert bulk is not None
+    _same(bulk, _obj_lines(data, Path("scan.obj")))
+    assert len(bulk.triangles) == sum(p - 2 for p in [layout.get("polygons", (3,))[k % len(layout.get(
+        "polygons", (3,)))] for k in range(40)])
+
+
+def _spoil(text: str) -> list[tuple[str, str]]:
+    first_face = next(line for line in text.splitlines() if line.startswith("f "))
+    first_vertex = next(line for line in text.splitlines() if line.startswith("v "))
+    return [
+        ("a relative index", text.replace(first_face, "f -1 -2 -3")),
+        ("a face before its vertices", first_face + "\n" + text),
+        ("tabs", text.replace(first_vertex, first_vertex.replace(" ", "\t"))),
+        ("a leading blank", text.replace(first_vertex, " " + first_vertex)),
+        ("a vertex's w", text.replace(first_vertex, first_vertex + " 1.0")),
+        ("corners written two ways", text.replace(first_face, first_face.replace("/", "//", 1))),
+        ("a vertex not finite", text.replace(first_vertex, "v nan 0 0")),
+        ("a number with an underscore", text.replace(first_vertex, "v 1_0 0 0")),
+        ("index 0", text.replace(first_face, "f 0/1 1/1 2/2")),
+        ("an index past the vertices", text.replace(first_face, "f 1/1 2/2 999/3")),
+        ("a corner with four fields", text.replace(first_face, "f 1/1/1/1 2/2 3/3")),
+        ("a face of two corners", text.replace(first_face, "f 1/1 2/2")),
+    ]
+
+
+@pytest.mark.parametrize("case", range(12))
+def test_any_other_layout_is_left_to_the_line_by_line_reader(tmp_path, case):
+    from livebridge.errors import InputError
+    from livebridge.retarget.scan import read_scan
+
+    regular = _obj("a/b", np.random.default_rng(1)).decode().replace("mtllib skin.mtl\n", "")  # no MTL to find
+    name, text = _spoil(regular)[case]
+    assert read_obj_bulk(text.encode()) is None, name
+    path = tmp_path / "scan.obj"
+    path.write_text(text)
+    try:
+        expected = _obj_lines(text.encode(), path)
+    except InputError as error:
+        with pytest.raises(InputError) as raised:
+            read_scan(path)
+        assert str(raised.value) == str(error) and "line" in str(error)  # the line-by-line reader's error
+        return
+    scan = read_scan(path)  # read all the same: the line-by-line reader takes such files
+    assert np.array_equal(scan.points, expected.points) and np.array_equal(scan.triangles, expected.triangles)
