@@ -157,3 +157,15 @@ def test_ict_full_head_obj_files_build_what_their_face_region_builds(tmp_path, s
     from_head, from_region = errors(head_neutral, head), errors(region_neutral, region)
     # shape only: 0.32 / 0.59 from the head, 0.33 / 0.59 from the region; by its vertices the head gave 0.49 / 0.71
     assert (from_head < from_region + 0.02).all(), (from_head, from_region)
+
+
+def test_a_mesh_expression_needs_only_the_skull_landmarks_a_point_cloud_needs(face):
+    from livebridge.retarget.normalise import RIGID_LANDMARKS
+
+    basis, landmarks = face
+    neutral = _neutral(Scan(basis.neutral, basis.triangles), landmarks)
+    smile = basis.neutral + basis.elements[basis.index("zygomatic_major_L")]
+    skull = {name: xyz for name, xyz in load_landmark_set("builtin-22").as_dict(smile, basis.triangles).items()
+             if name in RIGID_LANDMARKS}  # no chin: the face frame comes from the skull's landmarks
+    expression = prepare_expression(Scan(smile, basis.triangles), skull, neutral)
+    assert expression.grid.valid.sum() > 0.95 * neutral.grid.valid.sum()

@@ -118,19 +118,7 @@ def register_rigid(points: np.ndarray, landmarks: dict[str, np.ndarray], target_
     radius : float
         mm.
     """
-    shared = [name for name in RIGID_LANDMARKS if name in landmarks and name in target_landmarks]
-    if len(shared) < 3:
-        raise InputError(f"registering a scan needs 3 or more of {', '.join(RIGID_LANDMARKS)}, got "
-                         f"{', '.join(shared) or 'none'}", source, "landmarks")
-    own, theirs = np.array([landmarks[n] for n in shared]), np.array([target_landmarks[n] for n in shared])
-    # a rigid motion cannot undo a change of size: a scan in other units (or of another person) registers
-    # nowhere near the face, so say so before the registration lands it there
-    size = abs(transform_scale(umeyama(own, theirs, with_scale=True)))
-    if not 1 / SIZE_RATIO <= size <= SIZE_RATIO:
-        raise InputError(f"its landmarks {', '.join(shared)} are {1 / size:.3g} times as far apart as the neutral's "
-                         "(scans of one person, in one unit, are the same size: --units applies to every scan)",
-                         source, "landmarks")
-    transform = umeyama(own, theirs, with_scale=False)
+    transform = landmark_rigid(landmarks, target_landmarks, source)
     tree = cKDTree(target_points)
     points = np.asarray(points, dtype=np.float64)[::max(1, len(points) // ICP_POINTS)]
     for _ in range(iterations):
@@ -148,6 +136,26 @@ def register_rigid(points: np.ndarray, landmarks: dict[str, np.ndarray], target_
         if np.abs(step[:3, 3]).max() < 1e-5 and np.abs(step[:3, :3] - np.eye(3)).max() < 1e-7:
             break
     return transform
+
+
+def landmark_rigid(landmarks: dict[str, np.ndarray], target_landmarks: dict[str, np.ndarray], source=None
+                   ) -> np.ndarray:
+    """The rigid motion (4, 4) putting a scan's :data:`RIGID_LANDMARKS` (those both sides name, 3 or more) onto
+    the normalised face's (Kabsch): :func:`register_rigid`'s first guess. A scan whose landmarks are not the
+    face's size (:data:`SIZE_RATIO`) is refused, naming ``source``."""
+    shared = [name for name in RIGID_LANDMARKS if name in landmarks and name in target_landmarks]
+    if len(shared) < 3:
+        raise InputError(f"registering a scan needs 3 or more of {', '.join(RIGID_LANDMARKS)}, got "
+                         f"{', '.join(shared) or 'none'}", source, "landmarks")
+    own, theirs = np.array([landmarks[n] for n in shared]), np.array([target_landmarks[n] for n in shared])
+    # a rigid motion cannot undo a change of size: a scan in other units (or of another person) registers
+    # nowhere near the face, so say so before the registration lands it there
+    size = abs(transform_scale(umeyama(own, theirs, with_scale=True)))
+    if not 1 / SIZE_RATIO <= size <= SIZE_RATIO:
+        raise InputError(f"its landmarks {', '.join(shared)} are {1 / size:.3g} times as far apart as the neutral's "
+                         "(scans of one person, in one unit, are the same size: --units applies to every scan)",
+                         source, "landmarks")
+    return umeyama(own, theirs, with_scale=False)
 
 
 def _point_to_plane_step(source: np.ndarray, target: np.ndarray, normals: np.ndarray) -> np.ndarray:

@@ -86,7 +86,13 @@ from livebridge.retarget.grid import (
 )
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points, place_at_points
 from livebridge.retarget.mesh_samples import SAMPLE_SPACING_MM
-from livebridge.retarget.normalise import RIGID_LANDMARKS, normalisation, register_rigid, transform_landmarks
+from livebridge.retarget.normalise import (
+    RIGID_LANDMARKS,
+    landmark_rigid,
+    normalisation,
+    register_rigid,
+    transform_landmarks,
+)
 from livebridge.retarget.scan import Scan
 from livebridge.retarget.seams import LipSeam
 from livebridge.retarget.skin_flow import (
@@ -346,8 +352,7 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     """
     check_on_points(landmarks, scan.points, landmarks_source, source)
     radius = float(neutral.grid.x[-1])
-    scan = _as_points(scan, landmarks, radius, mesh_spacing,
-                      normalisation(landmarks, neutral.landmarks, "rigid", landmarks_source))
+    scan = _as_points(scan, landmarks, radius, mesh_spacing, landmark_rigid(landmarks, neutral.landmarks, source))
     normals = vertex_normals(neutral.vertices, neutral.triangles)
     scan2face = register_rigid(scan.points, landmarks, neutral.vertices, normals, neutral.landmarks, radius,
                                source=source)
