@@ -425,13 +425,21 @@ def _group_gone(pgid: int, timeout: float = 10.0) -> bool:
     return False
 
 
+def _ctrl_c_as_in_a_terminal() -> None:
+    """SIGINT's default action in the child, as a terminal starts a command with. A test run started in the
+    background of a shell (``... &``) ignores SIGINT, every process it starts inherits that, and Python then
+    installs no KeyboardInterrupt: Ctrl-C during set-up did nothing and the demo ran on (seen in a CI rehearsal)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("phase", ["set-up: opening", "set-up: configuring the servos", "set-up: warming up",
                                    "starting:"])
 def test_ctrl_c_during_set_up_ends_with_130(phase):
     """Ctrl-C (SIGINT to the foreground process group, as a terminal sends it) when the demo logs ``phase``: the
     process ends with 130 and "interrupted", the simulated servo bus (a process of its own) with it."""
     process = subprocess.Popen([*LIVEBRIDGE, "demo", "--port", "0", "--size", f"{SMALL[0]}x{SMALL[1]}"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                               preexec_fn=_ctrl_c_as_in_a_terminal)
     seen = []
     try:
         guard = threading.Timer(GUARD_S, lambda: os.killpg(process.pid, signal.SIGKILL))
