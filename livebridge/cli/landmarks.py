@@ -78,7 +78,7 @@ def place(mesh, vertices_file: Path | None, points_file: Path | None, out: Path,
                                    vertices)
     else:
         source = points_file
-        points = {name: xyz * UNITS_TO_MM[units] for name, xyz in read_points(points_file).items()}
+        points = read_points(points_file, UNITS_TO_MM[units])
         placed = place_at_points(points, vertices, triangles, max_distance, points_file)
     if require_22:
         placed.require_thesis_22(source)

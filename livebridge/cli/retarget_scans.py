@@ -33,18 +33,12 @@ def split_scan_spec(text: str) -> tuple[Path, Path]:
     return Path(text), picked if picked.exists() and not default.exists() else default
 
 
-def read_landmark_points(path: Path, scale: float) -> dict:
-    """Named 3D points of a landmark file (:func:`~livebridge.retarget.point_files.read_points`), times
-    ``scale``."""
-    from livebridge.retarget.point_files import read_points
-
-    return {name: xyz * scale for name, xyz in read_points(path).items()}
-
-
 def reference_landmarks(spec: str, scale: float) -> dict:
     """The reference face's landmarks: ``builtin`` (the built-in face's builtin-22) or a landmark points file."""
     if spec != "builtin":
-        return read_landmark_points(Path(spec), scale)
+        from livebridge.retarget.point_files import read_points
+
+        return read_points(spec, scale)
     from livebridge.face.builtin import builtin_basis
     from livebridge.retarget.landmarks import load_landmark_set
 
@@ -93,14 +87,14 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     import numpy as np
 
     from livebridge.face.muscle_place import misplaced
-    from livebridge.retarget.point_files import picked_points_file
+    from livebridge.retarget.point_files import picked_points_file, read_points
     from livebridge.retarget.scan import read_scan
     from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
 
     scale = UNITS_TO_MM[units]
     columns, rows = grid_size
     named = unique_names(expressions, "--expression")
-    neutral_points, neutral_marks = read_scan(neutral_scan, scale), read_landmark_points(neutral_landmarks, scale)
+    neutral_points, neutral_marks = read_scan(neutral_scan, scale), read_points(neutral_landmarks, scale)
     files = {name: split_scan_spec(spec) for name, spec in named.items()}
     for name, (scan_path, landmark_path) in files.items():  # before the neutral's preparation, not after it
         for path, what in ((scan_path, "scan"), (landmark_path, "landmark file")):
@@ -114,7 +108,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
                               neutral_landmarks, scan_source=neutral_scan, mesh_spacing=mesh_spacing)
     faces, uncoloured = {}, []
     for name, (scan_path, landmark_path) in files.items():
-        faces[name] = prepare_expression(read_scan(scan_path, scale), read_landmark_points(landmark_path, scale),
+        faces[name] = prepare_expression(read_scan(scan_path, scale), read_points(landmark_path, scale),
                                          neutral, scan_path, landmark_path, mesh_spacing)
         if neutral.skin is None or faces[name].skin is None:
             uncoloured.append(name)

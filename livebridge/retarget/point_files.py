@@ -28,20 +28,17 @@ PICKED_POINTS_SUFFIX = "_picked_points.pp"
 """What MeshLab appends to a mesh's name (less its extension) to name its picked points file."""
 
 
-def read_points(path: str | Path) -> dict[str, np.ndarray]:
-    """Named points (name -> (3,) array) of a landmark file, in file order, by its suffix: ``.pp`` (MeshLab
-    PickPoints), ``.toml`` (``name = [x, y, z]``), otherwise CSV (``name,x,y,z`` rows); a MeshLab template
-    (``.pptpl``) is refused, it has no points."""
+def read_points(path: str | Path, scale: float = 1.0) -> dict[str, np.ndarray]:
+    """Named points (name -> (3,) array, times ``scale``: to mm) of a landmark file, in file order, by its
+    suffix: ``.pp`` (MeshLab PickPoints), ``.toml`` (``name = [x, y, z]``), otherwise CSV (``name,x,y,z`` rows);
+    a MeshLab template (``.pptpl``) is refused, it has no points."""
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix == ".pp":
-        return read_picked_points(path)
-    if suffix == ".toml":
-        return read_points_toml(path)
     if suffix == ".pptpl":
         raise InputError("a MeshLab PickPoints template holds names, not points: pick them on the scan in MeshLab "
                          "(Edit > PickPoints) and give the .pp file it saves", path)
-    return read_points_csv(path)
+    reader = {".pp": read_picked_points, ".toml": read_points_toml}.get(suffix, read_points_csv)
+    return {name: xyz * scale for name, xyz in reader(path).items()}
 
 
 def picked_points_file(scan: str | Path) -> Path:
