@@ -108,11 +108,11 @@ def test_retarget_scans_takes_lid_landmarks_beside_the_22(tmp_path, ict):
     from livebridge.bench.scans import synthetic_scans, truth_on_grid, with_landmarks
     from livebridge.cli import main
     from livebridge.face.basis import Basis
-    from livebridge.retarget.eyelids import LID_LANDMARKS
+    from livebridge.retarget.eyelids import LID_LANDMARK_NAMES
     from livebridge.retarget.landmarks import load_landmark_set
     from livebridge.retarget.scan import write_ply
 
-    lids = [name for side in LID_LANDMARKS.values() for pair in side for name in pair]
+    lids = list(LID_LANDMARK_NAMES)
     landmarks = with_landmarks(load_landmark_set("ict-22"), load_landmark_set("ict-68"), lids)
     neutral, expressions = synthetic_scans(ict, landmarks, np.random.default_rng(3), n_points=60_000,
                                            hole_muscle=None, muscles=("orbicularis_oculi_L",))

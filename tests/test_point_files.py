@@ -13,7 +13,7 @@ from factories import assert_cli_refused, write_builtin_scans
 
 from livebridge.cli import main
 from livebridge.face.basis import Basis
-from livebridge.retarget.eyelids import LID_LANDMARKS
+from livebridge.retarget.eyelids import LID_LANDMARK_NAMES
 from livebridge.retarget.landmarks import THESIS_22_NAMES, load_landmark_set
 from livebridge.retarget.point_files import read_points, write_pick_template
 
@@ -52,7 +52,7 @@ def test_landmarks_template_lists_the_names_to_pick_in_order(tmp_path, lids):
     root = ElementTree.parse(out).getroot()
     assert root.tag == "PickPointsTemplate"
     names = [point.get("name") for point in root.findall("point")]
-    lid_names = sorted(name for side in LID_LANDMARKS.values() for margin in side for name in margin)
+    lid_names = sorted(LID_LANDMARK_NAMES)
     assert names == list(THESIS_22_NAMES) + lid_names * lids
     assert len(names) == (30 if lids else 22) and f"{len(names)} names" in result.output
 

@@ -323,10 +323,10 @@ def run(quick: bool, log) -> dict:
 def _measure_lid_landmarks(basis, log) -> dict:
     """The eyelid elements again with the 22 landmarks plus the 8 lid points of the 68-point layout (what a
     landmark detector run on each scan's texture gives; the 22-landmark figures above are the thesis's)."""
-    from livebridge.retarget.eyelids import LID_LANDMARKS
+    from livebridge.retarget.eyelids import LID_LANDMARK_NAMES
     from livebridge.retarget.landmarks import load_landmark_set
 
-    lids = [name for side in LID_LANDMARKS.values() for pair in side for name in pair]
+    lids = list(LID_LANDMARK_NAMES)
     landmarks = with_landmarks(load_landmark_set("ict-22"), load_landmark_set("ict-68"), lids)
     figures = build_and_measure(basis, landmarks, np.random.default_rng(7), muscles=LID_MUSCLES)
     log(f"scans, eyelids with the 22 landmarks plus the lid landmarks {', '.join(lids)} ({SCAN_POINTS} points):")

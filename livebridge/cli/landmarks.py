@@ -98,13 +98,13 @@ def template(out: Path, force: bool, lids: bool) -> None:
     In MeshLab: open a scan, Edit > PickPoints, load this template, click each named point in turn, and save
     (MeshLab's default name, SCAN_picked_points.pp, is where retarget scans looks for an expression's landmarks).
     """
-    from livebridge.retarget.eyelids import LID_LANDMARKS
+    from livebridge.retarget.eyelids import LID_LANDMARK_NAMES
     from livebridge.retarget.landmarks import THESIS_22_NAMES
     from livebridge.retarget.point_files import write_pick_template
 
     names = list(THESIS_22_NAMES)
     if lids:
-        names += sorted(name for side in LID_LANDMARKS.values() for margin in side for name in margin)
+        names += sorted(LID_LANDMARK_NAMES)
     write_pick_template(out, names)
     click.echo(f"wrote {out}: {len(names)} names to pick (MeshLab: Edit > PickPoints, Load Template)")
 

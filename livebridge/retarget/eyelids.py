@@ -62,6 +62,8 @@ over a few columns, the lower one 1.8 mm up). With this, the bench's figures are
 holes."""
 LID_LANDMARKS = {"L": (("lm_43", "lm_44"), ("lm_47", "lm_46")), "R": (("lm_38", "lm_37"), ("lm_40", "lm_41"))}
 """Per side, the iBUG landmarks of the upper lid and of the lower lid, each from the inner corner outwards."""
+LID_LANDMARK_NAMES = tuple(name for side in LID_LANDMARKS.values() for margin in side for name in margin)
+"""The 8 of :data:`LID_LANDMARKS`, left eye first."""
 
 
 @dataclass(frozen=True)
@@ -242,7 +244,7 @@ def moving_lids(neutral_fine: FaceGrid, expression_fine: FaceGrid, before: dict,
         inner = np.asarray(before[f"eye_inner_{side}"], dtype=np.float64)[:2]
         outer = np.asarray(before[f"eye_outer_{side}"], dtype=np.float64)[:2]
         columns = lid_columns(neutral_fine, expression_fine, inner, outer, grow_mm, seen_grow_mm)
-        names = [n for pair in LID_LANDMARKS[side] for n in pair]
+        names = [name for margin in LID_LANDMARKS[side] for name in margin]
         if not columns and all(n in before and n in after for n in names):  # no opening in the neutral
             columns = lid_columns_from_landmarks(neutral_fine, before, after, side, inner, outer)
         if not columns or np.median([max(abs(c.upper_motion), abs(c.lower_motion)) for c in columns.values()]
