@@ -140,6 +140,26 @@ def test_resampling_keeps_the_front_surface(rng):
     assert np.abs(grid.vertices[:, 2] - truth).max() < 0.1
 
 
+def test_the_resampling_s_barycentric_transforms_are_scipy_s(rng):
+    """The interpolation's triangles and weights are those of scipy's own point location, degenerate
+    (collinear) triangles of a grid-aligned point set included."""
+    from scipy.spatial import Delaunay
+
+    from livebridge.retarget.grid import _linear, barycentric_transforms
+
+    points = np.vstack([rng.uniform(-50, 50, (3000, 2)), np.stack(np.meshgrid(np.arange(5.0), [0.0, 1e-13, 1.0]),
+                                                                   axis=-1).reshape(-1, 2)])
+    triangulation = Delaunay(points, qhull_options="QJ")  # joggled: flat triangles are kept
+    ours = barycentric_transforms(triangulation.points, triangulation.simplices)
+    theirs = triangulation.transform
+    assert np.isnan(theirs).any() and np.array_equal(np.isnan(ours), np.isnan(theirs))
+    assert np.nanmax(np.abs(ours - theirs) / np.maximum(1.0, np.abs(theirs))) < 1e-9
+    values, queries = rng.normal(size=(len(points), 2)), rng.uniform(-60, 60, (2000, 2))
+    from scipy.interpolate import griddata
+
+    assert np.allclose(_linear(points, values, queries), griddata(points, values, queries), equal_nan=True)
+
+
 # ------------------------------------------------------------------------------------------------ normalising
 def _landmarks(rng):
     names = NORMALISATION_LANDMARKS + ("eye_inner_L", "eye_inner_R", "nose_saddle_L", "nose_saddle_R")
