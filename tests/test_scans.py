@@ -11,6 +11,7 @@ from click.testing import CliRunner
 from factories import assert_cli_refused, write_builtin_scans
 
 from livebridge.bench.scans import ERROR_LIMIT, build_and_measure, synthetic_scans
+from livebridge.errors import InputError
 from livebridge.geometry.transforms import apply
 from livebridge.retarget.grid import crop_sphere, resample, square_axes
 from livebridge.retarget.normalise import NORMALISATION_LANDMARKS, normalisation, register_rigid
@@ -45,6 +46,26 @@ def test_ply_with_quads_colours_and_extra_elements(tmp_path):
     scan = read_scan(tmp_path / "q.ply")
     np.testing.assert_array_equal(scan.points, np.arange(15).reshape(5, 3))
     np.testing.assert_array_equal(scan.triangles, [[0, 1, 2], [0, 2, 3], [2, 3, 4]])
+
+
+@pytest.mark.parametrize("faces,expected", [
+    ("3 0 1 2\n3 2 3 4\n", [[0, 1, 2], [2, 3, 4]]),  # one length: read at once
+    ("4 0 1 2 3\n3 2 3 4\n", [[0, 1, 2], [0, 2, 3], [2, 3, 4]]),  # mixed: row by row
+    ("3 0 1 2\n\n3 2 3 4\n", [[0, 1, 2], [2, 3, 4]]),  # a blank line: row by row
+])
+def test_ascii_ply_reads_the_same_at_once_or_row_by_row(tmp_path, faces, expected):
+    header = ("ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nelement face {}\n"
+              "property list uchar int vertex_indices\nend_header\n")
+    rows = "".join(f"{k} {2 * k} {3 * k} {10 * k} 0 255\n" for k in range(5))
+    (tmp_path / "a.ply").write_text(header.format(len(expected) if "4 0" not in faces else 2) + rows + faces)
+    scan = read_scan(tmp_path / "a.ply")
+    np.testing.assert_array_equal(scan.points, np.arange(5)[:, None] * [1, 2, 3])
+    np.testing.assert_allclose(scan.colours, np.column_stack([10 * np.arange(5), np.zeros(5), np.full(5, 255)]) / 255)
+    np.testing.assert_array_equal(scan.triangles, expected)
+    (tmp_path / "b.ply").write_text(header.format(2) + rows + "3 0 1 2\n3 2 3 4.5\n")  # no whole number
+    with pytest.raises(InputError, match=r"line 19 \(face 1\)"):
+        read_scan(tmp_path / "b.ply")
 
 
 def test_obj_and_text_point_lists(tmp_path):

@@ -537,6 +537,11 @@ def _ply_ascii(body: bytes, elements, path: Path, header_lines: int) -> dict:
     lines = body.decode("ascii", errors="replace").splitlines()
     tables, at = {}, 0
     for element in elements:
+        fixed = _ascii_fixed_rows(lines[at:at + element.count], element)
+        if fixed is not None:
+            tables[element.name] = fixed
+            at += element.count
+            continue
         columns = {p.name: [] for p in element.properties}
         for k in range(element.count):
             while at < len(lines) and not lines[at].strip():
@@ -555,6 +560,42 @@ def _ply_ascii(body: bytes, elements, path: Path, header_lines: int) -> dict:
                                  element.name) from None
         tables[element.name] = columns
     return tables
+
+
+def _ascii_fixed_rows(rows: list[str], element: _Element) -> dict | None:
+    """An element's ``rows`` (its lines) read at once, as arrays, when every row has the first row's list
+    lengths and whole numbers where the types are integers; None if not (the rows are then read one by one,
+    which names the first bad line): 1M faces in ~1 s instead of ~10."""
+    if not rows or len(rows) < element.count:
+        return None
+    words = rows[0].split()
+    layout, width = [], 0
+    for prop in element.properties:
+        n = None
+        if prop.is_list:
+            if width >= len(words) or not words[width].isdigit():
+                return None
+            n = int(words[width])
+            width += 1
+        layout.append((prop, width, n))
+        width += 1 if n is None else n
+    if np.any(np.fromiter(map(len, map(str.split, rows)), np.int64, len(rows)) != width):
+        return None  # also a blank line among them
+    try:
+        table = np.array(" ".join(rows).split(), dtype=np.float64).reshape(len(rows), width)
+    except ValueError:
+        return None
+    out = {}
+    for prop, start, n in layout:
+        if n is not None and np.any(table[:, start - 1] != n):
+            return None
+        values = table[:, start] if n is None else table[:, start:start + n]
+        if prop.dtype[0] in "iu":
+            if not np.array_equal(values, np.round(values)):
+                return None
+            values = values.astype(np.int64)
+        out[prop.name] = values
+    return out
 
 
 def _ascii_row(values, element, columns) -> None:
