@@ -844,6 +844,13 @@ def test_scan_basis_moves_the_face_where_the_ict_elements_do(ict_scan_figures):
             assert _share_where_ict_moves(element, true) > 0.75, name
 
 
+def test_scans_of_one_face_are_not_told_as_another(ict_scan_figures):
+    """Every expression scan of the ICT face lies on the neutral's surface within the limit of
+    :func:`~livebridge.retarget.same_face.another_face` (tests/test_same_face.py has one that does not)."""
+    figures = ict_scan_figures
+    assert (figures.gaps < 0.8).all(), dict(zip(figures.names, np.round(figures.gaps, 3)))
+
+
 def test_skin_tracking_measures_the_motion_along_the_skin(ict_scan_figures):
     """With colour, the brow's, the smile's, the lip corner's and the eyelid's errors are at most half of what
     shape alone gives (which knows the sliding of the skin at the landmarks only). Measured here 0.105, 0.091,

@@ -270,6 +270,9 @@ class ScanFigures:
     surface_without_colour: np.ndarray
     build_s: float
     build_without_colour_s: float
+    gaps: np.ndarray
+    """Per element, its scan's distance from the neutral's surface over the limit of
+    :func:`~livebridge.retarget.same_face.another_face` (over 1: told as another face)."""
 
 
 def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[int, int] | None = None,
@@ -278,6 +281,7 @@ def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[in
     same prepared scans, colour ignored); each against the ICT elements and the true expressive surfaces."""
     from livebridge.retarget.basis import relative_errors
     from livebridge.retarget.grid import GRID_SHAPE
+    from livebridge.retarget.same_face import gap_limit
     from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
 
     neutral_scan, expression_scans = synthetic_scans(basis, landmarks, rng, **scan_options)
@@ -298,9 +302,10 @@ def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[in
     def surface(built):
         return surface_errors(built.elements, built.neutral, basis, neutral_scan, neutral, names, truth)
 
+    gaps = np.array([faces[name].gap_mm / gap_limit(faces[name].noise_mm) for name in names])
     return ScanFigures(names, coloured.n_vertices, truth, coloured.elements, shape_only.elements,
                        relative_errors(coloured.elements, truth), relative_errors(shape_only.elements, truth),
-                       surface(coloured), surface(shape_only), prepared + colour_s, prepared + shape_s)
+                       surface(coloured), surface(shape_only), prepared + colour_s, prepared + shape_s, gaps)
 
 
 def run(quick: bool, log) -> dict:
@@ -382,4 +387,6 @@ def _measure(basis, what: str, options: dict, log) -> dict:
             "relative_errors": per_element(figures.errors),
             "relative_errors_without_colour": per_element(figures.errors_without_colour),
             "surface_errors": per_element(figures.surface),
-            "surface_errors_without_colour": per_element(figures.surface_without_colour)}
+            "surface_errors_without_colour": per_element(figures.surface_without_colour),
+            "gaps_over_limit": per_element(figures.gaps),
+            "told_another_face": [name for name, gap in zip(figures.names, figures.gaps) if gap > 1]}

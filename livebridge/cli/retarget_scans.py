@@ -88,6 +88,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
 
     from livebridge.face.muscle_place import misplaced
     from livebridge.retarget.point_files import picked_points_file, read_points
+    from livebridge.retarget.same_face import another_face
     from livebridge.retarget.scan import read_scan
     from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
 
@@ -112,6 +113,9 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
                                          neutral, scan_path, landmark_path, mesh_spacing)
         if neutral.skin is None or faces[name].skin is None:
             uncoloured.append(name)
+        why = another_face(faces[name].gap_mm, faces[name].noise_mm)
+        if why is not None:
+            click.echo(f"warning: {name} ({scan_path.name}): {why}")
     click.echo("building the elements")
     basis = basis_from_scans(neutral, faces, kernel, log=click.echo)
     basis.save(out)

@@ -98,7 +98,8 @@ def transform_landmarks(scan2face: np.ndarray, landmarks: dict[str, np.ndarray])
 
 def register_rigid(points: np.ndarray, landmarks: dict[str, np.ndarray], target_points: np.ndarray,
                    target_normals: np.ndarray, target_landmarks: dict[str, np.ndarray], radius: float,
-                   iterations: int = 30, keep: float = 0.6, source=None) -> np.ndarray:
+                   iterations: int = 30, keep: float = 0.6, source=None,
+                   first_guess: np.ndarray | None = None) -> np.ndarray:
     """``scan2face`` (4, 4): the rigid motion putting a scan of the same person onto a normalised face.
 
     First guess: Kabsch on :data:`RIGID_LANDMARKS` (those both sides name). Then trimmed point-to-plane ICP
@@ -117,8 +118,10 @@ def register_rigid(points: np.ndarray, landmarks: dict[str, np.ndarray], target_
     target_landmarks : dict of str to ndarray, shape (3,)
     radius : float
         mm.
+    first_guess : ndarray, shape (4, 4), optional
+        :func:`landmark_rigid` of these landmarks when already computed.
     """
-    transform = landmark_rigid(landmarks, target_landmarks, source)
+    transform = landmark_rigid(landmarks, target_landmarks, source) if first_guess is None else first_guess
     tree = cKDTree(target_points)
     points = np.asarray(points, dtype=np.float64)[::max(1, len(points) // ICP_POINTS)]
     for _ in range(iterations):

@@ -93,6 +93,7 @@ from livebridge.retarget.normalise import (
     register_rigid,
     transform_landmarks,
 )
+from livebridge.retarget.same_face import surface_gap
 from livebridge.retarget.scan import Scan
 from livebridge.retarget.seams import LipSeam
 from livebridge.retarget.skin_flow import (
@@ -105,7 +106,7 @@ from livebridge.retarget.skin_flow import (
     still_skin_correction,
 )
 from livebridge.retarget.skin_template import skin_templates
-from livebridge.retarget.surface_fit import fitted_heights
+from livebridge.retarget.surface_fit import fitted_heights, noise_level
 from livebridge.retarget.tps import Kernel, fit_tps
 
 CROP_FACTOR = 1.2
@@ -177,6 +178,9 @@ class FaceScan:
     fitted_heights : ndarray, shape of ``grid``'s heights, or None
         The neutral's surface fitted to its points (:mod:`~livebridge.retarget.surface_fit`): the heights of
         the mesh a basis is written on (:attr:`mesh_vertices`); None: the grid's own.
+    gap_mm, noise_mm : float
+        An expression's: how far its registered points lie from the neutral's surface (median) and its own
+        noise (:mod:`~livebridge.retarget.same_face`); NaN for a neutral.
     """
 
     grid: FaceGrid
@@ -190,6 +194,8 @@ class FaceScan:
     chart: SkinChart = PLANAR
     skin_holes: np.ndarray | None = None
     fitted_heights: np.ndarray | None = None
+    gap_mm: float = float("nan")
+    noise_mm: float = float("nan")
 
     @property
     def vertices(self) -> np.ndarray:
@@ -352,16 +358,20 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     """
     check_on_points(landmarks, scan.points, landmarks_source, source)
     radius = float(neutral.grid.x[-1])
-    scan = _as_points(scan, landmarks, radius, mesh_spacing, landmark_rigid(landmarks, neutral.landmarks, source))
+    first_guess = landmark_rigid(landmarks, neutral.landmarks, source)
+    scan = _as_points(scan, landmarks, radius, mesh_spacing, first_guess)
     normals = vertex_normals(neutral.vertices, neutral.triangles)
     scan2face = register_rigid(scan.points, landmarks, neutral.vertices, normals, neutral.landmarks, radius,
-                               source=source)
+                               source=source, first_guess=first_guess)
     points = apply(scan2face, scan.points)
     moved = transform_landmarks(scan2face, landmarks)
     check_not_folded(neutral.landmarks, moved, landmarks_source or source)
     axes = None if neutral.skin is None else (neutral.skin.x, neutral.skin.y, neutral.skin_factor, neutral.skin_margin)
-    return _resampled(scan, points, neutral.grid.x, neutral.grid.y, radius, moved, scan2face, source, neutral.chart,
+    face = _resampled(scan, points, neutral.grid.x, neutral.grid.y, radius, moved, scan2face, source, neutral.chart,
                       axes)
+    inside = points[crop_sphere(points, np.zeros(3), radius)]
+    return replace(face, gap_mm=surface_gap(inside, neutral.vertices, normals),
+                   noise_mm=noise_level(inside, face.grid))
 
 
 def check_not_folded(neutral: dict[str, np.ndarray], expression: dict[str, np.ndarray], source=None) -> None:

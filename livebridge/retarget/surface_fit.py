@@ -50,6 +50,8 @@ from livebridge.retarget.grid import FaceGrid, _cell, containing_triangles, fron
 FIT_SPACINGS = 10.0
 """Radius of the points a grid vertex's quadratic is fitted to, in the scan's median point spacings (3.8 mm
 at 60k points a scan over the bench's face); the weights are a Gaussian of half that sigma."""
+NOISE_FIT_SPACINGS = 6.0
+"""Radius of the fits of :func:`noise_level`, in point spacings: the least model error with points enough."""
 MIN_POINTS = 12
 """A vertex with fewer points in reach (or points that do not pin a quadratic: all on one line) keeps the
 interpolated height."""
@@ -98,7 +100,7 @@ def fitted_heights(points: np.ndarray, grid: FaceGrid, spacing: float | None = N
     chunks = [_fit(points, tree, queries[k:k + CHUNK], radius) for k in range(0, len(queries), CHUNK)]
     fitted = np.concatenate([c[0] for c in chunks])
     residuals = np.concatenate([c[1] for c in chunks])
-    noise = 1.4826 * float(np.median(np.abs(residuals))) if len(residuals) else 0.0
+    noise = _robust_scale(residuals)
     flat = heights.ravel()
     deviation = np.abs(fitted - flat[at])
     share = np.clip(2.0 - deviation / max(TRUSTED_DEVIATION * noise, 1e-12), 0.0, 1.0)
@@ -114,6 +116,29 @@ def fitted_heights(points: np.ndarray, grid: FaceGrid, spacing: float | None = N
         share = np.where(mixed, 1.0, share)
     flat[at] += np.where(np.isfinite(fitted), share * (fitted - flat[at]), 0.0)
     return flat.reshape(heights.shape)
+
+
+def noise_level(points: np.ndarray, grid: FaceGrid, n_fits: int = 1000) -> float:
+    """The scanner's noise (mm): the robust scale of ``points`` (n, 3; in the grid's frame) about the local
+    quadratics of :func:`fitted_heights` (over :data:`NOISE_FIT_SPACINGS`), fitted at up to ``n_fits`` of
+    ``grid``'s vertices (evenly picked).
+
+    A scale, not the noise's standard deviation: on ICT scans with 0.1 / 0.2 / 0.5 mm noise it read 0.15 / 0.29 /
+    0.70 (the points' noise is 3D, their residuals are in depth, and a quadratic does not follow a face exactly;
+    over 3 / 4 / 5 / 7 / 10 spacings, at 0.2 mm: 0.60 / 0.38 / 0.29 / 0.29 / 0.32)."""
+    points = np.asarray(points, dtype=np.float64)
+    points = points[front_surface(points, _cell(grid.x, grid.y))]
+    gx, gy = np.meshgrid(grid.x, grid.y)
+    at = np.flatnonzero(np.isfinite(grid.heights))
+    at = at[::max(1, len(at) // n_fits)]
+    queries = np.column_stack([gx.ravel()[at], gy.ravel()[at]])
+    radius = NOISE_FIT_SPACINGS * point_spacing(points[:, :2])
+    return _robust_scale(_fit(points, cKDTree(points[:, :2]), queries, radius)[1])
+
+
+def _robust_scale(residuals: np.ndarray) -> float:
+    """1.4826 times the median absolute residual: the standard deviation of Gaussian noise, robustly."""
+    return 1.4826 * float(np.median(np.abs(residuals))) if len(residuals) else 0.0
 
 
 def _interpolated_from(points_xy: np.ndarray, queries: np.ndarray) -> np.ndarray:
