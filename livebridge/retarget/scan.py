@@ -44,7 +44,7 @@ class Scan:
         RGB in [0, 1] per point, None when the scan has no colour per point.
     texture : Texture or None
         Texture images on the triangles (:mod:`~livebridge.retarget.texture`): a textured mesh's colour, which
-        :meth:`coloured` samples into coloured points.
+        :meth:`as_points` samples into coloured points.
     """
 
     points: np.ndarray

@@ -82,6 +82,7 @@ from livebridge.retarget.grid import (
     holes,
     point_spacing,
     resample,
+    spikes,
     square_axes,
 )
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points, place_at_points
@@ -250,7 +251,7 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     moved = transform_landmarks(scan2face, landmarks)
     radius = crop_radius(moved) if radius is None else float(radius)
     scan = _as_points(scan, landmarks, radius / abs(transform_scale(scan2face)), mesh_spacing, scan2face)
-    points = apply(scan2face, scan.points)
+    scan, points = _without_spikes(scan, apply(scan2face, scan.points))
     x, y = square_axes(radius, shape)
     face = _resampled(scan, points, x, y, radius, moved, scan2face, source, chart)
     off_plane = face.vertices - face.vertices.mean(axis=0)
@@ -275,6 +276,16 @@ def _as_points(scan: Scan, landmarks: dict[str, np.ndarray], radius: float, spac
     cell = SAMPLE_SPACING_MM if spacing is None else spacing
     seen = front_surface(apply(scan2face, samples.points), cell, HIDDEN_DEPTH_MM)
     return Scan(samples.points[seen], samples.triangles, None if samples.colours is None else samples.colours[seen])
+
+
+def _without_spikes(scan: Scan, points: np.ndarray) -> tuple[Scan, np.ndarray]:
+    """A scan's points (``scan``, a point cloud) and the same points in the face frame (``points``, (n, 3))
+    without its flying points (:func:`~livebridge.retarget.grid.spikes`)."""
+    keep = ~spikes(points)
+    if keep.all():
+        return scan, points
+    colours = None if scan.colours is None else scan.colours[keep]
+    return Scan(scan.points[keep], np.zeros((0, 3), np.int64), colours), points[keep]
 
 
 def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float, landmarks: dict,
@@ -363,7 +374,7 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     normals = vertex_normals(neutral.vertices, neutral.triangles)
     scan2face = register_rigid(scan.points, landmarks, neutral.vertices, normals, neutral.landmarks, radius,
                                source=source, first_guess=first_guess)
-    points = apply(scan2face, scan.points)
+    scan, points = _without_spikes(scan, apply(scan2face, scan.points))
     moved = transform_landmarks(scan2face, landmarks)
     check_not_folded(neutral.landmarks, moved, landmarks_source or source)
     axes = None if neutral.skin is None else (neutral.skin.x, neutral.skin.y, neutral.skin_factor, neutral.skin_margin)
