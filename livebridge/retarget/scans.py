@@ -251,7 +251,7 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     moved = transform_landmarks(scan2face, landmarks)
     radius = crop_radius(moved) if radius is None else float(radius)
     scan = _as_points(scan, landmarks, radius / abs(transform_scale(scan2face)), mesh_spacing, scan2face)
-    scan, points = _without_spikes(scan, apply(scan2face, scan.points))
+    scan, points = _without_spikes(scan, apply(scan2face, scan.points), radius)
     x, y = square_axes(radius, shape)
     face = _resampled(scan, points, x, y, radius, moved, scan2face, source, chart)
     off_plane = face.vertices - face.vertices.mean(axis=0)
@@ -278,10 +278,12 @@ def _as_points(scan: Scan, landmarks: dict[str, np.ndarray], radius: float, spac
     return Scan(samples.points[seen], samples.triangles, None if samples.colours is None else samples.colours[seen])
 
 
-def _without_spikes(scan: Scan, points: np.ndarray) -> tuple[Scan, np.ndarray]:
+def _without_spikes(scan: Scan, points: np.ndarray, radius: float) -> tuple[Scan, np.ndarray]:
     """A scan's points (``scan``, a point cloud) and the same points in the face frame (``points``, (n, 3))
-    without its flying points (:func:`~livebridge.retarget.grid.spikes`)."""
-    keep = ~spikes(points)
+    within what the resampling reads (``radius`` of the face's crop and :data:`SKIN_MARGIN_MM`), without their
+    flying points (:func:`~livebridge.retarget.grid.spikes`)."""
+    keep = crop_sphere(points, np.zeros(3), radius + SKIN_MARGIN_MM)
+    keep[keep] = ~spikes(points[keep])
     if keep.all():
         return scan, points
     colours = None if scan.colours is None else scan.colours[keep]
@@ -374,7 +376,7 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     normals = vertex_normals(neutral.vertices, neutral.triangles)
     scan2face = register_rigid(scan.points, landmarks, neutral.vertices, normals, neutral.landmarks, radius,
                                source=source, first_guess=first_guess)
-    scan, points = _without_spikes(scan, apply(scan2face, scan.points))
+    scan, points = _without_spikes(scan, apply(scan2face, scan.points), radius)
     moved = transform_landmarks(scan2face, landmarks)
     check_not_folded(neutral.landmarks, moved, landmarks_source or source)
     axes = None if neutral.skin is None else (neutral.skin.x, neutral.skin.y, neutral.skin_factor, neutral.skin_margin)
