@@ -1,10 +1,12 @@
 """An actuation basis from scans of one person: a neutral scan and one scan per muscle (Erdoğdu §5.4-5.5).
 
 Preprocessing (§5.4): the neutral scan is normalised (nose tip to the origin, its outer eye corners, chin
-and nose tip onto a reference face's; :mod:`~livebridge.retarget.normalise`), cropped to the face and
-resampled onto a regular x-y grid (:mod:`~livebridge.retarget.grid`). Each expression scan is registered
-onto it rigidly (skull landmarks, then trimmed ICP: the person's head moved between scans, their skull did
-not change) and resampled on the same grid lines.
+and nose tip onto a reference face's; :mod:`~livebridge.retarget.normalise`), cropped to the face, rid of its
+stray points (:func:`~livebridge.retarget.grid.spikes`) and resampled onto a regular x-y grid
+(:mod:`~livebridge.retarget.grid`). Each expression scan is registered onto it rigidly (skull landmarks, then
+trimmed ICP: the person's head moved between scans, their skull did not change), rid of its stray points and
+resampled on the same grid lines; how far its skin then lies off the neutral's says whether it is one muscle's
+motion on the same face (:mod:`~livebridge.retarget.same_face`).
 
 Modeling (§5.5): a landmark TPS ``f`` carries the neutral face towards the expressive one; control points
 (every ``stride``-th grid vertex) go through ``f`` and are snapped to the closest point of the expressive
