@@ -276,8 +276,7 @@ def _as_points(scan: Scan, landmarks: dict[str, np.ndarray], radius: float, spac
         return scan
     samples = scan.as_points(landmarks["nose_tip"], TEXTURE_REACH * radius + SKIN_MARGIN_MM, spacing)
     cell = SAMPLE_SPACING_MM if spacing is None else spacing
-    seen = front_surface(apply(scan2face, samples.points), cell, HIDDEN_DEPTH_MM)
-    return Scan(samples.points[seen], samples.triangles, None if samples.colours is None else samples.colours[seen])
+    return _points_where(samples, front_surface(apply(scan2face, samples.points), cell, HIDDEN_DEPTH_MM))
 
 
 def _without_spikes(scan: Scan, points: np.ndarray, radius: float) -> tuple[Scan, np.ndarray]:
@@ -288,8 +287,12 @@ def _without_spikes(scan: Scan, points: np.ndarray, radius: float) -> tuple[Scan
     keep[keep] = ~spikes(points[keep])
     if keep.all():
         return scan, points
-    colours = None if scan.colours is None else scan.colours[keep]
-    return Scan(scan.points[keep], np.zeros((0, 3), np.int64), colours), points[keep]
+    return _points_where(scan, keep), points[keep]
+
+
+def _points_where(scan: Scan, keep: np.ndarray) -> Scan:
+    """A point cloud's points where ``keep`` (n,) bool, with their colours."""
+    return Scan(scan.points[keep], np.zeros((0, 3), np.int64), None if scan.colours is None else scan.colours[keep])
 
 
 def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float, landmarks: dict,
