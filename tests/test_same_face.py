@@ -4,6 +4,7 @@ surface by more than the scan's noise explains (:mod:`livebridge.retarget.same_f
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 from click.testing import CliRunner
@@ -21,7 +22,7 @@ def test_another_face_is_told_past_the_noise_and_the_floor(gap, noise, told):
     why = another_face(gap, noise)
     assert (why is not None) == told
     if told:
-        limit = max(GAP_NOISES * noise, GAP_FLOOR_MM) if noise == noise else GAP_FLOOR_MM  # NaN: the floor
+        limit = GAP_FLOOR_MM if math.isnan(noise) else max(GAP_NOISES * noise, GAP_FLOOR_MM)
         assert f"{gap:.2f} mm" in why and f"{limit:.2f} mm" in why
         assert "another person" in why and "more than one muscle" in why
 
