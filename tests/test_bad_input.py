@@ -651,9 +651,22 @@ PLY_CASES = _common_cases() + (
                                                  _FACE_HEADER), ("face", "vertex 7", "does not exist")),
     Case("binary face truncated", _ply_binary(3, 3, b"\x03\x00\x00", _FACE_HEADER), ("face 0 of 1", "ends")),
     Case("no vertices", _text(_PLY.format("ascii", 0, "")), ("no points",)),
+    Case("binary list of -1 entries", _ply_binary(3, 3, b"\xff" + np.array([0, 1, 2], "<i4").tobytes(),
+                                                  _FACE_HEADER.replace("uchar", "char")), ("face 0", "-1 entries")),
+    Case("x a list", _text("ply\nformat ascii 1.0\nelement vertex 1\nproperty list uchar float x\n"
+                           "property float y\nproperty float z\nend_header\n1 0 0 0\n"), ("vertex", "x is a list")),
     Case("float colour above 1", _text(_PLY.format("ascii", 2, "property float red\nproperty float green\n"
                                                    "property float blue\n") + "0 0 0 0.5 0.5 0.5\n1 1 1 0.5 2 0\n"),
          ("point 1", "colour", "0-1")),
+)
+_TRIANGLE = "v 0 0 0\nv 1 0 0\nv 0 1 0\n"
+MESH_OBJ_CASES = _common_cases() + (
+    Case("no vertices", _text("# nothing\n"), ("no vertices",)),
+    Case("two coordinates a vertex", _text("v 0 0\nv 1 0\nv 0 1\nf 1 2 3\n"), ("line 1", "x y z")),
+    Case("a vertex past any integer", _text(_TRIANGLE + "f 1 2 99999999999999999999999\n"),
+         ("line 4", "vertex 99999999999999999999999")),
+    Case("a vertex numbered 0", _text(_TRIANGLE + "f 0 1 2\n"), ("line 4", "from 1")),
+    Case("a face of two corners", _text(_TRIANGLE + "f 1 2\n"), ("line 4", "3 or more")),
 )
 XYZ_CASES = _common_cases() + (
     Case("empty file", _text(""), ("empty file",)),
@@ -814,6 +827,10 @@ FORMATS = (
            lambda path, folder: ["character", "render", str(folder / "take.csv"), "--character",
                                  str(folder / "char"), "--out", str(folder / "frames"), "--no-progress"],
            CHARACTER_CASES, setup=_write_character_parts),
+    Format("landmark mesh", "mesh.obj", lambda path, folder: ["landmarks", "place", str(path), "--points",
+                                                             str(folder / "points.csv"), "--out",
+                                                             str(folder / "lm.toml")],
+           MESH_OBJ_CASES, setup=lambda folder: (folder / "points.csv").write_text("chin,0,0,0\n")),
     Format("scan ply", "neutral.ply", _scans, PLY_CASES, setup=_write_scan_landmarks),
     Format("scan xyz", "neutral.xyz", _scans, XYZ_CASES, setup=_write_scan_landmarks),
     Format("phone take arkit", "take/arkit.csv", lambda path, folder: ["run", str(folder / "replay.toml")],

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from livebridge.errors import InputError
+from livebridge.errors import InputError, file_error
+from livebridge.face.obj_file import read_obj_data
 
 
 @dataclass(frozen=True, eq=False)
@@ -25,36 +26,19 @@ class Mesh:
 
 
 def read_obj(path: str | Path) -> Mesh:
-    """Read the vertices and faces of an OBJ file; polygons become triangle fans."""
+    """Read the vertices and faces of an OBJ file (:func:`~livebridge.face.obj_file.read_obj_data`: polygons
+    become triangle fans; errors name the line at fault)."""
     path = Path(path)
     if not path.is_file():
         raise InputError("mesh file not found", path)
-    vertices, triangles = [], []
-    with path.open("r", errors="replace") as stream:
-        for line_no, line in enumerate(stream, 1):
-            if line.startswith("v "):
-                vertices.append(line.split()[1:4])
-            elif line.startswith("f "):
-                try:
-                    corners = [int(token.split("/")[0]) for token in line.split()[1:]]
-                except ValueError:
-                    raise InputError(f"line {line_no}: malformed face {line.strip()!r}", path) from None
-                corners = [c - 1 if c > 0 else len(vertices) + c for c in corners]
-                triangles.extend((corners[0], corners[k], corners[k + 1]) for k in range(1, len(corners) - 1))
-    if not vertices:
-        raise InputError("no vertices ('v' lines) found", path)
     try:
-        vertex_array = np.asarray(vertices, dtype=np.float64)
-    except ValueError:
-        raise InputError("a vertex line has fewer than 3 numeric coordinates", path) from None
-    bad = np.flatnonzero(~np.isfinite(vertex_array).all(axis=1))
-    if len(bad):  # a NaN or infinite vertex poisons every nearest-point search and spline that touches the mesh
-        raise InputError(f"vertex {bad[0] + 1} is not finite ({' '.join(vertices[bad[0]])}; {len(bad)} such)", path,
-                         "v")
-    triangle_array = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    if triangle_array.size and (triangle_array.min() < 0 or triangle_array.max() >= len(vertex_array)):
-        raise InputError("a face refers to a vertex that does not exist", path)
-    return Mesh(vertex_array, triangle_array)
+        data = path.read_bytes()
+    except OSError as error:
+        raise file_error(error, path) from None
+    obj = read_obj_data(data, path)
+    if not len(obj.points):
+        raise InputError("no vertices ('v' lines) found", path)
+    return Mesh(obj.points, obj.triangles)
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:

@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from livebridge.errors import InputError, file_error
+from livebridge.face.obj_file import read_obj_data
 from livebridge.retarget.mesh_samples import surface_samples
-from livebridge.retarget.obj_bulk import ObjData, read_obj_bulk
 from livebridge.retarget.texture import Texture, sample_textured
 
 SCAN_SUFFIXES = (".ply", ".obj", ".xyz", ".csv", ".txt", ".pts", ".asc")
@@ -219,9 +219,8 @@ def _text(data: bytes, path: Path) -> str:
 def _read_obj(data: bytes, path: Path):
     """``v x y z [r g b]`` and ``f a b c ...`` lines (``a/t/n`` corners, negative = relative), and with ``vt``
     lines, ``mtllib`` and ``usemtl`` the texture images of the faces' materials (their ``map_Kd``); the rest
-    ignored. A scanner's regular layout is parsed in bulk (:mod:`~livebridge.retarget.obj_bulk`), any other line
-    by line."""
-    obj = read_obj_bulk(data) or _obj_lines(data, path)
+    ignored (:func:`~livebridge.face.obj_file.read_obj_data`)."""
+    obj = read_obj_data(data, path)
     rgb = obj.colours
     if rgb is not None:
         rgb = rgb / 255.0 if rgb.max() > 1 else rgb  # 0-1 by the convention; some writers put 0-255
@@ -230,82 +229,6 @@ def _read_obj(data: bytes, path: Path):
         texture = _obj_texture(path, obj.libraries, obj.texcoords, obj.corner_uv, obj.face_material)
         rgb = None if texture is not None else rgb  # the images hold the skin's pattern finer than the vertices
     return obj.points, obj.triangles, rgb, texture
-
-
-def _obj_lines(data: bytes, path: Path) -> ObjData:
-    """An OBJ file read line by line: any layout, and an error naming the line at fault."""
-    vertices, triangles, colours, texcoords = [], [], [], []
-    corner_uv, face_material, libraries, material = [], [], [], None
-    for number, line in enumerate(data.decode("utf-8", errors="replace").splitlines(), 1):
-        parts = line.split()
-        if not parts:
-            continue
-        if parts[0] == "v":
-            try:
-                xyz = [float(value) for value in parts[1:4]]
-            except ValueError:
-                raise InputError(f"line {number}: vertex coordinates must be numbers, got {parts[1:4]}",
-                                 path) from None
-            if len(xyz) < 3:
-                raise InputError(f"line {number}: a vertex needs x y z, got {len(xyz)} values", path)
-            if not all(map(math.isfinite, xyz)):
-                raise InputError(f"line {number}: vertex {len(vertices) + 1} is not finite: {parts[1:4]}", path)
-            vertices.append(xyz)
-            colours.append(_obj_colour(parts[4:7], number, path))
-        elif parts[0] == "vt":
-            texcoords.append(_obj_texcoord(parts[1:3], number, path))
-        elif parts[0] == "f":
-            corners, uv_corners = _obj_face(parts[1:], len(vertices), len(texcoords), line, number, path)
-            fan = [(0, k, k + 1) for k in range(1, len(corners) - 1)]
-            triangles.extend((corners[a], corners[b], corners[c]) for a, b, c in fan)
-            corner_uv.extend((uv_corners[a], uv_corners[b], uv_corners[c]) if uv_corners else (-1, -1, -1)
-                             for a, b, c in fan)
-            face_material.extend([material] * len(fan))
-        elif parts[0] == "mtllib" and len(parts) > 1:
-            libraries.append(line.split(maxsplit=1)[1].strip())
-        elif parts[0] == "usemtl":
-            material = line.split(maxsplit=1)[1].strip() if len(parts) > 1 else None
-    every_colour = colours and all(c is not None for c in colours)  # colour only when every vertex has one
-    return ObjData(np.array(vertices, dtype=np.float64).reshape(-1, 3),
-                   np.array(colours, dtype=np.float64) if every_colour else None,
-                   np.array(texcoords, dtype=np.float64).reshape(-1, 2),
-                   np.array(triangles, dtype=np.int64).reshape(-1, 3),
-                   np.array(corner_uv, dtype=np.int64).reshape(-1, 3), face_material, libraries)
-
-
-def _obj_face(tokens, n_vertices: int, n_texcoords: int, line: str, number: int, path: Path):
-    """The vertex indices (from 0) of an ``f`` line's corners, and their texture coordinate indices (from 0;
-    an empty list when the corners have none)."""
-    try:
-        fields = [token.split("/") for token in tokens]
-        corners = [int(field[0]) for field in fields]
-        uv = [int(field[1]) for field in fields] if all(len(f) > 1 and f[1] for f in fields) else []
-    except ValueError:
-        raise InputError(f"line {number}: malformed face {line.strip()!r}", path) from None
-    if len(corners) < 3 or 0 in corners or 0 in uv:
-        raise InputError(f"line {number}: a face needs 3 or more vertex numbers from 1 (or negative), "
-                         f"got {line.strip()!r}", path)
-    corners = [c - 1 if c > 0 else n_vertices + c for c in corners]
-    bad = [c for c in corners if not 0 <= c < n_vertices]
-    if bad:
-        raise InputError(f"line {number}: face refers to vertex {bad[0] + 1}, only {n_vertices} "
-                         "defined so far", path)
-    uv = [t - 1 if t > 0 else n_texcoords + t for t in uv]
-    bad = [t for t in uv if not 0 <= t < n_texcoords]
-    if bad:
-        raise InputError(f"line {number}: face refers to texture coordinate {bad[0] + 1}, only {n_texcoords} "
-                         "defined so far", path)
-    return corners, uv
-
-
-def _obj_texcoord(cells, number, path):
-    try:
-        uv = [float(value) for value in cells]
-    except ValueError:
-        raise InputError(f"line {number}: texture coordinates must be numbers, got {cells}", path) from None
-    if len(uv) < 2 or not all(map(math.isfinite, uv)):
-        raise InputError(f"line {number}: a texture coordinate needs finite u v, got {cells}", path)
-    return uv
 
 
 def _obj_texture(path: Path, libraries: list[str], texcoords: np.ndarray, corner_uv: np.ndarray,
@@ -328,15 +251,6 @@ def _obj_texture(path: Path, libraries: list[str], texcoords: np.ndarray, corner
     image_index[(corner_uv < 0).any(axis=1)] = -1
     uv = texcoords[np.clip(corner_uv, 0, None)][..., :2]
     return Texture(uv, image_index, images, tuple(images_of[m].name for m in used))
-
-
-def _obj_colour(cells, number, path):
-    if len(cells) < 3:
-        return None
-    try:
-        return [float(value) for value in cells]
-    except ValueError:
-        raise InputError(f"line {number}: vertex colour must be numbers, got {cells}", path) from None
 
 
 # ------------------------------------------------------------------------------------------------ PLY
@@ -378,6 +292,9 @@ def _read_ply(data: bytes, path: Path):
     missing = [axis for axis in "xyz" if axis not in [p.name for p in vertex.properties]]
     if missing:
         raise InputError(f"the vertex element has no property {', '.join(missing)}", path, "vertex")
+    lists = [p.name for p in vertex.properties if p.name in ("x", "y", "z") and p.is_list]
+    if lists:
+        raise InputError(f"the vertex element's {', '.join(lists)} is a list, not a number", path, "vertex")
     if order is None:
         tables = _ply_ascii(body, elements, path, data[:len(data) - len(body)].count(b"\n"))
     else:
@@ -648,12 +565,17 @@ def _binary_lists(body: bytes, at: int, element: _Element, order: str, path: Pat
             try:
                 if prop.is_list:
                     n = int(np.frombuffer(body, order + prop.count_dtype, 1, at)[0])
+                    if n < 0:
+                        raise InputError(f"{element.name} {k}: its {prop.name} list has {n} entries", path,
+                                         element.name)
                     at += np.dtype(prop.count_dtype).itemsize
                     columns[prop.name].append(np.frombuffer(body, order + prop.dtype, n, at).tolist())
                     at += n * np.dtype(prop.dtype).itemsize
                 else:
                     columns[prop.name].append(np.frombuffer(body, order + prop.dtype, 1, at)[0])
                     at += np.dtype(prop.dtype).itemsize
+            except InputError:
+                raise
             except ValueError:
                 raise InputError(f"the file ends inside {element.name} {k} of {element.count} (the header promises "
                                  f"{element.count})", path, element.name) from None
@@ -668,6 +590,8 @@ def _binary_fixed_rows(body: bytes, at: int, element: _Element, order: str):
             if offset + np.dtype(prop.count_dtype).itemsize > len(body):
                 return None
             n = int(np.frombuffer(body, order + prop.count_dtype, 1, offset)[0])
+            if n < 0:  # the row-by-row reader names it
+                return None
             fields += [(prop.name + "#n", order + prop.count_dtype), (prop.name, order + prop.dtype, (n,))]
             offset += np.dtype(prop.count_dtype).itemsize + n * np.dtype(prop.dtype).itemsize
         else:

@@ -1,21 +1,28 @@
-"""An OBJ file of the regular layout scanners write, parsed in bulk: every ``v`` line with the same number of
+"""Reading OBJ files: vertices (with colours), texture coordinates, faces (fanned into triangles), materials.
+
+:func:`read_obj_data` reads any OBJ. An OBJ file of the regular layout scanners write is parsed in bulk
+(:func:`read_obj_bulk`): every ``v`` line with the same number of
 values, every ``f`` line with the same number of corners written the same way, no relative indices.
 
 Reading a million-face scan line by line in Python takes 8 s (490k `v`, 490k `vt` and 977k `f v/vt` lines,
 66 MB); in bulk, 3 s (without `vt`: 6 s and 2.2 s; ICT-FaceKit's head, quads and triangles, 0.3-0.4 s and 0.1 s):
 the lines are sorted by keyword once, each kind is checked whole (a regular expression over the faces) and parsed
 as one run of numbers by NumPy. Anything this
-cannot read exactly as the line-by-line reader (:func:`~livebridge.retarget.scan.read_scan`) would, a line it
+cannot read exactly as the line-by-line reader (:func:`read_obj_lines`) would, a line it
 does not expect, a mixed layout, a bad number, an index out of range, makes it return None, and the line-by-line
 reader then reads the file and names the line at fault.
 """
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+
+from livebridge.errors import InputError
 
 _OTHER_LINE_BREAKS = (b"\x0b", b"\x0c", b"\x1c", b"\x1d", b"\x1e", b"\xc2\x85", b"\xe2\x80\xa8", b"\xe2\x80\xa9")
 """Characters Python's text lines break at (the line-by-line reader's) and bytes lines do not."""
@@ -36,6 +43,17 @@ class ObjData:
     corner_uv: np.ndarray
     face_material: list
     libraries: list
+
+
+_BOM = b"\xef\xbb\xbf"
+
+
+def read_obj_data(data: bytes, path: Path) -> ObjData:
+    """An OBJ file's contents (``data``, its bytes; ``path`` for errors), in bulk when it has the regular layout,
+    else line by line, naming the line at fault. A UTF-8 byte order mark (some Windows tools write one) is
+    skipped."""
+    data = data[len(_BOM):] if data.startswith(_BOM) else data
+    return read_obj_bulk(data) or read_obj_lines(data, path)
 
 
 def read_obj_bulk(data: bytes) -> ObjData | None:
@@ -142,3 +160,88 @@ def _parsed(text: bytes, dtype, count: int) -> np.ndarray | None:
         except (ValueError, DeprecationWarning):
             return None
     return values if len(values) == count else None
+
+
+def read_obj_lines(data: bytes, path: Path) -> ObjData:
+    """An OBJ file read line by line: any layout, and an error naming the line at fault."""
+    vertices, triangles, colours, texcoords = [], [], [], []
+    corner_uv, face_material, libraries, material = [], [], [], None
+    for number, line in enumerate(data.decode("utf-8", errors="replace").splitlines(), 1):
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "v":
+            try:
+                xyz = [float(value) for value in parts[1:4]]
+            except ValueError:
+                raise InputError(f"line {number}: vertex coordinates must be numbers, got {parts[1:4]}",
+                                 path) from None
+            if len(xyz) < 3:
+                raise InputError(f"line {number}: a vertex needs x y z, got {len(xyz)} values", path)
+            if not all(map(math.isfinite, xyz)):
+                raise InputError(f"line {number}: vertex {len(vertices) + 1} is not finite: {parts[1:4]}", path)
+            vertices.append(xyz)
+            colours.append(_obj_colour(parts[4:7], number, path))
+        elif parts[0] == "vt":
+            texcoords.append(_obj_texcoord(parts[1:3], number, path))
+        elif parts[0] == "f":
+            corners, uv_corners = _obj_face(parts[1:], len(vertices), len(texcoords), line, number, path)
+            fan = [(0, k, k + 1) for k in range(1, len(corners) - 1)]
+            triangles.extend((corners[a], corners[b], corners[c]) for a, b, c in fan)
+            corner_uv.extend((uv_corners[a], uv_corners[b], uv_corners[c]) if uv_corners else (-1, -1, -1)
+                             for a, b, c in fan)
+            face_material.extend([material] * len(fan))
+        elif parts[0] == "mtllib" and len(parts) > 1:
+            libraries.append(line.split(maxsplit=1)[1].strip())
+        elif parts[0] == "usemtl":
+            material = line.split(maxsplit=1)[1].strip() if len(parts) > 1 else None
+    every_colour = colours and all(c is not None for c in colours)  # colour only when every vertex has one
+    return ObjData(np.array(vertices, dtype=np.float64).reshape(-1, 3),
+                   np.array(colours, dtype=np.float64) if every_colour else None,
+                   np.array(texcoords, dtype=np.float64).reshape(-1, 2),
+                   np.array(triangles, dtype=np.int64).reshape(-1, 3),
+                   np.array(corner_uv, dtype=np.int64).reshape(-1, 3), face_material, libraries)
+
+
+def _obj_face(tokens, n_vertices: int, n_texcoords: int, line: str, number: int, path: Path):
+    """The vertex indices (from 0) of an ``f`` line's corners, and their texture coordinate indices (from 0;
+    an empty list when the corners have none)."""
+    try:
+        fields = [token.split("/") for token in tokens]
+        corners = [int(field[0]) for field in fields]
+        uv = [int(field[1]) for field in fields] if all(len(f) > 1 and f[1] for f in fields) else []
+    except ValueError:
+        raise InputError(f"line {number}: malformed face {line.strip()!r}", path) from None
+    if len(corners) < 3 or 0 in corners or 0 in uv:
+        raise InputError(f"line {number}: a face needs 3 or more vertex numbers from 1 (or negative), "
+                         f"got {line.strip()!r}", path)
+    corners = [c - 1 if c > 0 else n_vertices + c for c in corners]
+    bad = [c for c in corners if not 0 <= c < n_vertices]
+    if bad:
+        raise InputError(f"line {number}: face refers to vertex {bad[0] + 1}, only {n_vertices} "
+                         "defined so far", path)
+    uv = [t - 1 if t > 0 else n_texcoords + t for t in uv]
+    bad = [t for t in uv if not 0 <= t < n_texcoords]
+    if bad:
+        raise InputError(f"line {number}: face refers to texture coordinate {bad[0] + 1}, only {n_texcoords} "
+                         "defined so far", path)
+    return corners, uv
+
+
+def _obj_texcoord(cells, number, path):
+    try:
+        uv = [float(value) for value in cells]
+    except ValueError:
+        raise InputError(f"line {number}: texture coordinates must be numbers, got {cells}", path) from None
+    if len(uv) < 2 or not all(map(math.isfinite, uv)):
+        raise InputError(f"line {number}: a texture coordinate needs finite u v, got {cells}", path)
+    return uv
+
+
+def _obj_colour(cells, number, path):
+    if len(cells) < 3:
+        return None
+    try:
+        return [float(value) for value in cells]
+    except ValueError:
+        raise InputError(f"line {number}: vertex colour must be numbers, got {cells}", path) from None

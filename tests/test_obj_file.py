@@ -8,8 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from livebridge.retarget.obj_bulk import read_obj_bulk
-from livebridge.retarget.scan import _obj_lines
+from livebridge.face.obj_file import read_obj_bulk, read_obj_lines
 
 FORMS = {"a": "{v}", "a/b": "{v}/{t}", "a//c": "{v}//{n}", "a/b/c": "{v}/{t}/{n}"}
 
@@ -49,7 +48,7 @@ def test_the_regular_layouts_are_read_in_bulk_as_line_by_line(form, layout):
     data = _obj(form, np.random.default_rng(len(form)), **layout)
     bulk = read_obj_bulk(data)
     assert bulk is not None
-    _same(bulk, _obj_lines(data, Path("scan.obj")))
+    _same(bulk, read_obj_lines(data, Path("scan.obj")))
     assert len(bulk.triangles) == sum(p - 2 for p in [layout.get("polygons", (3,))[k % len(layout.get(
         "polygons", (3,)))] for k in range(40)])
 
@@ -84,7 +83,7 @@ def test_any_other_layout_is_left_to_the_line_by_line_reader(tmp_path, case):
     path = tmp_path / "scan.obj"
     path.write_text(text)
     try:
-        expected = _obj_lines(text.encode(), path)
+        expected = read_obj_lines(text.encode(), path)
     except InputError as error:
         with pytest.raises(InputError) as raised:
             read_scan(path)
@@ -92,3 +91,22 @@ def test_any_other_layout_is_left_to_the_line_by_line_reader(tmp_path, case):
         return
     scan = read_scan(path)  # read all the same: the line-by-line reader takes such files
     assert np.array_equal(scan.points, expected.points) and np.array_equal(scan.triangles, expected.triangles)
+
+
+def test_a_mesh_reads_the_same_with_a_byte_order_mark_tabs_and_indented_lines(tmp_path):
+    """A target mesh (``read_obj``) goes through the scans' reader: a UTF-8 byte order mark, tab separators and
+    indented lines (which the mesh reader used to read as no vertices, or one vertex short) change nothing."""
+    from livebridge.face.builtin import builtin_basis
+    from livebridge.face.meshio import read_obj
+
+    face = builtin_basis()
+    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in face.neutral]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in face.triangles]
+    plain = tmp_path / "plain.obj"
+    plain.write_text("\n".join(lines) + "\n")
+    odd = tmp_path / "odd.obj"
+    odd.write_bytes(b"\xef\xbb\xbf" + "\r\n".join("\t" + line.replace(" ", "\t") for line in lines).encode())
+    want, got = read_obj(plain), read_obj(odd)
+    np.testing.assert_array_equal(got.vertices, want.vertices)
+    np.testing.assert_array_equal(got.triangles, want.triangles)
+    assert len(want.vertices) == len(face.neutral) and len(want.triangles) == len(face.triangles)
