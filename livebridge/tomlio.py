@@ -18,11 +18,11 @@ else:  # pragma: no cover - Python 3.10
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
-    """Read a TOML file; a missing, unreadable, non-UTF-8 or malformed file raises :class:`InputError`."""
+    """Read a TOML file; a missing, unreadable, non-UTF-8 or malformed file raises :class:`InputError`. A UTF-8
+    byte order mark (Windows Notepad writes one) is skipped."""
     path = Path(path)
     try:
-        with path.open("rb") as stream:
-            return tomllib.load(stream)
+        return tomllib.loads(path.read_bytes().decode("utf-8-sig"))
     except OSError as error:
         raise file_error(error, path) from None
     except UnicodeDecodeError as error:

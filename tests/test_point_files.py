@@ -138,3 +138,28 @@ def test_retarget_scans_without_an_expressions_landmarks_names_both_files_it_loo
     result = _scans(tmp_path, "neutral.landmarks.csv")
     assert_cli_refused(result, "--expression", "jaw.landmarks.csv", "jaw_picked_points.pp", "SCAN:LANDMARKS")
     assert not (tmp_path / "b.npz").exists()
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".toml"])
+def test_a_byte_order_mark_is_no_part_of_the_first_landmark(tmp_path, suffix):
+    """Excel and Windows Notepad save UTF-8 with a byte order mark: the first row's name (or a CSV header) must
+    read as written, not as '\\ufeffnose_tip' (a landmark then missing, or an unknown one quietly dropped)."""
+    text = {".csv": "name,x,y,z\nnose_tip,0,0,120\nchin,0,-80,90\n",
+            ".toml": "nose_tip = [0, 0, 120]\nchin = [0, -80, 90]\n"}[suffix]
+    path = tmp_path / f"lm{suffix}"
+    path.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    points = read_points(path)
+    assert list(points) == ["nose_tip", "chin"]
+    np.testing.assert_array_equal(points["chin"], [0, -80, 90])
+    headless = tmp_path / "headless.csv"
+    headless.write_bytes(b"\xef\xbb\xbfnose_tip,0,0,120\n")
+    assert list(read_points(headless)) == ["nose_tip"]
+
+
+def test_a_point_cloud_with_a_byte_order_mark_reads_its_first_point(tmp_path):
+    from livebridge.retarget.scan import read_scan
+
+    path = tmp_path / "cloud.xyz"
+    rows = "".join(f"{k} {2 * k} {3 * k}\n" for k in range(5))
+    path.write_bytes(b"\xef\xbb\xbf" + rows.encode())
+    np.testing.assert_array_equal(read_scan(path).points, [[k, 2 * k, 3 * k] for k in range(5)])

@@ -51,7 +51,7 @@ def read_points_csv(path: str | Path) -> dict[str, np.ndarray]:
     """``name,x,y,z`` rows of a CSV file (a first row ``name,x,y,z`` is a header), in file order."""
     path = Path(path)
     try:
-        with path.open(newline="", encoding="utf-8") as stream:
+        with path.open(newline="", encoding="utf-8-sig") as stream:  # a byte order mark is no part of a name
             rows = list(csv.reader(stream))
     except UnicodeDecodeError as error:
         raise InputError(f"not UTF-8 text (byte {error.object[error.start:error.start + 1]!r} at offset "

@@ -209,7 +209,7 @@ def _is_number(text: str) -> bool:
 
 def _text(data: bytes, path: Path) -> str:
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")  # a byte order mark is no part of the first number
     except UnicodeDecodeError as error:
         raise InputError(f"not UTF-8 text (byte {data[error.start:error.start + 1]!r} at offset {error.start})",
                          path) from None

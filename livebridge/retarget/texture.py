@@ -58,7 +58,7 @@ def read_materials(mtl: Path, obj: Path) -> dict[str, Path]:
     ``obj`` is the OBJ that named the MTL file (named in the error when the MTL file is missing).
     """
     try:
-        text = mtl.read_text(encoding="utf-8", errors="replace")
+        text = mtl.read_text(encoding="utf-8-sig", errors="replace")
     except OSError:
         raise InputError(f"its material file {mtl.name} (mtllib) is not there: put it next to the OBJ, or remove "
                          "the mtllib line to read the scan without colour", obj, "mtllib") from None
