@@ -212,7 +212,7 @@ _HEADER = 'format = "livebridge-markers"\nversion = 1\n'
 def _markers(header: str = _HEADER, **changes) -> Callable[[Path], None]:
     """A marker file whose first marker has some keys changed (``None``: left out)."""
     first = {**_MARKER, **changes}
-    rows = [first, {**_MARKER, "name": '"b"'}]
+    rows = [first, {**_MARKER, "name": '"b"', "barycentric": "[0.5, 0.3, 0.2]"}]
     body = "".join("[[marker]]\n" + "".join(f"{k} = {v}\n" for k, v in row.items() if v is not None) for row in rows)
     return _text(header + body)
 
@@ -224,6 +224,7 @@ MARKER_CASES = _toml_cases() + (
     Case("version from the future", _markers('format = "livebridge-markers"\nversion = 7\n'), ("version", "newer")),
     Case("unknown top-level key", _markers(_HEADER + "markers_per_region = 3\n"), ("markers_per_region", "unknown")),
     Case("no markers", _text(_HEADER), ("marker", "missing")),
+    Case("two markers at one place", _markers(barycentric="[0.5, 0.3, 0.2]"), ("'a'", "'b'", "same place")),
     Case("empty marker list", _text(_HEADER + "marker = []\n"), ("marker", "no markers")),
     Case("marker a number", _text(_HEADER + "marker = 5\n"), ("marker",)),
     Case("marker a list of names", _text(_HEADER + 'marker = ["a", "b"]\n'), ("marker[0]",)),
@@ -537,6 +538,8 @@ LANDMARK_POINTS_CASES = _common_cases() + (
     Case("text coordinate", _text(_ON_FACE + "nose_tip,0,up,120\n"), ("line 2", "nose_tip", "numbers")),
     Case("NaN coordinate", _text(_ON_FACE + "nose_tip,0,nan,120\n"), ("line 2", "nose_tip", "finite")),
     Case("a landmark twice", _text(_ON_FACE + _ON_FACE), ("line 2", "'chin'", "twice")),
+    Case("two landmarks at one point", _text(_ON_FACE + _ON_FACE.replace("chin", "nose_tip")),
+         ("chin and nose_tip", "both at")),
     Case("far off the surface", _text(_ON_FACE + "nose_tip,0,-7,160\n"), ("nose_tip", "mm from the mesh surface")),
 )
 

@@ -67,6 +67,7 @@ class MarkerSet:
             name = self.names[int(np.flatnonzero(bad)[0])]
             raise InputError(f"barycentric coordinates must be finite, >= 0 and sum to 1, got "
                              f"{barycentric[bad][0].tolist()}", field=f"marker {name}")
+        _check_apart(self.names, triangles, barycentric)
         for array in (triangles, barycentric):
             array.setflags(write=False)
         object.__setattr__(self, "triangles", triangles)
@@ -337,3 +338,14 @@ def _match_numbers(names: list[str], wanted, index: np.ndarray, source) -> None:
 def _listing(names: list[str], limit: int = 12) -> str:
     shown = ", ".join(map(repr, names[:limit]))
     return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")
+
+
+def _check_apart(names, triangles: np.ndarray, barycentric: np.ndarray) -> None:
+    """Refuse two markers at one place (the same triangle and barycentric coordinates: a marker table copied
+    and not edited), naming both: a spline through them, or a solve, cannot tell them apart."""
+    seen = {}
+    for name, triangle, weights in zip(names, triangles.tolist(), np.round(barycentric, 9).tolist()):
+        other = seen.setdefault((triangle, *weights), name)
+        if other != name:
+            raise InputError(f"markers {other!r} and {name!r} are at the same place (triangle {triangle}, "
+                             f"barycentric {weights}): was a marker copied and not moved?", field=f"marker {name}")

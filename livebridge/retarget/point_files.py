@@ -38,7 +38,20 @@ def read_points(path: str | Path, scale: float = 1.0) -> dict[str, np.ndarray]:
         raise InputError("a MeshLab PickPoints template holds names, not points: pick them on the scan in MeshLab "
                          "(Edit > PickPoints) and give the .pp file it saves", path)
     reader = {".pp": read_picked_points, ".toml": read_points_toml}.get(suffix, read_points_csv)
-    return {name: xyz * scale for name, xyz in reader(path).items()}
+    points = {name: xyz * scale for name, xyz in reader(path).items()}
+    _check_apart(points, path)
+    return points
+
+
+def _check_apart(points: dict[str, np.ndarray], path: Path) -> None:
+    """Refuse two landmarks at one point (a row copied and not edited), naming both: the splines through the
+    landmarks cannot tell them apart."""
+    seen = {}
+    for name, xyz in points.items():
+        other = seen.setdefault(tuple(xyz.tolist()), name)
+        if other != name:
+            raise InputError(f"{other} and {name} are both at {xyz.tolist()}: was a row copied and not edited?",
+                             path, name)
 
 
 def picked_points_file(scan: str | Path) -> Path:
