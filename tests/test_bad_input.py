@@ -1223,6 +1223,8 @@ COMMANDS = (
         *_output_cases(),
         *_numbers("--yaw", _NOT_FINITE + ("91", "-91")),
         *_numbers("--dpi", ("0", "601", "x")),
+        Bad("--out not an image", ("landmarks", "show", "builtin", "builtin-22", "--out", "{dir}/lm.xyz"),
+            ("--out", "lm.xyz", "an image is written as"), True),
         Bad("LANDMARKS missing", ("landmarks", "show", "builtin", "{dir}/nothing.toml", "--out", "{dir}/lm.png"),
             ("LANDMARKS", "nothing.toml", "file not found"), True),
         Bad("LANDMARKS not on this mesh", ("landmarks", "show", "{dir}/basis.npz", "builtin-22", "--out",

@@ -217,6 +217,23 @@ class OutputFile(click.ParamType):
         return path
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pdf", ".svg", ".tif", ".tiff", ".webp")
+"""What an image option writes (matplotlib picks the format by the suffix)."""
+
+
+class ImageFile(OutputFile):
+    """An image a command writes (:class:`OutputFile`) whose suffix names a format it can write."""
+
+    name = "image"
+
+    def convert(self, value, param, ctx) -> Path:
+        path = super().convert(value, param, ctx)
+        if path.suffix.lower() not in IMAGE_SUFFIXES:
+            self.fail(f"{value}: an image is written as {', '.join(IMAGE_SUFFIXES)}, not "
+                      f"{path.suffix or '(no suffix)'!r}", param, ctx)
+        return path
+
+
 class NewFolder(click.ParamType):
     """A folder a command creates: inside an existing folder, and not there yet (``exist_ok``: may be)."""
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option
+from livebridge.cli._options import FiniteFloat, ImageFile, InputPath, force_option
 from livebridge.cli.markers import BASIS_TYPE, load_basis
 from livebridge.face import SHIPPED_MARKER_SETS
 
@@ -137,7 +137,7 @@ def render_basis(basis, path: str | Path, markers=None, yaw_deg: float = 15.0, p
 
 @click.command("show")
 @click.argument("basis_spec", metavar="BASIS", type=BASIS_TYPE)
-@click.option("--out", required=True, type=OutputFile(), help="Image file (.png).")
+@click.option("--out", required=True, type=ImageFile(), help="Image file (.png).")
 @force_option
 @click.option("--markers", "markers_spec", type=InputPath(builtins=("design", *SHIPPED_MARKER_SETS)), default=None,
               help="Marker layout (.toml) to draw on the neutral face, a shipped one (builtin, builtin-68, ict-68), "

@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option
+from livebridge.cli._options import FiniteFloat, ImageFile, InputPath, OutputFile, force_option
 from livebridge.retarget.landmarks import SHIPPED_LANDMARK_SETS
 
 UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
@@ -112,7 +112,7 @@ def template(out: Path, force: bool, lids: bool) -> None:
 @landmarks.command("show")
 @click.argument("mesh", type=MESH_TYPE)
 @click.argument("landmarks_spec", metavar="LANDMARKS", type=InputPath(builtins=SHIPPED_LANDMARK_SETS))
-@click.option("--out", required=True, type=OutputFile(), help="Image file (.png).")
+@click.option("--out", required=True, type=ImageFile(), help="Image file (.png).")
 @force_option
 @click.option("--units", type=click.Choice(sorted(UNITS_TO_MM)), default="mm", show_default=True,
               help="Units of an OBJ mesh (a basis is in mm).")

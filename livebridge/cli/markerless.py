@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from livebridge.cli._options import FRAMES, InputPath, OutputFile, force_option
+from livebridge.cli._options import FRAMES, ImageFile, InputPath, OutputFile, force_option
 
 
 @click.group("markerless")
@@ -18,7 +18,7 @@ def markerless() -> None:
 @click.argument("take")
 @click.option("--out", required=True, type=OutputFile(), help="The model to write (.npz).")
 @force_option
-@click.option("--report", type=OutputFile(), default=None, help="Also write a PNG of the regions and signatures.")
+@click.option("--report", type=ImageFile(), default=None, help="Also write a PNG of the regions and signatures.")
 @click.option("--basis", "basis_spec", type=InputPath(builtins=("builtin",)), default="builtin", show_default=True,
               help="The actuation basis (its muscles; its neutral face guides the pose warp).")
 @click.option("--head-rig", "head_rig", type=InputPath(builtins=("none",)), default=None,

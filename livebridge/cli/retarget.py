@@ -8,7 +8,7 @@ import click
 import numpy as np
 
 from livebridge.cli._attach import attach
-from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option
+from livebridge.cli._options import FiniteFloat, ImageFile, InputPath, OutputFile, force_option
 from livebridge.cli.basis_show import _draw_mesh, _view
 from livebridge.cli.landmarks import MESH_TYPE, UNITS_TO_MM, load_mesh
 from livebridge.errors import InputError
@@ -162,7 +162,7 @@ def _require_reference_names(points, *landmark_sets) -> None:
               help="Contraction file (t + one column per muscle, as livebridge solve writes) to play; default: "
                    "each muscle in turn, then a smile, a frown and an open jaw.")
 @click.option("--frames", type=click.IntRange(1, 24), default=6, show_default=True, help="Frames shown.")
-@click.option("--out", required=True, type=OutputFile(), help="Image to write (.png).")
+@click.option("--out", required=True, type=ImageFile(), help="Image to write (.png).")
 @force_option
 def show(bases, contractions_file, frames: int, out: Path, force: bool) -> None:
     """Play one contraction take on several bases (a source and its retargeted copies), side by side."""
