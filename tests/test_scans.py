@@ -1050,3 +1050,29 @@ def test_the_build_tells_of_each_element_in_both_passes():
         f"{second}: tracking the skin (2/2, first pass, against the neutral)",
         f"{first}: tracking the skin (1/2, second pass, against the template)",
         f"{second}: tracking the skin (2/2, second pass, against the template)"]
+
+
+@pytest.mark.parametrize("units, factor", [("m", 0.001), ("cm", 0.1)])
+def test_retarget_scans_in_other_units_are_refused_naming_the_landmarks_and_units(tmp_path, units, factor):
+    """Scans and landmarks written in metres or centimetres, read as mm: the crop then held no point and the
+    error asked about the nose tip and the crop radius; now the size of the neutral's landmarks against the
+    reference face's says which unit, before any work, and with ``--units`` the same files build."""
+    from livebridge.cli import main
+    from livebridge.retarget.scan import read_scan, write_ply
+
+    write_builtin_scans(tmp_path, 6, {"neutral": "mm", "jaw": "jaw_mm"})
+    for stem in ("mm", "jaw_mm"):
+        write_ply(tmp_path / f"{stem[:-2]}{units}.ply", read_scan(tmp_path / f"{stem}.ply").points * factor, None,
+                  "ascii")
+        rows = (tmp_path / f"{stem}.landmarks.csv").read_text().splitlines()[1:]
+        (tmp_path / f"{stem[:-2]}{units}.landmarks.csv").write_text("".join(
+            f"{name},{float(x) * factor!r},{float(y) * factor!r},{float(z) * factor!r}\n"
+            for name, x, y, z in (row.split(",") for row in rows)))
+    args = ["retarget", "scans", "--neutral", str(tmp_path / f"{units}.ply"), "--neutral-landmarks",
+            str(tmp_path / f"{units}.landmarks.csv"), "--expression", f"jaw={tmp_path / f'jaw_{units}.ply'}",
+            "--grid", "40x40", "--out", str(tmp_path / "basis.npz")]
+    assert_cli_refused(CliRunner().invoke(main, args), f"{units}.landmarks.csv", "units", "times the reference",
+                       "is it in mm?")
+    result = CliRunner().invoke(main, [*args, "--units", units])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "basis.npz").exists()

@@ -131,11 +131,17 @@ def _check_size(on_source, source, on_target, vertices, triangles, target_mesh, 
     names = list(on_source.names)
     here = on_source.positions(source.neutral, source.triangles)
     there = on_target.positions(vertices, triangles)[on_target.index_of(names)]
+    check_size(here, there, "the source's", target_mesh, units)
+
+
+def check_size(here: np.ndarray, there: np.ndarray, whose: str, path, units: str) -> None:
+    """Refuse landmarks ``there`` (n, 3; of ``path``, read in ``units``) that spread :data:`SIZE_RATIO` times
+    more or less than the same landmarks ``here`` (n, 3; ``whose``, e.g. "the source's"), naming ``--units``."""
     spread = [float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1)))) for p in (here, there)]
     ratio = spread[1] / spread[0] if spread[0] > 0 else float("inf")
     if not 1 / SIZE_RATIO <= ratio <= SIZE_RATIO:
-        raise InputError(f"its landmarks spread {spread[1]:.3g} mm (RMS about their centre), {ratio:.3g} times the "
-                         f"source's {spread[0]:.3g} mm: is it in {units}? (give its unit with --units)", target_mesh,
+        raise InputError(f"its landmarks spread {spread[1]:.3g} mm (RMS about their centre), {ratio:.3g} times "
+                         f"{whose} {spread[0]:.3g} mm: is it in {units}? (give its unit with --units)", path,
                          "units")
 
 

@@ -8,6 +8,7 @@ import click
 
 from livebridge.cli._options import FiniteFloat, InputPath, Named, OutputFile, Size, force_option, unique_names
 from livebridge.cli.landmarks import UNITS_TO_MM
+from livebridge.cli.retarget import check_size
 
 SCAN_HELP = ("Scans: PLY (ascii or binary, point cloud or mesh), OBJ, or XYZ/CSV text (x y z per line), with "
              "colour when the scanner recorded it: per point (PLY red/green/blue, OBJ v x y z r g b, XYZ r g b "
@@ -103,9 +104,13 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
                 defaulted = what != "scan" and path == scan_path.with_suffix(".landmarks.csv")
                 also = f" (nor {picked_points_file(scan_path).name}; or give SCAN:LANDMARKS)" if defaulted else ""
                 raise click.BadParameter(f"{name}: no {what} {path}{also}", param_hint="--expression")
+    reference_marks = reference_landmarks(reference, 1.0)
+    shared = [name for name in reference_marks if name in neutral_marks]
+    if len(shared) >= 4:  # fewer: the normalisation names the missing ones
+        check_size(np.array([reference_marks[n] for n in shared]), np.array([neutral_marks[n] for n in shared]),
+                   "the reference face's", neutral_landmarks, units)
     click.echo(f"preparing {neutral_scan.name} and {len(files)} expression scan{'s' * (len(files) > 1)}")
-    neutral = prepare_neutral(neutral_points, neutral_marks,
-                              reference_landmarks(reference, 1.0), method, (rows, columns), crop_radius,
+    neutral = prepare_neutral(neutral_points, neutral_marks, reference_marks, method, (rows, columns), crop_radius,
                               neutral_landmarks, scan_source=neutral_scan, mesh_spacing=mesh_spacing)
     faces, uncoloured = {}, []
     for name, (scan_path, landmark_path) in files.items():
