@@ -93,7 +93,7 @@ def test_session_accepts_a_shipped_marker_set(tmp_path):
 # -------------------------------------------------------------------------------------------- match_markers
 def _set(names) -> MarkerSet:
     n = len(names)
-    return MarkerSet(tuple(names), np.zeros(n, int), np.tile([1.0, 0, 0], (n, 1)), ("upper",) * n, ("face",) * n)
+    return MarkerSet(tuple(names), np.arange(n), np.tile([1.0, 0, 0], (n, 1)), ("upper",) * n, ("face",) * n)
 
 
 def test_match_by_name_in_any_order():
