@@ -151,7 +151,7 @@ def _neutral_with(value) -> Callable[[Path], None]:
 
 BASIS_CASES = _common_cases() + (
     Case("empty file", _bytes(b""), ("not a livebridge basis",)),
-    Case("text file", _text("neutral = 1\n"), ("not a livebridge basis",)),
+    Case("text file", _text("neutral = 1\n"), ("not a livebridge basis", "not a zip archive")),
     Case("truncated", _damaged(lambda data: data[:len(data) // 2]), ("not a livebridge basis",)),
     Case("one byte short", _damaged(lambda data: data[:-1]), ("not a livebridge basis",)),
     Case("bit flip in an array", _damaged(_flip_inside_first_array), ("damaged",)),

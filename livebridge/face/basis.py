@@ -197,7 +197,9 @@ def _read_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
     except OSError as error:
         raise file_error(error, path) from None
     except (ValueError, EOFError, zipfile.BadZipFile) as error:
-        raise InputError(f"not a livebridge basis .npz file ({error})", path) from None
+        # numpy takes any file that is not a zip or .npy for a pickle, and says so: say what the file is not
+        what = error if zipfile.is_zipfile(path) else "not a zip archive, which a .npz is"
+        raise InputError(f"not a livebridge basis .npz file ({what})", path) from None
     if not isinstance(data, np.lib.npyio.NpzFile):
         raise InputError("a single .npy array, not a livebridge basis .npz file", path)
     with data:
