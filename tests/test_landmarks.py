@@ -262,3 +262,22 @@ def test_a_mesh_with_a_nan_vertex_is_refused_naming_the_file_and_vertex(tmp_path
              str(tmp_path / "lm.toml")] if command == "place" else
             ["show", str(tmp_path / "nan.obj"), "builtin-22", "--out", str(tmp_path / "lm.png")])
     assert_cli_refused(CliRunner().invoke(main, ["landmarks", *args]), "nan.obj", "vertex 5 is not finite")
+
+
+@pytest.mark.parametrize("landmarks", ["placed", "builtin-22"])
+def test_landmarks_of_one_mesh_are_refused_on_another_naming_the_file(tmp_path, face, landmarks):
+    """A landmark file names triangles: on a mesh of other triangles (here the built-in face less one) they are
+    other places, and a transfer through them came out 100-600 % off without a word. `landmarks place` writes
+    the mesh's triangle count into the file, and builtin-22 carries it, so the other mesh is refused by name."""
+    truth = load_landmark_set("builtin-22")
+    rows = "".join(f"{n},{x!r},{y!r},{z!r}\n" for n, (x, y, z) in
+                   zip(truth.names, truth.positions(face.neutral, face.triangles).tolist()))
+    (tmp_path / "points.csv").write_text(rows)
+    _run("landmarks", "place", "builtin", "--points", tmp_path / "points.csv", "--out", tmp_path / "placed.toml")
+    assert load_landmark_set(tmp_path / "placed.toml").mesh_triangles == len(face.triangles)
+    save_obj(tmp_path / "other.obj", face.neutral, face.triangles[:-1])
+    spec = str(tmp_path / "placed.toml") if landmarks == "placed" else landmarks
+    result = CliRunner().invoke(main, ["landmarks", "show", str(tmp_path / "other.obj"), spec, "--out",
+                                       str(tmp_path / "lm.png")])
+    assert_cli_refused(result, "placed.toml" if landmarks == "placed" else "builtin-22",
+                       f"made for a mesh of {len(face.triangles)} triangles")

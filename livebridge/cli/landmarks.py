@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import click
@@ -82,6 +83,8 @@ def place(mesh, vertices_file: Path | None, points_file: Path | None, out: Path,
         placed = place_at_points(points, vertices, triangles, max_distance, points_file)
     if require_22:
         placed.require_thesis_22(source)
+    # the mesh's triangle count goes with the file: on a mesh of another topology its triangles are other places
+    placed = dataclasses.replace(placed, mesh_triangles=len(triangles))
     placed.save(out)
     click.echo(f"wrote {out}: {len(placed)} landmarks on {mesh}")
 
