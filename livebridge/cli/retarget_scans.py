@@ -93,6 +93,13 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     from livebridge.retarget.scan import read_scan
     from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
 
+    outputs = [(option, path) for option, path in (("--out", out), ("--grid-obj", grid_obj),
+                                                    ("--landmarks-out", landmarks_out)) if path is not None]
+    for k, (option, path) in enumerate(outputs):
+        same = [other for other, there in outputs[:k] if there.resolve() == path.resolve()]
+        if same:  # the later file would overwrite the earlier
+            raise click.BadParameter(f"{path}: {same[0]} writes there already; give each output its own file",
+                                     param_hint=option)
     scale = UNITS_TO_MM[units]
     columns, rows = grid_size
     named = unique_names(expressions, "--expression")
