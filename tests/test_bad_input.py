@@ -1229,7 +1229,7 @@ COMMANDS = (
         Bad("LANDMARKS missing", ("landmarks", "show", "builtin", "{dir}/nothing.toml", "--out", "{dir}/lm.png"),
             ("LANDMARKS", "nothing.toml", "file not found"), True),
         Bad("LANDMARKS not on this mesh", ("landmarks", "show", "{dir}/basis.npz", "builtin-22", "--out",
-                                           "{dir}/lm.png"), ("builtin-22", "marker brow_outer_L", "does not exist"),
+                                           "{dir}/lm.png"), ("builtin-22", "made for a mesh of 17672 triangles"),
             True),
     )),
     *[Command(f"retarget {verb}", ("retarget", verb, *_RETARGET, *extra), (
