@@ -476,6 +476,11 @@ def _ply_ascii(body: bytes, elements, path: Path, header_lines: int) -> dict:
                                  f"{_describe(element)}, got {' '.join(values)[:60]!r}", path,
                                  element.name) from None
         tables[element.name] = columns
+    extra = [k for k in range(at, len(lines)) if lines[k].strip()]
+    if extra and elements:
+        last = elements[-1]
+        raise InputError(f"line {header_lines + extra[0] + 1}: {len(extra)} more rows than the header promises "
+                         f"(it ends with {last.count} {last.name} rows): is its count right?", path, last.name)
     return tables
 
 
@@ -551,6 +556,10 @@ def _ply_binary(body: bytes, elements, order: str, path: Path) -> dict:
             at += needed
         else:
             tables[element.name], at = _binary_lists(body, at, element, order, path)
+    if body[at:].strip() and elements:  # a trailing line break is harmless; rows the header does not count are not
+        last = elements[-1]
+        raise InputError(f"{len(body) - at} bytes after the {last.count} {last.name} rows the header promises: is "
+                         "its count right?", path, last.name)
     return tables
 
 
