@@ -1075,3 +1075,15 @@ def test_retarget_scans_in_other_units_are_refused_naming_the_landmarks_and_unit
     result = CliRunner().invoke(main, [*args, "--units", units])
     assert result.exit_code == 0, result.output
     assert (tmp_path / "basis.npz").exists()
+
+
+def test_a_reference_face_without_the_normalisation_landmarks_is_refused_naming_its_file(tmp_path):
+    from livebridge.cli import main
+
+    write_builtin_scans(tmp_path, 6, {"neutral": "neutral", "jaw": "jaw"})
+    (tmp_path / "reference.csv").write_text("nose_tip,0,0,0\nbrow_inner_L,10,50,-20\n")
+    result = CliRunner().invoke(main, [
+        "retarget", "scans", "--neutral", str(tmp_path / "neutral.ply"), "--neutral-landmarks",
+        str(tmp_path / "neutral.landmarks.csv"), "--expression", f"jaw={tmp_path / 'jaw.ply'}", "--reference",
+        str(tmp_path / "reference.csv"), "--out", str(tmp_path / "basis.npz")])
+    assert_cli_refused(result, "reference.csv", "missing: eye_outer_L, eye_outer_R, chin")

@@ -37,9 +37,16 @@ def split_scan_spec(text: str) -> tuple[Path, Path]:
 def reference_landmarks(spec: str, scale: float) -> dict:
     """The reference face's landmarks: ``builtin`` (the built-in face's builtin-22) or a landmark points file."""
     if spec != "builtin":
+        from livebridge.errors import InputError
+        from livebridge.retarget.normalise import NORMALISATION_LANDMARKS
         from livebridge.retarget.point_files import read_points
 
-        return read_points(spec, scale)
+        points = read_points(spec, scale)
+        missing = [name for name in NORMALISATION_LANDMARKS if name not in points]
+        if missing:  # named here: the normalisation knows it only as the reference face
+            raise InputError(f"the reference face needs the landmarks {', '.join(NORMALISATION_LANDMARKS)}; "
+                             f"missing: {', '.join(missing)}", spec, "landmarks")
+        return points
     from livebridge.face.builtin import builtin_basis
     from livebridge.retarget.landmarks import load_landmark_set
 
