@@ -12,7 +12,9 @@ from click.testing import CliRunner
 from factories import assert_cli_refused, write_builtin_scans
 
 from livebridge.cli import main
+from livebridge.errors import InputError
 from livebridge.face.basis import Basis
+from livebridge.face.builtin import builtin_basis
 from livebridge.retarget.eyelids import LID_LANDMARK_NAMES
 from livebridge.retarget.landmarks import THESIS_22_NAMES, load_landmark_set
 from livebridge.retarget.point_files import read_points, write_pick_template
@@ -163,3 +165,19 @@ def test_a_point_cloud_with_a_byte_order_mark_reads_its_first_point(tmp_path):
     rows = "".join(f"{k} {2 * k} {3 * k}\n" for k in range(5))
     path.write_bytes(b"\xef\xbb\xbf" + rows.encode())
     np.testing.assert_array_equal(read_scan(path).points, [[k, 2 * k, 3 * k] for k in range(5)])
+
+
+def test_points_and_landmark_sets_given_for_each_other_say_which_is_which(tmp_path):
+    """A CSV of points where a landmark set (on a mesh) is wanted, and the reverse, as a user mixes them up:
+    each is refused by name with the command that turns one into the other, not as malformed TOML."""
+    truth = load_landmark_set("builtin-22")
+    face = builtin_basis()
+    points = truth.positions(face.neutral, face.triangles)
+    (tmp_path / "points.csv").write_text("".join(f"{n},{x!r},{y!r},{z!r}\n" for n, (x, y, z) in
+                                                 zip(truth.names, points.tolist())))
+    result = CliRunner().invoke(main, ["landmarks", "show", "builtin", str(tmp_path / "points.csv"), "--out",
+                                       str(tmp_path / "lm.png")])
+    assert_cli_refused(result, "points.csv", "not a landmark set", "landmarks place MESH --points points.csv")
+    truth.save(tmp_path / "set.toml")
+    with pytest.raises(InputError, match="placed on a mesh .* not points"):
+        read_points(tmp_path / "set.toml")

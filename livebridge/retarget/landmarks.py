@@ -97,6 +97,11 @@ def load_landmark_set(spec: str | Path) -> LandmarkSet:
         return LandmarkSet.of(shipped_marker_set(spec))
     if isinstance(spec, str) and spec in SHIPPED_LANDMARK_SETS:
         return LandmarkSet.load(DATA / f"{spec.replace('-', '_')}.toml")
+    from livebridge.retarget.point_files import POINT_FILE_SUFFIXES
+
+    if Path(spec).suffix.lower() in POINT_FILE_SUFFIXES and Path(spec).suffix.lower() != ".toml":
+        raise InputError("points, not a landmark set: place them on the mesh first with `livebridge landmarks place "
+                         f"MESH --points {Path(spec).name} --out landmarks.toml`", spec, "landmarks")
     return LandmarkSet.load(spec)
 
 

@@ -87,8 +87,12 @@ def read_points_csv(path: str | Path) -> dict[str, np.ndarray]:
 
 def read_points_toml(path: str | Path) -> dict[str, np.ndarray]:
     """``name = [x, y, z]`` lines of a TOML file, in file order."""
-    points = {}
-    for name, value in load_toml(path).items():
+    points, data = {}, load_toml(path)
+    if data.get("format") == "livebridge-markers":
+        raise InputError("a landmark set placed on a mesh (triangles and barycentric coordinates, as `landmarks place` "
+                         "and --landmarks-out write), not points: give each landmark's x, y, z on this scan (CSV "
+                         "name,x,y,z, TOML name = [x, y, z] or a MeshLab .pp file)", path, "format")
+    for name, value in data.items():
         if (not isinstance(value, list) or len(value) != 3
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
                            for v in value)):
