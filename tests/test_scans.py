@@ -1087,3 +1087,28 @@ def test_a_reference_face_without_the_normalisation_landmarks_is_refused_naming_
         str(tmp_path / "neutral.landmarks.csv"), "--expression", f"jaw={tmp_path / 'jaw.ply'}", "--reference",
         str(tmp_path / "reference.csv"), "--out", str(tmp_path / "basis.npz")])
     assert_cli_refused(result, "reference.csv", "missing: eye_outer_L, eye_outer_R, chin")
+
+
+def test_scans_of_one_colour_everywhere_are_built_from_their_shape_and_say_so(tmp_path):
+    """Some exporters write every point white: tracking that 'skin' followed nothing (a basis 0.63-0.73 off
+    where shape alone gave 0.59, each element said to be skin tracked). One colour over the face is no pattern:
+    the build is the shape-only one, and the CLI says there is no colour."""
+    from livebridge.cli import main
+    from livebridge.face.basis import Basis
+    from livebridge.retarget.scan import read_scan, write_ply
+
+    write_builtin_scans(tmp_path, 6, {"neutral": "neutral", "jaw": "jaw"})
+    for stem in ("neutral", "jaw"):
+        points = read_scan(tmp_path / f"{stem}.ply").points
+        write_ply(tmp_path / f"{stem}_white.ply", points, None, "ascii", colours=np.ones((len(points), 3)))
+        (tmp_path / f"{stem}_white.landmarks.csv").write_text((tmp_path / f"{stem}.landmarks.csv").read_text())
+    built = {}
+    for tag in ("", "_white"):
+        result = CliRunner().invoke(main, [
+            "retarget", "scans", "--neutral", str(tmp_path / f"neutral{tag}.ply"), "--neutral-landmarks",
+            str(tmp_path / f"neutral{tag}.landmarks.csv"), "--expression", f"jaw={tmp_path / f'jaw{tag}.ply'}",
+            "--grid", "40x40", "--out", str(tmp_path / f"basis{tag}.npz")])
+        assert result.exit_code == 0, result.output
+        assert "(shape only)" in result.output and "note: no colour in the neutral scan" in result.output
+        built[tag] = Basis.load(tmp_path / f"basis{tag}.npz").elements
+    np.testing.assert_allclose(built["_white"], built[""], atol=1e-9)

@@ -305,7 +305,8 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
     grid = resample(points[inside], x, y, source=source)
     if isinstance(chart, str):
         chart = face_chart(grid.vertices, chart)
-    if not scan.has_colour:
+    if scan.colours is None or np.ptp(scan.colours[inside], axis=0).max() < 1 / 255:
+        # one colour all over the face (some exporters write white) has no pattern to track: shape only
         return FaceScan(grid, landmarks, scan2face, chart=chart)
     spacing = point_spacing(chart.to_chart(points[inside])[:, :2])  # in the skin images' chart
     step = float(max(np.diff(x).max(), np.diff(y).max()))
