@@ -1238,7 +1238,8 @@ COMMANDS = (
     *[Command(f"retarget {verb}", ("retarget", verb, *_RETARGET, *extra), (
         Bad("a landmark missing on the target", ("--target-landmarks", "{dir}/lm21.toml"),
             ("lm21.toml", "nose_tip", "missing")),
-        Bad("a non-manifold target", ("--target", "{dir}/fan.obj"), ("builtin-22", "non-manifold")),
+        Bad("a non-manifold target", ("--target", "{dir}/fan.obj"), ("fan.obj", "non-manifold")),
+        Bad("an unwelded target", ("--target", "{dir}/soup.obj"), ("soup.obj", "unwelded")),
         Bad("a landmark off the surface", ("--target", "{dir}/collapsed.obj"),
             ("builtin-22", "nose_tip", "off the surface")),
         Bad("a hole at a landmark", ("--target", "{dir}/holed.obj"), ("builtin-22", "nose_tip", "hole")),
@@ -1336,6 +1337,10 @@ def _retarget_work(folder: Path) -> None:
         lines = [f"v {x} {y} {z}" for x, y, z in basis.neutral] + [f"f {i + 1} {j + 1} {k + 1}"
                                                                    for i, j, k in triangles]
         (folder / name).write_text("\n".join(lines) + "\n")
+    corners = basis.neutral[basis.triangles].reshape(-1, 3)  # every triangle its own three vertices, as in STL
+    lines = [f"v {x} {y} {z}" for x, y, z in corners] + [f"f {3 * t + 1} {3 * t + 2} {3 * t + 3}"
+                                                         for t in range(len(basis.triangles))]
+    (folder / "soup.obj").write_text("\n".join(lines) + "\n")
 
 
 @pytest.mark.parametrize("command,case", OPTION_CASES)

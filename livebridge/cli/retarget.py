@@ -12,6 +12,7 @@ from livebridge.cli._options import FiniteFloat, ImageFile, InputPath, OutputFil
 from livebridge.cli.basis_show import _draw_mesh, _view
 from livebridge.cli.landmarks import MESH_TYPE, UNITS_TO_MM, load_mesh
 from livebridge.errors import InputError
+from livebridge.retarget.checks import check_mesh
 from livebridge.retarget.landmarks import SHIPPED_LANDMARK_SETS
 
 LANDMARKS_TYPE = InputPath(builtins=SHIPPED_LANDMARK_SETS)
@@ -47,6 +48,7 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
 
     source = _load_source(source_spec)
     vertices, triangles = load_mesh(target_spec, units)
+    check_mesh(triangles, target_spec)
     on_source, on_target = _landmarks(source_landmarks, source, target_landmarks, vertices, triangles)
     _check_size(on_source, source, on_target, vertices, triangles, target_spec, units)
     result = retarget_basis(source, on_source, vertices, triangles, on_target, kernel)
@@ -84,6 +86,7 @@ def au(source_spec, source_landmarks, target_spec, target_landmarks, aus, magnit
 
     source = _load_source(source_spec)
     vertices, triangles = load_mesh(target_spec, units)
+    check_mesh(triangles, target_spec)
     on_source, on_target = _landmarks(source_landmarks, source, target_landmarks, vertices, triangles)
     _check_size(on_source, source, on_target, vertices, triangles, target_spec, units)
     points = load_control_points(control_points)

@@ -22,6 +22,41 @@ def non_manifold_edges(triangles: np.ndarray) -> np.ndarray:
     return unique[counts > 2]
 
 
+UNWELDED_RIM_SHARE = 0.5
+"""A mesh with more than this share of its edges on a rim is taken for unwelded (each triangle its own vertices,
+as STL files are): a face has rims only at its outline, mouth, eyes and nostrils."""
+
+
+def check_mesh(triangles: np.ndarray, source=None) -> None:
+    """Raise an :class:`InputError` naming ``source`` (the mesh file) for faults of the whole mesh: unwelded
+    triangles, and edges shared by more than two triangles (non-manifold). Triangles that repeat a vertex (no
+    surface) are left out of both checks."""
+    from livebridge.retarget.basis import edge_counts
+
+    triangles = _proper(np.asarray(triangles, dtype=np.int64))
+    if not len(triangles):
+        return
+    edges, counts = edge_counts(triangles)
+    rim_share = float(np.mean(counts == 1))
+    if rim_share > UNWELDED_RIM_SHARE:
+        raise InputError(f"{rim_share:.0%} of the mesh's edges belong to one triangle only: its triangles do not "
+                         "share their vertices (unwelded, as STL files are); weld them (MeshLab: Filters > Cleaning "
+                         "and Repairing > Merge Close Vertices) and place the landmarks again", source, "triangles")
+    bad = edges[counts > 2]
+    if len(bad):
+        raise InputError(f"non-manifold: {len(bad)} edge{'s' if len(bad) > 1 else ''} shared by more than two "
+                         f"triangles (the first between vertices {int(bad[0][0])} and {int(bad[0][1])}; a triangle "
+                         "written twice makes one too): repair the mesh (MeshLab: Filters > Cleaning and Repairing "
+                         "> Remove Duplicate Faces, Repair non Manifold Edges) and place the landmarks again", source,
+                         "triangles")
+
+
+def _proper(triangles: np.ndarray) -> np.ndarray:
+    """The triangles (k, 3) whose three vertices differ."""
+    return triangles[(triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2])
+                     & (triangles[:, 0] != triangles[:, 2])]
+
+
 def check_landmarks_on(landmarks: LandmarkSet, vertices: np.ndarray, triangles: np.ndarray, source=None) -> None:
     """Raise an :class:`InputError` naming ``source`` (the landmark file) and the landmark when the mesh cannot
     carry a transfer at that landmark.
@@ -48,7 +83,7 @@ def check_landmarks_on(landmarks: LandmarkSet, vertices: np.ndarray, triangles: 
                              "lie on a line)", source, name)
     from livebridge.retarget.basis import edge_counts
 
-    edges, counts = edge_counts(triangles)
+    edges, counts = edge_counts(_proper(triangles))
     base = len(vertices) + 1
     rim = set((edges[counts == 1, 0] * base + edges[counts == 1, 1]).tolist())
     for name, triangle in zip(landmarks.names, landmarks.triangles):
@@ -58,7 +93,7 @@ def check_landmarks_on(landmarks: LandmarkSet, vertices: np.ndarray, triangles: 
         if {int(a) * base + int(b), int(b) * base + int(c), int(a) * base + int(c)} & rim:
             raise InputError(f"on the rim of a hole in the mesh: its triangle {int(triangle)} has an edge no other "
                              "triangle shares (fill the hole, or place the landmark on closed surface)", source, name)
-    bad = non_manifold_edges(triangles)
+    bad = non_manifold_edges(_proper(triangles))
     if len(bad):
         middle = vertices[bad[0]].mean(axis=0)
         positions = landmarks.positions(vertices, triangles)
