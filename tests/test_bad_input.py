@@ -1240,6 +1240,8 @@ COMMANDS = (
             ("lm21.toml", "nose_tip", "missing")),
         Bad("a non-manifold target", ("--target", "{dir}/fan.obj"), ("fan.obj", "non-manifold")),
         Bad("an unwelded target", ("--target", "{dir}/soup.obj"), ("soup.obj", "unwelded")),
+        Bad("a target facing inwards", ("--target", "{dir}/flipped.obj"), ("flipped.obj", "face into the head")),
+        Bad("a target wound every which way", ("--target", "{dir}/mixed.obj"), ("mixed.obj", "every which way")),
         Bad("a landmark off the surface", ("--target", "{dir}/collapsed.obj"),
             ("builtin-22", "nose_tip", "off the surface")),
         Bad("a hole at a landmark", ("--target", "{dir}/holed.obj"), ("builtin-22", "nose_tip", "hole")),
@@ -1333,7 +1335,11 @@ def _retarget_work(folder: Path) -> None:
     own = landmarks.triangles[landmarks.names.index("nose_tip")]
     around = np.flatnonzero(np.isin(holed, holed[own]).any(axis=1))
     holed[around[around != own]] = holed[0, 0]
-    for name, triangles in (("fan.obj", fan), ("collapsed.obj", collapsed), ("holed.obj", holed)):
+    flipped = basis.triangles[:, ::-1]
+    mixed = basis.triangles.copy()
+    mixed[::2] = mixed[::2, ::-1]
+    for name, triangles in (("fan.obj", fan), ("collapsed.obj", collapsed), ("holed.obj", holed),
+                            ("flipped.obj", flipped), ("mixed.obj", mixed)):
         lines = [f"v {x} {y} {z}" for x, y, z in basis.neutral] + [f"f {i + 1} {j + 1} {k + 1}"
                                                                    for i, j, k in triangles]
         (folder / name).write_text("\n".join(lines) + "\n")

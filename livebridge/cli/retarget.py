@@ -48,7 +48,7 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
 
     source = _load_source(source_spec)
     vertices, triangles = load_mesh(target_spec, units)
-    check_mesh(triangles, target_spec)
+    check_mesh(vertices, triangles, target_spec)
     on_source, on_target = _landmarks(source_landmarks, source, target_landmarks, vertices, triangles)
     _check_size(on_source, source, on_target, vertices, triangles, target_spec, units)
     result = retarget_basis(source, on_source, vertices, triangles, on_target, kernel)
@@ -86,7 +86,7 @@ def au(source_spec, source_landmarks, target_spec, target_landmarks, aus, magnit
 
     source = _load_source(source_spec)
     vertices, triangles = load_mesh(target_spec, units)
-    check_mesh(triangles, target_spec)
+    check_mesh(vertices, triangles, target_spec)
     on_source, on_target = _landmarks(source_landmarks, source, target_landmarks, vertices, triangles)
     _check_size(on_source, source, on_target, vertices, triangles, target_spec, units)
     points = load_control_points(control_points)

@@ -27,10 +27,21 @@ UNWELDED_RIM_SHARE = 0.5
 as STL files are): a face has rims only at its outline, mouth, eyes and nostrils."""
 
 
-def check_mesh(triangles: np.ndarray, source=None) -> None:
+WINDING_SLACK = 0.01
+"""Share of a mesh's shared edges that may run the same way in both their triangles (a few flipped slivers)."""
+
+
+INWARD_SHARE = 0.25
+"""A mesh faces inwards when its triangles' area-weighted facing away from the vertices' centre sums below minus
+this share of its magnitude (the built-in face +0.98, the ICT face region +0.87, its whole head with eyes and
+mouth +0.58; flipped, as much below)."""
+
+
+def check_mesh(vertices: np.ndarray, triangles: np.ndarray, source=None) -> None:
     """Raise an :class:`InputError` naming ``source`` (the mesh file) for faults of the whole mesh: unwelded
-    triangles, and edges shared by more than two triangles (non-manifold). Triangles that repeat a vertex (no
-    surface) are left out of both checks."""
+    triangles, edges shared by more than two triangles (non-manifold), triangles wound every which way or all
+    facing into the head (the transfer matches surfaces by the way they face). Triangles that repeat a vertex
+    (no surface) are left out."""
     from livebridge.retarget.basis import edge_counts
 
     triangles = _proper(np.asarray(triangles, dtype=np.int64))
@@ -49,6 +60,30 @@ def check_mesh(triangles: np.ndarray, source=None) -> None:
                          "written twice makes one too): repair the mesh (MeshLab: Filters > Cleaning and Repairing "
                          "> Remove Duplicate Faces, Repair non Manifold Edges) and place the landmarks again", source,
                          "triangles")
+    _check_winding(vertices, triangles, int(np.sum(counts == 2)), source)
+
+
+def _check_winding(vertices: np.ndarray, triangles: np.ndarray, interior: int, source) -> None:
+    """Refuse ``triangles`` (k, 3; all proper, every edge in at most two) wound inconsistently (more than
+    :data:`WINDING_SLACK` of the ``interior`` edges run the same way in both their triangles) or facing inwards
+    (their area-weighted normals point towards the vertices' centre: a face, a mask or a head, bulges outwards)."""
+    base = int(triangles.max()) + 1
+    directed = triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    _, counts = np.unique(directed[:, 0] * base + directed[:, 1], return_counts=True)
+    same_way = int(np.sum(counts > 1))
+    if same_way > WINDING_SLACK * max(interior, 1):
+        raise InputError(f"its triangles are wound every which way ({same_way} of {interior} shared edges run the "
+                         "same way in both triangles), so its normals point in and out at random: re-orient them "
+                         "(MeshLab: Filters > Normals > Re-Orient all faces coherently) and place the landmarks "
+                         "again", source, "triangles")
+    corners = vertices[triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])  # length: twice the area
+    centre = vertices[np.unique(triangles)].mean(axis=0)
+    outward = np.sum(normals * (corners.mean(axis=1) - centre), axis=1)
+    if outward.sum() < -INWARD_SHARE * np.abs(outward).sum():  # a flat patch, neither way, passes
+        raise InputError("its triangles face into the head (their normals point inwards, as after a mirroring or "
+                         "a change of handedness): flip them (MeshLab: Filters > Normals > Invert Faces "
+                         "Orientation) and place the landmarks again", source, "triangles")
 
 
 def _proper(triangles: np.ndarray) -> np.ndarray:
