@@ -1112,3 +1112,17 @@ def test_scans_of_one_colour_everywhere_are_built_from_their_shape_and_say_so(tm
         assert "(shape only)" in result.output and "note: no colour in the neutral scan" in result.output
         built[tag] = Basis.load(tmp_path / f"basis{tag}.npz").elements
     np.testing.assert_allclose(built["_white"], built[""], atol=1e-9)
+
+
+def test_a_landmark_file_given_as_the_expression_scan_is_refused_as_too_sparse(tmp_path):
+    """An expression 'scan' of its own 22 landmarks (a user's slip: --expression jaw=jaw.landmarks.csv) built a
+    36 mm jaw from a spline through them; the face crop's points must lie within a few grid cells."""
+    from livebridge.cli import main
+
+    write_builtin_scans(tmp_path, 6, {"neutral": "neutral", "jaw": "jaw"})
+    landmarks = tmp_path / "jaw.landmarks.csv"
+    result = CliRunner().invoke(main, [
+        "retarget", "scans", "--neutral", str(tmp_path / "neutral.ply"), "--neutral-landmarks",
+        str(tmp_path / "neutral.landmarks.csv"), "--expression", f"jaw={landmarks}:{landmarks}", "--grid", "40x40",
+        "--out", str(tmp_path / "basis.npz")])
+    assert_cli_refused(result, "jaw.landmarks.csv", "points", "too sparse", "--grid")

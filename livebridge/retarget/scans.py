@@ -231,6 +231,10 @@ class FaceScan:
         return place_at_points(self.landmarks, self.vertices, self.triangles, LANDMARK_MAX_DISTANCE_MM, source)
 
 
+SPARSE_CELLS = 4.0
+"""A scan's points may lie at most this many grid cells apart, on average over the face crop's disc."""
+
+
 def crop_radius(landmarks: dict[str, np.ndarray]) -> float:
     """:data:`CROP_FACTOR` times the farthest landmark from the nose tip, mm."""
     tip = np.asarray(landmarks["nose_tip"], dtype=np.float64)
@@ -302,6 +306,7 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
     in ``chart`` (a kind: one of that kind fitted to this scan's grid), on ``skin_axes`` (fine u, fine v,
     factor, margin; None: over this scan's grid)."""
     inside = crop_sphere(points, np.zeros(3), radius)
+    _check_dense(points[inside], x, y, source)
     grid = resample(points[inside], x, y, source=source)
     if isinstance(chart, str):
         chart = face_chart(grid.vertices, chart)
@@ -322,6 +327,20 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
         skin = resample(on_chart, fine_x, fine_y, skin_gap_mm(step), source, colours)
     skin_holes = holes(on_chart, fine_x, fine_y, opening_gap_mm(spacing, step))
     return FaceScan(grid, landmarks, scan2face, skin, factor, margin, spacing, chart=chart, skin_holes=skin_holes)
+
+
+def _check_dense(points: np.ndarray, x: np.ndarray, y: np.ndarray, source) -> None:
+    """Refuse a scan whose points (n, 3; the face crop) lie more than :data:`SPARSE_CELLS` cells of the grid
+    ``x``, ``y`` apart on average over the crop's disc: the grid would be a spline through a few points (a
+    landmark file given as the scan built a 36 mm jaw from its 22 points)."""
+    step = float(max(np.diff(x).max(), np.diff(y).max()))
+    if not len(points):
+        return  # the resampling says so
+    spacing = float(np.sqrt(np.pi * x[-1] ** 2 / len(points)))  # clustered points (landmarks) lie nearer
+    if spacing > SPARSE_CELLS * step:
+        raise InputError(f"{len(points)} points in the face crop, {spacing:.3g} mm apart: too sparse for the grid's "
+                         f"{step:.3g} mm cells (a landmark file given as the scan?); give a denser scan or a coarser "
+                         "--grid", source, "points")
 
 
 def _skin_axes(chart: SkinChart, x: np.ndarray, y: np.ndarray, points: np.ndarray
