@@ -399,3 +399,20 @@ def test_the_anti_alias_blur_does_not_bleed_the_atlas_padding_into_the_skin():
     texture = Texture(uv[SQUARE_TRIANGLES], np.zeros(2, int), (image,), ("atlas.png",))
     _, colours = sample_textured(corners, SQUARE_TRIANGLES, texture, spacing=0.5)
     np.testing.assert_allclose(colours, [[1, 0, 0]] * len(colours), atol=0.02)
+
+
+@pytest.mark.parametrize("usemtl", ["", "usemtl other\n"])
+def test_faces_showing_no_image_leave_the_vertex_colours(tmp_path, usemtl):
+    """An OBJ with an image in its MTL that no face uses (no usemtl, or one naming another material): its
+    vertices' colours are the colour, where the unused texture displaced them (and a scan without them was said
+    to be skin tracked while built from its shape)."""
+    cv2.imwrite(str(tmp_path / "grey.png"), np.full((4, 4, 3), 128, np.uint8))
+    (tmp_path / "m.mtl").write_text("newmtl skin\nmap_Kd grey.png\n")
+    colours = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]], float)
+    (tmp_path / "scan.obj").write_text(
+        "mtllib m.mtl\n" + usemtl + "".join(f"v {x} {y} {z} {r} {g} {b}\n" for (x, y, z), (r, g, b)
+                                            in zip(SQUARE, colours))
+        + "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
+    scan = read_scan(tmp_path / "scan.obj")
+    assert scan.texture is None
+    np.testing.assert_array_equal(scan.colours, colours)

@@ -234,7 +234,8 @@ def _read_obj(data: bytes, path: Path):
 def _obj_texture(path: Path, libraries: list[str], texcoords: np.ndarray, corner_uv: np.ndarray,
                  face_material: list):
     """The :class:`~livebridge.retarget.texture.Texture` of an OBJ's faces: each material's ``map_Kd`` image
-    from the ``mtllib`` files (next to the OBJ); None when no material has an image."""
+    from the ``mtllib`` files (next to the OBJ); None when no face (with texture coordinates) shows an image: no
+    ``usemtl`` line, or one naming another material, leaves the vertices' colours, if any, as the colour."""
     from livebridge.retarget.texture import Texture, read_image, read_materials
 
     images_of, library_of = {}, {}  # a material's image, and the MTL file that named it (for errors)
@@ -249,6 +250,8 @@ def _obj_texture(path: Path, libraries: list[str], texcoords: np.ndarray, corner
     images = tuple(read_image(images_of[m], path.parent / library_of[m], f"{m}.map_Kd") for m in used)
     image_index = np.array([index_of.get(m, -1) for m in face_material], dtype=np.int64)
     image_index[(corner_uv < 0).any(axis=1)] = -1
+    if not (image_index >= 0).any():
+        return None
     uv = texcoords[np.clip(corner_uv, 0, None)][..., :2]
     return Texture(uv, image_index, images, tuple(images_of[m].name for m in used))
 
