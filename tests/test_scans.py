@@ -988,11 +988,20 @@ def _same(marks):
     return {name: marks["nose_tip"] for name in marks}
 
 
+def _sides_swapped(marks):
+    swap = {"_L": "_R", "_R": "_L"}
+    return {name[:-2] + swap[name[-2:]] if name[-2:] in swap else name: xyz for name, xyz in marks.items()}
+
+
 BAD_SCANS = [  # (case, scan to spoil, its points, its landmarks, extra options, words of the error)
     ("a flat neutral", "neutral", _flat, lambda m: {k: _flat(v) for k, v in m.items()}, (),
      ("neutral.ply", "points", "flat")),
     ("the neutral in metres", "neutral", lambda p: p / 1000, lambda m: {k: v / 1000 for k, v in m.items()}, (),
      ("neutral.landmarks.csv", "units", "is it in mm?")),
+    ("the neutral's left and right swapped", "neutral", None, _sides_swapped, (),
+     ("neutral.landmarks.csv", "left and right swapped")),
+    ("the neutral mirrored", "neutral", lambda p: p * [-1, 1, 1], lambda m: {k: v * [-1, 1, 1] for k, v in m.items()},
+     (), ("neutral.landmarks.csv", "mirrored")),
     ("the neutral's landmarks at one point", "neutral", None, _same, (), ("neutral.landmarks.csv", "both at")),
     ("a crop radius of 9 m", "neutral", None, None, ("--crop-radius", "9000"), ("neutral.landmarks.csv", "points",
                                                                                 "no surface")),

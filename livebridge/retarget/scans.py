@@ -255,6 +255,7 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     ``source`` (the landmark file) or ``scan_source`` (the scan file: a flat scan)."""
     scan2face = normalisation(landmarks, reference, method, source)
     moved = transform_landmarks(scan2face, landmarks)
+    check_sides(moved, reference, source)
     radius = crop_radius(moved) if radius is None else float(radius)
     scan = _as_points(scan, landmarks, radius / abs(transform_scale(scan2face)), mesh_spacing, scan2face)
     scan, points = _without_spikes(scan, apply(scan2face, scan.points), radius)
@@ -410,6 +411,29 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     inside = points[crop_sphere(points, np.zeros(3), radius)]
     return replace(face, gap_mm=surface_gap(inside, neutral.vertices, normals),
                    noise_mm=noise_level(inside, face.grid))
+
+
+def check_sides(landmarks: dict[str, np.ndarray], reference: dict[str, np.ndarray], source=None) -> None:
+    """Raise an :class:`InputError` naming ``source`` (the neutral's landmark file) when the normalised face
+    (``landmarks`` in the face frame) is the ``reference`` face's mirror image: its nose tip behind the outer eye
+    corners (the rigid normalisation turns a mirrored face round to face away), or most of its ``_L`` / ``_R``
+    pairs the other way round. Left and right swapped in the file, or a mirrored scan: the expressions' checks
+    would blame their own files."""
+    eyes = ("eye_outer_L", "eye_outer_R")
+    if all(name in landmarks and name in reference for name in (*eyes, "nose_tip")):
+        ahead = [marks["nose_tip"][2] - 0.5 * (marks[eyes[0]][2] + marks[eyes[1]][2])
+                 for marks in (landmarks, reference)]
+        if ahead[0] * ahead[1] < 0:
+            raise InputError(f"normalised, the nose tip lies {abs(ahead[0]):.3g} mm behind the outer eye corners: "
+                             "are left and right swapped, or is the scan mirrored?", source, "nose_tip")
+    pairs = [name[:-2] for name in landmarks if name.endswith("_L") and name[:-2] + "_R" in landmarks
+             and name in reference and name[:-2] + "_R" in reference]
+    swapped = [stem for stem in pairs if (landmarks[stem + "_L"][0] - landmarks[stem + "_R"][0])
+               * (reference[stem + "_L"][0] - reference[stem + "_R"][0]) < 0]
+    if 2 * len(swapped) > len(pairs) > 0:
+        raise InputError(f"left and right are the other way round ({len(swapped)} of {len(pairs)} _L / _R pairs, "
+                         f"{swapped[0]}_L on the right): are the names swapped, or is the scan mirrored?", source,
+                         f"{swapped[0]}_L")
 
 
 def check_not_folded(neutral: dict[str, np.ndarray], expression: dict[str, np.ndarray], source=None) -> None:
