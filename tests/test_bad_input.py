@@ -682,6 +682,7 @@ XYZ_CASES = _common_cases() + (
     Case("two columns", _text("1 2 3\n4 5\n"), ("line 2", "at least 3 values")),
     Case("text", _text("1 2 3\n4 five 6\n"), ("line 2", "numbers")),
     Case("NaN", _text("1 2 3\n4 5 nan\n"), ("line 2", "finite")),
+    Case("decimal commas", _text("1,5;2,5;3,5\n"), ("line 1", "decimal point")),
     Case("header with numbers after", _text("label 2 3\n"), ("line 1", "numbers")),
     Case("colour not a number", _text("x y z r g b\n1 2 3 0.5 0.5 0.5\n4 5 6 red 0 0\n"), ("line 3", "r, g, b")),
     Case("negative colour", _text("x y z r g b\n1 2 3 0.5 -0.5 0.5\n"), ("point 0", "colour")),

@@ -134,6 +134,9 @@ def _read_xyz(data: bytes, path: Path):
         text = line.strip()
         if not text or text.startswith(("#", "//")):
             continue
+        if ";" in text and "," in text:  # the European CSV: ';' between the numbers, ',' inside them
+            raise InputError(f"line {number}: ';' between values and ',' within them ({text[:40]!r}): write the "
+                             "numbers with a decimal point", path)
         cells = [cell for cell in _SEPARATORS.split(text) if cell]
         if first and not _is_number(cells[0]):
             columns, first = _header_columns(cells, columns, path, number), False

@@ -258,7 +258,14 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     check_sides(moved, reference, source)
     radius = crop_radius(moved) if radius is None else float(radius)
     scan = _as_points(scan, landmarks, radius / abs(transform_scale(scan2face)), mesh_spacing, scan2face)
+    whole = scan.points
     scan, points = _without_spikes(scan, apply(scan2face, scan.points), radius)
+    if not len(points):  # the crop holds no point: say how far apart the scan's and the landmarks' places are
+        size = float(np.ptp(whole, axis=0).max())
+        spread = float(np.ptp(np.array(list(landmarks.values())), axis=0).max())
+        raise InputError(f"no point of the scan within {radius:.3g} mm of the nose tip: the scan spans {size:.3g} mm, "
+                         f"its landmarks {spread:.3g} mm: are both in the same units and coordinates?",
+                         scan_source or source, "points")
     x, y = square_axes(radius, shape)
     face = _resampled(scan, points, x, y, radius, moved, scan2face, source, chart)
     off_plane = face.vertices - face.vertices.mean(axis=0)
