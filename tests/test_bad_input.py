@@ -541,6 +541,8 @@ LANDMARK_POINTS_CASES = _common_cases() + (
     Case("two landmarks at one point", _text(_ON_FACE + _ON_FACE.replace("chin", "nose_tip")),
          ("chin and nose_tip", "both at")),
     Case("far off the surface", _text(_ON_FACE + "nose_tip,0,-7,160\n"), ("nose_tip", "mm from the mesh surface")),
+    Case("every point off the surface (in m)", _text("chin,0,-0.08,0.08994\nnose_tip,0,-0.007,0.1198\n"),
+         ("2 points this far", "all of them", "units")),
 )
 
 _PICKED_CHIN = 'x="0" y="-80" z="89.94" name="chin" active="1"'

@@ -306,8 +306,9 @@ def place_at_points(points: dict[str, np.ndarray], vertices: np.ndarray, triangl
     far = np.flatnonzero(distance > max_distance)
     if far.size:
         k = int(far[np.argmax(distance[far])])
+        every = " (all of them: same coordinates and units as the mesh?)" if far.size == len(names) > 1 else ""
         raise InputError(f"{distance[k]:.3g} {units} from the mesh surface (at most {max_distance:g} {units}); "
-                         f"{len(far)} point{'s' if far.size > 1 else ''} this far", source, names[k])
+                         f"{len(far)} point{'s' if far.size > 1 else ''} this far{every}", source, names[k])
     return LandmarkSet(names, triangle, barycentric, tuple(map(_region, names)), ("face",) * len(names))
 
 
