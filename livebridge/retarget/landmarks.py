@@ -20,6 +20,7 @@ import numpy as np
 
 from livebridge.errors import InputError
 from livebridge.face.markers import LANDMARKS_68_UPPER, MarkerSet, landmark_name
+from livebridge.retarget.point_files import POINT_FILE_SUFFIXES
 from livebridge.tomlio import load_toml
 
 DATA = Path(__file__).parent / "data"
@@ -97,9 +98,7 @@ def load_landmark_set(spec: str | Path) -> LandmarkSet:
         return LandmarkSet.of(shipped_marker_set(spec))
     if isinstance(spec, str) and spec in SHIPPED_LANDMARK_SETS:
         return LandmarkSet.load(DATA / f"{spec.replace('-', '_')}.toml")
-    from livebridge.retarget.point_files import POINT_FILE_SUFFIXES
-
-    if Path(spec).suffix.lower() in POINT_FILE_SUFFIXES and Path(spec).suffix.lower() != ".toml":
+    if Path(spec).suffix.lower() in set(POINT_FILE_SUFFIXES) - {".toml"}:
         raise InputError("points, not a landmark set: place them on the mesh first with `livebridge landmarks place "
                          f"MESH --points {Path(spec).name} --out landmarks.toml`", spec, "landmarks")
     return LandmarkSet.load(spec)
