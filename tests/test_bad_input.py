@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -1352,11 +1353,18 @@ def _retarget_work(folder: Path) -> None:
     (folder / "soup.obj").write_text("\n".join(lines) + "\n")
 
 
+@pytest.fixture(scope="module")
+def option_work(tmp_path_factory) -> Path:
+    """:func:`_option_work` made once; each case runs in its own copy, since a case may not leave it as it was."""
+    folder = tmp_path_factory.mktemp("option_work")
+    _option_work(folder)
+    return folder
+
+
 @pytest.mark.parametrize("command,case", OPTION_CASES)
-def test_a_malformed_option_is_one_error_line(tmp_path, crash_dir, command, case):
+def test_a_malformed_option_is_one_error_line(tmp_path, crash_dir, option_work, command, case):
     work = tmp_path / "work"
-    work.mkdir()
-    _option_work(work)
+    shutil.copytree(option_work, work)
     held, port = _held_port() if any("{port}" in arg for arg in case.args) else (None, 0)
     fill = {"dir": str(work), "port": str(port)}
     try:
