@@ -52,6 +52,16 @@ def known_warp(points: np.ndarray, landmarks: dict[str, np.ndarray]) -> np.ndarr
     return np.stack([x, y, z], axis=1) + mouth
 
 
+def warped_basis(basis, positions: dict[str, np.ndarray]):
+    """``basis`` under :func:`known_warp` (placed by ``positions``, its 22 thesis landmarks): another face's
+    proportions, with each element ``phi(E0 + e_i) - phi(E0)``; a :class:`~livebridge.face.basis.Basis`."""
+    import dataclasses
+
+    neutral = known_warp(basis.neutral, positions)
+    elements = np.stack([known_warp(basis.neutral + e, positions) - neutral for e in basis.elements])
+    return dataclasses.replace(basis, neutral=neutral, elements=elements)
+
+
 def known_warp_errors(basis, landmarks, positions, kernels=None) -> tuple[np.ndarray, dict, dict]:
     """(naive errors (k,), {kernel value: errors (k,)}, {kernel value: seconds}) on the known warp of the basis.
 
@@ -62,8 +72,8 @@ def known_warp_errors(basis, landmarks, positions, kernels=None) -> tuple[np.nda
     from livebridge.retarget.basis import naive_transfer, relative_errors, retarget_basis
     from livebridge.retarget.tps import Kernel
 
-    target = known_warp(basis.neutral, positions)
-    truth = np.stack([known_warp(basis.neutral + e, positions) - target for e in basis.elements])
+    warped = warped_basis(basis, positions)
+    target, truth = warped.neutral, warped.elements
     naive = relative_errors(naive_transfer(basis, landmarks, target, basis.triangles, landmarks), truth)
     errors, seconds = {}, {}
     for kernel in kernels or Kernel:
