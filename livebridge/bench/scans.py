@@ -334,9 +334,7 @@ def _measure_other_face(basis, log) -> dict:
     from livebridge.retarget.landmarks import load_landmark_set
 
     other = warped_basis(basis, load_landmark_set("ict-22").as_dict(basis.neutral, basis.triangles))
-    return {"scan_points": SCAN_POINTS} | _measure(
-        other, f"another face (the ICT face under the known warp), {SCAN_POINTS} points a scan",
-        {"n_points": SCAN_POINTS}, log)
+    return _measure_density(other, SCAN_POINTS, {}, log, "another face (the ICT face under the known warp)")
 
 
 def _measure_lid_landmarks(basis, log) -> dict:
@@ -366,10 +364,11 @@ def with_landmarks(landmarks, more, names):
                        landmarks.roles + tuple(more.roles[i] for i in index), landmarks.mesh_triangles)
 
 
-def _measure_density(basis, n_points: int, options: dict, log) -> dict:
-    """The figures of one bench run with scans of ``n_points`` points each, as the JSON result."""
-    return {"scan_points": n_points} | _measure(basis, f"{n_points} points a scan", options | {"n_points": n_points},
-                                                 log)
+def _measure_density(basis, n_points: int, options: dict, log, face: str = "") -> dict:
+    """The figures of one bench run with scans of ``n_points`` points each (of ``face``, for the log), as the
+    JSON result."""
+    what = f"{face}, {n_points} points a scan" if face else f"{n_points} points a scan"
+    return {"scan_points": n_points} | _measure(basis, what, options | {"n_points": n_points}, log)
 
 
 def _measure(basis, what: str, options: dict, log) -> dict:
