@@ -198,12 +198,24 @@ def front_surface(points: np.ndarray, cell: float, depth: float = FRONT_DEPTH_MM
     x-y cell of size ``cell``: what a scanner looking along -z sees."""
     if not len(points):  # no point in the crop: the caller says so, naming the file
         return np.zeros(0, dtype=bool)
-    cells = np.floor(points[:, :2] / cell).astype(np.int64)
-    _, which = np.unique(cells, axis=0, return_inverse=True)
-    which = which.ravel()
+    which = cell_index(points[:, :2], cell)
     front = np.full(which.max() + 1, -np.inf)
     np.maximum.at(front, which, points[:, 2])
     return points[:, 2] >= front[which] - depth
+
+
+def cell_index(points: np.ndarray, cell: float) -> np.ndarray:
+    """Which cell of size ``cell`` each point (n, d) lies in, numbered 0 .. (cells occupied - 1), shape (n,).
+
+    One integer key a cell, not ``np.unique(axis=0)`` of the cells' coordinates: that sorts rows as structured
+    values, 2.7 s for 1.7M points in x-y (a dense scanner's face) against 0.4 s.
+    """
+    cells = np.floor(points / cell).astype(np.int64)
+    cells -= cells.min(axis=0)
+    key = np.zeros(len(cells), np.int64)
+    for column, size in zip(cells.T, cells.max(axis=0) + 1):
+        key = key * int(size) + column
+    return np.unique(key, return_inverse=True)[1].ravel()
 
 
 def holes(points: np.ndarray, x: np.ndarray, y: np.ndarray, max_gap: float) -> np.ndarray:
@@ -227,13 +239,13 @@ def _grid_xy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def _near(points_xy: np.ndarray, grid_xy: np.ndarray, max_gap: float) -> np.ndarray:
     """Which of ``grid_xy`` (m, 2) have a point of ``points_xy`` (n, 2) within ``max_gap``, shape (m,) bool."""
-    gap, _ = cKDTree(points_xy).query(grid_xy, distance_upper_bound=max_gap)
+    gap, _ = cKDTree(points_xy).query(grid_xy, distance_upper_bound=max_gap, workers=-1)
     return np.isfinite(gap)
 
 
 def point_spacing(points_xy: np.ndarray) -> float:
     """The median distance from each point (n, 2) to its nearest neighbour."""
-    distance, _ = cKDTree(points_xy).query(points_xy, k=2)
+    distance, _ = cKDTree(points_xy).query(points_xy, k=2, workers=-1)
     return float(np.median(distance[:, 1]))
 
 
