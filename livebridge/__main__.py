@@ -2,4 +2,5 @@
 
 from livebridge.cli import main
 
-main(prog_name="livebridge")
+if __name__ == "__main__":  # a spawned worker process imports this module again: it must not run the command
+    main(prog_name="livebridge")

@@ -25,6 +25,9 @@ class InputError(ValueError):
         where = ": ".join(part for part in (self.path, field) if part)
         super().__init__(f"{where}: {message}" if where else message)
 
+    def __reduce__(self):  # from a worker process with its file and field, not only its text
+        return type(self), (self.message, self.path, self.field)
+
 
 def os_error_reason(error: OSError) -> str:
     """What an :class:`OSError` about a file or address means, in a few words (no errno, no path)."""

@@ -30,10 +30,10 @@ def assert_cli_refused(result, *words) -> None:
         assert word in error, (word, error)
 
 
-def write_builtin_scans(folder, seed: int, stems: dict[str, str], basis=None) -> None:
+def write_builtin_scans(folder, seed: int, stems: dict[str, str], basis=None, colour: bool = False) -> None:
     """The built-in face's (or ``basis``'s, on the built-in face's topology) neutral and expressions as 8000-point
-    scans without colour, ``STEM.ply`` (ascii) and ``STEM.landmarks.csv`` (``name,x,y,z``) in ``folder``;
-    ``stems``: ``"neutral"`` or a muscle -> file stem."""
+    scans, without colour unless ``colour``, ``STEM.ply`` (ascii) and ``STEM.landmarks.csv`` (``name,x,y,z``) in
+    ``folder``; ``stems``: ``"neutral"`` or a muscle -> file stem."""
     from livebridge.bench.scans import synthetic_scans
     from livebridge.face.builtin import builtin_basis
     from livebridge.retarget.landmarks import load_landmark_set
@@ -41,10 +41,10 @@ def write_builtin_scans(folder, seed: int, stems: dict[str, str], basis=None) ->
 
     muscles = tuple(name for name in stems if name != "neutral")
     neutral, expressions = synthetic_scans(basis or builtin_basis(), load_landmark_set("builtin-22"),
-                                           np.random.default_rng(seed), n_points=8000, hole_muscle=None, colour=False,
+                                           np.random.default_rng(seed), n_points=8000, hole_muscle=None, colour=colour,
                                            muscles=muscles)
     for name, stem in stems.items():
         scan = neutral if name == "neutral" else expressions[name]
-        write_ply(folder / f"{stem}.ply", scan.points, None, "ascii")
+        write_ply(folder / f"{stem}.ply", scan.points, None, "ascii", scan.colours)
         (folder / f"{stem}.landmarks.csv").write_text("name,x,y,z\n" + "".join(
             f"{k},{float(x)!r},{float(y)!r},{float(z)!r}\n" for k, (x, y, z) in scan.landmarks.items()))

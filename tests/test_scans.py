@@ -910,6 +910,61 @@ def test_scan_basis_reproduces_the_ict_elements_within_10_percent(ict_scan_figur
     assert np.nanmax(figures.errors) <= ERROR_LIMIT, dict(zip(figures.names, np.round(figures.errors, 3)))
 
 
+def test_expression_scans_prepared_in_worker_processes_give_the_same_basis(tmp_path):
+    """``--workers 2`` (spawned processes, each sent the neutral once) writes the basis ``--workers 1`` does, bit
+    for bit, skin tracked; an expression that fails in a worker is refused naming its file and landmark, as in
+    one process."""
+    from livebridge.cli import main
+
+    stems = {"neutral": "neutral", "zygomatic_major_L": "smile", "jaw": "jaw"}
+    write_builtin_scans(tmp_path, 8, stems, colour=True)
+    command = ["retarget", "scans", "--neutral", str(tmp_path / "neutral.ply"), "--neutral-landmarks",
+               str(tmp_path / "neutral.landmarks.csv"), "--grid", "40x40"]
+    for muscle, stem in list(stems.items())[1:]:
+        command += ["--expression", f"{muscle}={tmp_path / stem}.ply"]
+    built = {}
+    for workers in (1, 2):
+        out = tmp_path / f"basis{workers}.npz"
+        result = CliRunner().invoke(main, command + ["--out", str(out), "--workers", str(workers)])
+        assert result.exit_code == 0, result.output
+        assert result.output.count("skin tracked") == 2, result.output
+        built[workers] = np.load(out)
+    assert sorted(built[1].files) == sorted(built[2].files)
+    for key in built[1].files:
+        np.testing.assert_array_equal(built[1][key], built[2][key], err_msg=key)
+    marks = (tmp_path / "jaw.landmarks.csv").read_text().splitlines()
+    marks = [line if not line.startswith("brow_outer_L,") else "brow_outer_L,900,900,900" for line in marks]
+    (tmp_path / "jaw.landmarks.csv").write_text("\n".join(marks) + "\n")
+    result = CliRunner().invoke(main, command + ["--out", str(tmp_path / "bad.npz"), "--workers", "2"])
+    assert_cli_refused(result, "jaw.landmarks.csv", "brow_outer_L", "from the nearest point of jaw.ply")
+    assert not (tmp_path / "bad.npz").exists()
+
+
+def test_workers_by_default_one_for_small_scans_else_bounded_by_scans_cores_and_free_memory(tmp_path, monkeypatch):
+    import os
+
+    from livebridge.cli.retarget_scans import worker_count
+
+    small = [tmp_path / f"small{k}.ply" for k in range(4)]
+    big = [tmp_path / f"big{k}.ply" for k in range(4)]
+    for path in small:
+        path.write_bytes(b"x" * 1000)
+    for path in big:  # 30 MB: 1.1M points of binary PLY with colour
+        with open(path, "wb") as stream:
+            stream.truncate(30_000_000)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    pages = {"SC_AVPHYS_PAGES": 1_000_000, "SC_PAGE_SIZE": 4096}  # 4.1 GB free
+    monkeypatch.setattr(os, "sysconf", lambda name: pages[name])
+    assert worker_count(None, small) == 1  # starting processes would cost more than it saves
+    assert worker_count(None, big) == 3  # 1.33 GB a worker: 3 fit, not the 4 scans or 8 cores
+    assert worker_count(None, big[:2]) == 2
+    assert worker_count(None, big[:1]) == 1
+    assert worker_count(3, small) == 3  # asked for
+    assert worker_count(8, small[:2]) == 2  # no more than there are scans
+    pages["SC_AVPHYS_PAGES"] = 100_000_000
+    assert worker_count(None, big) == 4
+
+
 def test_retarget_scans_cli_writes_a_basis(tmp_path, ict):
     from livebridge.cli import main
     from livebridge.face.basis import Basis
