@@ -1205,6 +1205,7 @@ COMMANDS = (
         *_input_cases("--neutral-landmarks"),
         *_input_cases("--reference"),
         *_numbers("--crop-radius", _NOT_FINITE + ("0", "-1")),
+        *_numbers("--workers", ("0", "-1", "1.5", "x", "257")),
         Bad("--grid-obj where --out writes", ("--grid-obj", "{dir}/b.npz"), ("--grid-obj", "--out writes there")),
         Bad("--grid not WxH", ("--grid", "150"), ("--grid", "WxH")),
         Bad("--grid too small", ("--grid", "1x150"), ("--grid",)),
