@@ -940,6 +940,24 @@ def test_expression_scans_prepared_in_worker_processes_give_the_same_basis(tmp_p
     assert not (tmp_path / "bad.npz").exists()
 
 
+class _DiesWhenUnpickled:
+    """Sent to a worker process, it ends that process at once (as the system's out-of-memory killer would)."""
+
+    def __reduce__(self):
+        import os
+
+        return os._exit, (9,)
+
+
+def test_a_worker_process_that_dies_is_a_clear_error_naming_the_scan_and_workers(tmp_path):
+    from livebridge.cli.retarget_scans import prepared_expressions
+
+    jobs = [(name, tmp_path / f"{name}.ply", tmp_path / f"{name}.csv", 1.0, None) for name in ("jaw", "smile")]
+    with pytest.raises(InputError, match="a worker process stopped.*give fewer --workers") as caught:
+        list(prepared_expressions(_DiesWhenUnpickled(), jobs, 2))
+    assert caught.value.path == str(tmp_path / "jaw.ply") and caught.value.field == "--workers"
+
+
 def test_workers_by_default_one_for_small_scans_else_bounded_by_scans_cores_and_free_memory(tmp_path, monkeypatch):
     import os
 

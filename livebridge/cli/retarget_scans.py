@@ -201,6 +201,9 @@ def prepared_expressions(neutral, jobs: list[tuple], workers: int):
         return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    from livebridge.errors import InputError
 
     # spawn, not fork: the neutral's preparation started OpenCV's and OpenBLAS's threads in this process
     context = multiprocessing.get_context("spawn")
@@ -208,7 +211,13 @@ def prepared_expressions(neutral, jobs: list[tuple], workers: int):
         futures = [pool.submit(_prepare_kept, *job[1:]) for job in jobs]
         try:
             for job, future in zip(jobs, futures):
-                yield job[0], future.result()
+                try:
+                    face = future.result()
+                except BrokenProcessPool:  # killed: most often by the system, out of memory
+                    raise InputError(f"a worker process stopped while {workers} scans were being prepared at once "
+                                     f"(out of memory?); give fewer --workers (1: one scan at a time)",
+                                     job[1], "--workers") from None
+                yield job[0], face
         finally:
             for future in futures:
                 future.cancel()
