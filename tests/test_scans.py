@@ -970,17 +970,31 @@ def test_workers_by_default_one_for_small_scans_else_bounded_by_scans_cores_and_
     for path in big:  # 30 MB: 1.1M points of binary PLY with colour
         with open(path, "wb") as stream:
             stream.truncate(30_000_000)
+    from livebridge.cli import retarget_scans
+
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
-    pages = {"SC_AVPHYS_PAGES": 1_000_000, "SC_PAGE_SIZE": 4096}  # 4.1 GB free
-    monkeypatch.setattr(os, "sysconf", lambda name: pages[name])
+    free = [4.1e9]
+    monkeypatch.setattr(retarget_scans, "available_memory", lambda: free[0])
     assert worker_count(None, small) == 1  # starting processes would cost more than it saves
     assert worker_count(None, big) == 3  # 1.33 GB a worker: 3 fit, not the 4 scans or 8 cores
     assert worker_count(None, big[:2]) == 2
     assert worker_count(None, big[:1]) == 1
     assert worker_count(3, small) == 3  # asked for
     assert worker_count(8, small[:2]) == 2  # no more than there are scans
-    pages["SC_AVPHYS_PAGES"] = 100_000_000
+    free[0] = 400e9
     assert worker_count(None, big) == 4
+
+
+def test_available_memory_is_what_this_system_says():
+    import os
+
+    from livebridge.cli.retarget_scans import available_memory
+
+    meminfo = open("/proc/meminfo").read() if os.path.exists("/proc/meminfo") else ""
+    line = next((row for row in meminfo.splitlines() if row.startswith("MemAvailable:")), None)
+    if line is None:
+        pytest.skip("no MemAvailable on this system")
+    assert abs(available_memory() - 1024 * float(line.split()[1])) < 0.1 * available_memory()
 
 
 def test_retarget_scans_cli_writes_a_basis(tmp_path, ict):

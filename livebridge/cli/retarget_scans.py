@@ -183,12 +183,26 @@ def worker_count(workers: int | None, scan_paths: list[Path]) -> int:
     if len(sizes) < 2 or sum(sizes) < POOL_MIN_BYTES:
         return 1
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    try:
-        free = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):  # not on this system: memory does not limit
-        free = float("inf")
     per_worker = WORKER_BYTES_PER_POINT * max(sizes) / 27
-    return max(1, min(cores, len(sizes), int(free // per_worker)))
+    return max(1, min(cores, len(sizes), int(available_memory() // per_worker)))
+
+
+def available_memory() -> float:
+    """Bytes the system can give a new process: Linux's MemAvailable (free memory and the page cache it can
+    drop), else the free pages, else infinity (not known: memory does not limit)."""
+    import os
+
+    try:
+        with open("/proc/meminfo") as stream:
+            for line in stream:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return float(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return float("inf")
 
 
 def prepared_expressions(neutral, jobs: list[tuple], workers: int):
