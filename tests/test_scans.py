@@ -958,6 +958,14 @@ def test_a_worker_process_that_dies_is_a_clear_error_naming_the_scan_and_workers
     assert caught.value.path == str(tmp_path / "jaw.ply") and caught.value.field == "--workers"
 
 
+def test_skin_motion_smoothing_follows_the_point_spacing_down_to_half_a_skin_pixel():
+    from livebridge.retarget.scans import SMOOTH_SPACINGS, TYPICAL_SPACING_MM, smoothing_mm
+
+    assert smoothing_mm((0.47, 0.30), 0.49) == pytest.approx(SMOOTH_SPACINGS * 0.47)  # 60k points: the spacing
+    assert smoothing_mm((0.083, 0.08), 0.49) == pytest.approx(SMOOTH_SPACINGS * 0.245)  # 1.7M: the pixel's floor
+    assert smoothing_mm((np.nan, 0.0), 0.49) == pytest.approx(SMOOTH_SPACINGS * TYPICAL_SPACING_MM)
+
+
 def test_workers_by_default_one_for_small_scans_else_bounded_by_scans_cores_and_free_memory(tmp_path, monkeypatch):
     import os
 

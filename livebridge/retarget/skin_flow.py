@@ -98,8 +98,10 @@ scans` (seed 7): every element but the jaw better (+0.0007 / +0.0002 at 60k / 15
 depressor_anguli_oris 0.120 -> 0.117, nothing worse by more than 0.003 (orbicularis_oculi_R)."""
 SMOOTH_SPACINGS = 5.0
 """The skin motion is smoothed (Gaussian sigma) over this many of the scan's point spacings before it is
-sampled at the grid vertices: the flow's noise grows with the spacing (spacing 0.38 mm at 60k points a
-scan, 0.23 mm at 150k). With the heights smoothed robustly, outliers no longer ask for a wide window: mean
+sampled at the grid vertices: the flow's noise grows with the spacing (in the cylinder chart 0.47 mm at 60k
+points a scan, 0.30 mm at 150k, 0.28 mm for a textured mesh's samples: bench scans, seed 7), down to half a
+skin pixel (:func:`~livebridge.retarget.scans.smoothing_mm`). With the
+heights smoothed robustly, outliers no longer ask for a wide window: mean
 relative error of the 8 smooth elements 0.126 / 0.124 / 0.125 / 0.138 at 4 / 5 / 6 / 8.5 spacings (60k
 points), 0.093 / 0.092 at 5 / 7 (150k)."""
 WIDTHS = (1.0, 2.0)
