@@ -975,16 +975,16 @@ def test_workers_by_default_one_for_small_scans_else_bounded_by_scans_cores_and_
     big = [tmp_path / f"big{k}.ply" for k in range(4)]
     for path in small:
         path.write_bytes(b"x" * 1000)
-    for path in big:  # 30 MB: 1.1M points of binary PLY with colour
+    for path in big:  # 30 MB: 2M points of binary PLY, float x y z and uchar colour
         with open(path, "wb") as stream:
             stream.truncate(30_000_000)
     from livebridge.cli import retarget_scans
 
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
-    free = [4.1e9]
+    free = [8.0e9]
     monkeypatch.setattr(retarget_scans, "available_memory", lambda: free[0])
     assert worker_count(None, small) == 1  # starting processes would cost more than it saves
-    assert worker_count(None, big) == 3  # 1.33 GB a worker: 3 fit, not the 4 scans or 8 cores
+    assert worker_count(None, big) == 3  # 2.4 GB a worker: 3 fit, not the 4 scans or 8 cores
     assert worker_count(None, big[:2]) == 2
     assert worker_count(None, big[:1]) == 1
     assert worker_count(3, small) == 3  # asked for

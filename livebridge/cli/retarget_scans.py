@@ -166,14 +166,17 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
 
 POOL_MIN_BYTES = 8_000_000
 """Expression scans smaller than this in all are prepared in this process: a worker takes about 2 s to start
-(its imports and the neutral face), a 60k-point scan (1.6 MB) about as long to prepare."""
+(its imports and the neutral face), a 60k-point scan (0.9 MB) about as long to prepare."""
 WORKER_BYTES_PER_POINT = 1200
 """A worker's peak memory per point of its scan (1.2 GB for a million points; measured 2.1 GB for 1.7M)."""
+FILE_BYTES_PER_POINT = 15
+"""The fewest bytes a scan file spends on a point: binary PLY, float x y z and uchar colour (1.7M points in
+26 MB); other layouts spend more, and are judged to hold more points than they do, on the safe side."""
 
 
 def worker_count(workers: int | None, scan_paths: list[Path]) -> int:
     """``workers`` when given; else the cores, at most one per scan and as many as the free memory holds for
-    the largest scan (judged by its file size, 27 bytes a point in binary PLY with colour), and 1 when the
+    the largest scan (its points judged by its file size: :data:`FILE_BYTES_PER_POINT`), and 1 when the
     scans are under :data:`POOL_MIN_BYTES` in all."""
     import os
 
@@ -183,7 +186,7 @@ def worker_count(workers: int | None, scan_paths: list[Path]) -> int:
     if len(sizes) < 2 or sum(sizes) < POOL_MIN_BYTES:
         return 1
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    per_worker = WORKER_BYTES_PER_POINT * max(sizes) / 27
+    per_worker = WORKER_BYTES_PER_POINT * max(sizes) / FILE_BYTES_PER_POINT
     return max(1, min(cores, len(sizes), int(available_memory() // per_worker)))
 
 
