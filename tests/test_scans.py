@@ -969,6 +969,7 @@ def test_skin_motion_smoothing_follows_the_point_spacing_down_to_half_a_skin_pix
 def test_workers_by_default_one_for_small_scans_else_bounded_by_scans_cores_and_free_memory(tmp_path, monkeypatch):
     import os
 
+    from livebridge.cli import retarget_scans
     from livebridge.cli.retarget_scans import worker_count
 
     small = [tmp_path / f"small{k}.ply" for k in range(4)]
@@ -978,8 +979,6 @@ def test_workers_by_default_one_for_small_scans_else_bounded_by_scans_cores_and_
     for path in big:  # 30 MB: 2M points of binary PLY, float x y z and uchar colour
         with open(path, "wb") as stream:
             stream.truncate(30_000_000)
-    from livebridge.cli import retarget_scans
-
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
     free = [8.0e9]
     monkeypatch.setattr(retarget_scans, "available_memory", lambda: free[0])
