@@ -448,6 +448,20 @@ def test_recording_raw_frames_from_a_centroid_only_node_is_refused_before_anythi
     assert result.exit_code == 1 and not (tmp_path / "takes").exists(), result.output
     assert "recording.raw_frames" in result.output and "cam0, cam1, cam2 send only their markers' centroids" \
         in result.output and "images=full" in result.output
+    talking = [t.name for t in threading.enumerate() if t.name.startswith("node 127.0.0.1:")]
+    assert not talking, f"the refused session left its node sources running: {talking}"
+
+
+def test_a_node_that_cannot_bind_its_port_destroys_what_it_opened():
+    from livebridge.devices.registry import open_cameras
+    from livebridge.nodes.node import CameraNode
+
+    url = "sim://rig?cameras=1&size=160x100"
+    with CameraNode(open_cameras(url)) as first:
+        second = CameraNode(open_cameras(url), f"tcp://127.0.0.1:{first.port}")
+        with pytest.raises(zmq.ZMQError):
+            second.start()
+        assert second._context is None and not second._threads  # nothing left for the collector to term
 
 
 BOARD = "chessboard:7x7:55"

@@ -63,8 +63,7 @@ def node(camera_urls: tuple[str, ...], address: str, key, name: str | None, allo
     served = CameraNode(sources, address, shared, name=name or address, log=log)
     try:
         served.start()
-    except served.zmq.ZMQError as error:  # the port is taken, the address is not this machine's
-        served.stop()
+    except served.zmq.ZMQError as error:  # the port is taken, the address is not this machine's (stopped)
         raise InputError(f"cannot serve on {address} (control on port + 1): {error}", field="--host") from None
     try:
         click.echo(f"tcp://{address.partition('://')[2].rpartition(':')[0]}:{served.port}")

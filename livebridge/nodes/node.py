@@ -130,6 +130,17 @@ class CameraNode:
         image.setflags(write=False)  # frames are read-only, and compiled code tells them apart
         detect_blobs(image)  # load the compiled detector before the cameras run
         self._context = zmq.Context()
+        try:
+            self._open(zmq)
+        except BaseException:
+            self.stop()  # a half-started node must not leave its context to the collector (its term can hang)
+            raise
+        self.log(f"node {self.name}: {len(self.sources)} camera(s) ({', '.join(self.sources)}) on "
+                 f"{self.address.rpartition(':')[0]}:{self.port} (control {self.port + 1})")
+        return self
+
+    def _open(self, zmq) -> None:
+        """Bind the sockets, start the cameras and the threads."""
         if self.key is not None:
             self._auth = self.key.authenticator(self._context)
         self._pub, self._router = self._context.socket(zmq.PUB), self._context.socket(zmq.ROUTER)
@@ -152,9 +163,6 @@ class CameraNode:
         self._spawn(self._serve, "node control")
         for camera, source in self.sources.items():
             self._spawn(self._stream if source.realtime else self._on_request, f"node {camera}", camera)
-        self.log(f"node {self.name}: {len(self.sources)} camera(s) ({', '.join(self.sources)}) on "
-                 f"{self.address.rpartition(':')[0]}:{self.port} (control {self.port + 1})")
-        return self
 
     def stop(self) -> None:
         self._running.clear()
@@ -165,6 +173,7 @@ class CameraNode:
             source.stop()
         if self._auth is not None:
             self._auth.stop()
+            self._auth = None
         if self._context is not None:
             self._context.destroy(linger=0)
             self._context = None

@@ -224,12 +224,12 @@ class NodeSource(SourceBase):
     def _run(self) -> None:
         zmq = self.zmq
         context = zmq.Context()
-        sub, dealer = self._sockets(context)
-        poller = zmq.Poller()
-        poller.register(sub, zmq.POLLIN)
-        poller.register(dealer, zmq.POLLIN)
-        next_ping = 0.0
-        try:
+        try:  # destroyed on every path: a context left to the collector can hang it (its term waits)
+            sub, dealer = self._sockets(context)
+            poller = zmq.Poller()
+            poller.register(sub, zmq.POLLIN)
+            poller.register(dealer, zmq.POLLIN)
+            next_ping = 0.0
             while self._running.is_set():
                 now = self.clock()
                 if now >= next_ping:

@@ -10,6 +10,7 @@ servos checked), the render port, the VMC host and the take directory. A rig tha
 from __future__ import annotations
 
 import datetime
+import functools
 from pathlib import Path
 
 from livebridge.errors import InputError
@@ -121,28 +122,44 @@ def open_session_cameras(session: Session):
     know its own (:attr:`~livebridge.capture.sources.CameraSource.calibration`: a simulated rig's cameras,
     the calibration recorded with a take).
     """
-    from livebridge.devices.registry import open_cameras
-
     calibrated = _load_calibration(session.calibration) if session.calibration is not None else None
     sources = []
-    for k, url in enumerate(session.camera_urls):
-        expanded = _session_url(url, session, k)
-        try:
-            sources += open_cameras(expanded)
-        except InputError as error:
-            if error.path in (None, url, expanded):  # about the URL itself: name it once
-                inner = f"{error.field}: {error.message}" if error.field else error.message
-            else:  # about a file the URL names (a calibration, a take)
-                inner = str(error)
-            raise InputError(f"{url}: {inner}", session.path, f"cameras.urls[{k}]") from None
     try:
+        for k, url in enumerate(session.camera_urls):
+            sources += _open_url(session, k, url)
         cameras = _session_cameras(sources, calibrated, session)
+        realtime = all(s.realtime for s in sources)
     except BaseException:
-        for source in sources:  # some (camera nodes) already talk to their device
-            source.stop()
+        stop_sources(sources)  # some (camera nodes) already talk to their device
         raise
-    realtime = all(s.realtime for s in sources)
     return sources, cameras, realtime
+
+
+def _open_url(session: Session, k: int, url: str) -> list:
+    """The sources of the session's ``k``-th camera URL; an error names ``cameras.urls[k]``."""
+    from livebridge.devices.registry import open_cameras
+
+    expanded = _session_url(url, session, k)
+    try:
+        return open_cameras(expanded)
+    except InputError as error:
+        if error.path in (None, url, expanded):  # about the URL itself: name it once
+            inner = f"{error.field}: {error.message}" if error.field else error.message
+        else:  # about a file the URL names (a calibration, a take)
+            inner = str(error)
+        raise InputError(f"{url}: {inner}", session.path, f"cameras.urls[{k}]") from None
+
+
+def stop_sources(sources) -> None:
+    """Stop every source, also when one of them fails to stop (the first such error is raised after)."""
+    failure = None
+    for source in sources:
+        try:
+            source.stop()
+        except Exception as error:  # noqa: BLE001 - the others must still stop
+            failure = failure or error
+    if failure is not None:
+        raise failure
 
 
 def _session_cameras(sources, calibrated, session: Session):
@@ -195,13 +212,15 @@ def build_pipeline(session: Session, log=print, on_frame=None):
         log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
         if model is None:
             sources, cameras, realtime = open_session_cameras(session)
-            check_cameras(cameras, session)
         else:
             sources, cameras, realtime = _markerless_camera(session)
-        fps = _fps(sources)
-        _check_raw_frames(session, sources)
-    opened = []
+    opened = [functools.partial(stop_sources, list(sources))]  # opened sources may already talk to devices
     try:
+        if session.source.kind == "cameras":
+            if model is None:
+                check_cameras(cameras, session)
+            fps = _fps(sources)
+            _check_raw_frames(session, sources)
         front = _livelink_front(session, basis, markers, opened, log) if session.source.kind != "cameras" else None
         servo = None
         if session.servo_rig is not None:
@@ -363,6 +382,7 @@ def _markerless_camera(session: Session):
         inner = f"{error.field}: {error.message}" if error.field else error.message
         raise InputError(f"{url}: {inner}", session.path, "cameras.urls[0]") from None
     if len(sources) != 1:
+        stop_sources(sources)
         raise InputError(f"markerless capture films with one camera, the URL opened {len(sources)}", session.path,
                          "cameras.urls[0]")
     return sources, None, bool(sources[0].realtime)
