@@ -30,6 +30,23 @@ ROOT = Path(__file__).resolve().parents[1]
 HANG_S = 60.0
 
 
+@pytest.fixture(autouse=True)
+def every_zmq_context_destroyed():
+    """After each test no zmq context of this process is left open: one left to the collector can hang
+    ``gc.collect()`` for good (in a garbage cycle its ``__del__`` finds its socket set already cleared, and
+    its ``term`` waits for the socket still open)."""
+    yield
+    import gc
+
+    deadline = time.monotonic() + 6.0  # a source's stop waits up to 5 s for its I/O thread
+    while True:
+        open_contexts = [o for o in gc.get_objects() if isinstance(o, zmq.Context) and not o.closed]
+        if not open_contexts or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    assert not open_contexts, f"{len(open_contexts)} zmq context(s) left open: {open_contexts}"
+
+
 @pytest.fixture(scope="module")
 def rig_url(tmp_path_factory) -> str:
     """The simulated rig's URL; the built-in marker layout is designed once and read from a file by every
