@@ -16,6 +16,8 @@ import os
 import re
 import shutil
 import tempfile
+import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -895,6 +897,7 @@ def test_malformed_input_is_one_error_line(tmp_path, crash_dir, fmt, case):
     fmt.setup(work)
     path = work / fmt.filename
     held = case.write(path)
+    threads = set(threading.enumerate())
     try:
         before = _snapshot(work)
         result = CliRunner().invoke(main, fmt.command(path, work))
@@ -902,6 +905,21 @@ def test_malformed_input_is_one_error_line(tmp_path, crash_dir, fmt, case):
         if held is not None:
             held.close()
     _refused(result, (fmt.filename,) * case.names_input + case.expect, crash_dir, work, before)
+    assert not _left_running(threads), f"a refusal left threads running: {_left_running(threads)}"
+
+
+LIBRARY_THREADS = ("tqdm_monitor",)
+"""Threads a library keeps for the process (started once, on first use), not by the refused command."""
+
+
+def _left_running(before: set, wait_s: float = 1.0) -> list[str]:
+    """The names of threads started since ``before`` that are still alive after up to ``wait_s``."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        left = [t.name for t in threading.enumerate() if t not in before and t.name not in LIBRARY_THREADS]
+        if not left or time.monotonic() > deadline:
+            return left
+        time.sleep(0.05)
 
 
 # ================================================================================================ command options
