@@ -1386,6 +1386,7 @@ def test_a_malformed_option_is_one_error_line(tmp_path, crash_dir, option_work, 
     shutil.copytree(option_work, work)
     held, port = _held_port() if any("{port}" in arg for arg in case.args) else (None, 0)
     fill = {"dir": str(work), "port": str(port)}
+    threads = set(threading.enumerate())
     try:
         before = _snapshot(work)
         args = [arg.format(**fill) for arg in (case.args if case.whole else (*command.base, *case.args))]
@@ -1394,6 +1395,7 @@ def test_a_malformed_option_is_one_error_line(tmp_path, crash_dir, option_work, 
         if held is not None:
             held.close()
     _refused(result, tuple(word.format(**fill) for word in case.expect), crash_dir, work, before)
+    assert not _left_running(threads), f"a refusal left threads running: {_left_running(threads)}"
 
 
 def test_the_option_corpus_runs_hundreds_of_cases():
