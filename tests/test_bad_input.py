@@ -874,9 +874,10 @@ def crash_dir(tmp_path, monkeypatch):
     return folder
 
 
-def _refused(result, words, crash_dir: Path, work: Path, before) -> str:
+def _refused(result, words, crash_dir: Path, work: Path, before, threads: set) -> str:
     """Assert what every refusal shows: exit != 0, one ``Error:`` line holding ``words``, no traceback, no
-    crash report, ``work`` unchanged; returns the error line."""
+    crash report, ``work`` unchanged, no thread left running of those started since ``threads`` (the ones
+    alive before); returns the error line."""
     output = result.output
     errors = [line for line in output.splitlines() if line.startswith("Error:")]
     assert result.exit_code != 0, output
@@ -887,6 +888,8 @@ def _refused(result, words, crash_dir: Path, work: Path, before) -> str:
         assert word in errors[0], (word, errors[0])
     assert not list(crash_dir.iterdir()), "reported as a bug: " + errors[0]
     assert _snapshot(work) == before
+    left = _left_running(threads)
+    assert not left, f"a refusal left threads running: {left}"
     return errors[0]
 
 
@@ -904,8 +907,7 @@ def test_malformed_input_is_one_error_line(tmp_path, crash_dir, fmt, case):
     finally:
         if held is not None:
             held.close()
-    _refused(result, (fmt.filename,) * case.names_input + case.expect, crash_dir, work, before)
-    assert not _left_running(threads), f"a refusal left threads running: {_left_running(threads)}"
+    _refused(result, (fmt.filename,) * case.names_input + case.expect, crash_dir, work, before, threads)
 
 
 LIBRARY_THREADS = ("tqdm_monitor",)
@@ -1394,8 +1396,7 @@ def test_a_malformed_option_is_one_error_line(tmp_path, crash_dir, option_work, 
     finally:
         if held is not None:
             held.close()
-    _refused(result, tuple(word.format(**fill) for word in case.expect), crash_dir, work, before)
-    assert not _left_running(threads), f"a refusal left threads running: {_left_running(threads)}"
+    _refused(result, tuple(word.format(**fill) for word in case.expect), crash_dir, work, before, threads)
 
 
 def test_the_option_corpus_runs_hundreds_of_cases():
