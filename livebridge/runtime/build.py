@@ -208,19 +208,10 @@ def build_pipeline(session: Session, log=print, on_frame=None):
     if model is None:
         check_markers(markers, basis, session)
     sources, cameras, realtime, fps = [], None, True, None  # a phone: no cameras
-    if session.source.kind == "cameras":
-        log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
-        if model is None:
-            sources, cameras, realtime = open_session_cameras(session)
-        else:
-            sources, cameras, realtime = _markerless_camera(session)
-    opened = [functools.partial(stop_sources, list(sources))]  # opened sources may already talk to devices
+    opened = []
     try:
         if session.source.kind == "cameras":
-            if model is None:
-                check_cameras(cameras, session)
-            fps = _fps(sources)
-            _check_raw_frames(session, sources)
+            sources, cameras, realtime, fps = _session_sources(session, model, opened, log)
         front = _livelink_front(session, basis, markers, opened, log) if session.source.kind != "cameras" else None
         servo = None
         if session.servo_rig is not None:
@@ -271,6 +262,22 @@ def build_pipeline(session: Session, log=print, on_frame=None):
         for close in reversed(opened):
             close()
         raise
+
+
+def _session_sources(session: Session, model, opened: list, log):
+    """The session's cameras, opened and checked: ``(sources, cameras, realtime, fps)``; their stop is added
+    to ``opened`` before any check (opened sources, camera nodes, may already talk to their devices)."""
+    log(f"set-up: opening {len(session.camera_urls)} camera URL{'s' if len(session.camera_urls) > 1 else ''}")
+    if model is None:
+        sources, cameras, realtime = open_session_cameras(session)
+    else:
+        sources, cameras, realtime = _markerless_camera(session)
+    opened.append(functools.partial(stop_sources, list(sources)))
+    if model is None:
+        check_cameras(cameras, session)
+    fps = _fps(sources)
+    _check_raw_frames(session, sources)
+    return sources, cameras, realtime, fps
 
 
 def _outputs(session: Session, basis, opened: list) -> list:
