@@ -141,16 +141,16 @@ def _source_frames(named: dict[str, str], n_frames: int, board):
     (:class:`~livebridge.calibration.detect.FoundCorners`) in place of its image. Frames are matched by read
     order, not by hardware sync, so hold the board still for a moment in each pose.
     """
-    from livebridge.devices.registry import open_camera
+    from livebridge.devices.registry import open_camera, stop_sources
     from livebridge.errors import InputError
 
-    opened = [open_camera(url) for url in named.values()]
-    started = []
+    opened = []
     try:
+        for url in named.values():
+            opened.append(open_camera(url))
         for source in opened:
             source.detect_board_with(board)  # a camera node detects it where it films
             source.start()
-            started.append(source)
         blind = dict.fromkeys(named, 0)  # frames in a row with neither corners nor an image, per camera
         for _ in range(n_frames):
             frame_set = []
@@ -164,8 +164,7 @@ def _source_frames(named: dict[str, str], n_frames: int, board):
                 frame_set.append(None if view is _BLIND else view)
             yield frame_set
     finally:
-        for source in started:
-            source.stop()
+        stop_sources(opened)
 
 
 MAX_BLIND_FRAMES = 30

@@ -103,6 +103,20 @@ def open_camera(url: str):
     return sources[0]
 
 
+def stop_sources(sources) -> None:
+    """Stop every camera source, also when one of them fails to stop (the first such error is raised after).
+
+    Safe on sources never started: opening one does not touch its device."""
+    failure = None
+    for source in sources:
+        try:
+            source.stop()
+        except Exception as error:  # noqa: BLE001 - the others must still stop
+            failure = failure or error
+    if failure is not None:
+        raise failure
+
+
 def open_bus(url: str, **options) -> ServoBus:
     """Open the servo bus a URL names (the port opens now; servos are touched in ``configure``).
 

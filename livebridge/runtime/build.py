@@ -13,6 +13,7 @@ import datetime
 import functools
 from pathlib import Path
 
+from livebridge.devices.registry import stop_sources
 from livebridge.errors import InputError
 from livebridge.runtime.preflight import check_calibration_used, check_cameras, check_markers
 from livebridge.runtime.session import Session
@@ -135,11 +136,12 @@ def open_session_cameras(session: Session):
     return sources, cameras, realtime
 
 
-def _open_url(session: Session, k: int, url: str) -> list:
-    """The sources of the session's ``k``-th camera URL; an error names ``cameras.urls[k]``."""
+def _open_url(session: Session, k: int, url: str, expand: bool = True) -> list:
+    """The sources of the session's ``k``-th camera URL (as the session means it, see :func:`_session_url`,
+    unless not ``expand``); an error names ``cameras.urls[k]``."""
     from livebridge.devices.registry import open_cameras
 
-    expanded = _session_url(url, session, k)
+    expanded = _session_url(url, session, k) if expand else url
     try:
         return open_cameras(expanded)
     except InputError as error:
@@ -148,18 +150,6 @@ def _open_url(session: Session, k: int, url: str) -> list:
         else:  # about a file the URL names (a calibration, a take)
             inner = str(error)
         raise InputError(f"{url}: {inner}", session.path, f"cameras.urls[{k}]") from None
-
-
-def stop_sources(sources) -> None:
-    """Stop every source, also when one of them fails to stop (the first such error is raised after)."""
-    failure = None
-    for source in sources:
-        try:
-            source.stop()
-        except Exception as error:  # noqa: BLE001 - the others must still stop
-            failure = failure or error
-    if failure is not None:
-        raise failure
 
 
 def _session_cameras(sources, calibrated, session: Session):
@@ -379,15 +369,9 @@ def _markerless_model(session: Session, basis):
 
 def _markerless_camera(session: Session):
     """The one camera of a markerless session: ``(sources, None, realtime)``."""
-    from livebridge.devices.registry import open_cameras
-
-    url = _session_url(session.camera_urls[0], session, 0) if not session.camera_urls[0].startswith("sim://") \
-        else session.camera_urls[0]
-    try:
-        sources = open_cameras(url)
-    except InputError as error:
-        inner = f"{error.field}: {error.message}" if error.field else error.message
-        raise InputError(f"{url}: {inner}", session.path, "cameras.urls[0]") from None
+    url = session.camera_urls[0]
+    # a simulated face video (sim://face) films a face of its own: it takes none of [face]'s options
+    sources = _open_url(session, 0, url, expand=not url.startswith("sim://"))
     if len(sources) != 1:
         stop_sources(sources)
         raise InputError(f"markerless capture films with one camera, the URL opened {len(sources)}", session.path,
