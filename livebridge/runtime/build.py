@@ -13,7 +13,7 @@ import datetime
 import functools
 from pathlib import Path
 
-from livebridge.devices.registry import stop_sources
+from livebridge.devices.registry import open_cameras, stop_sources
 from livebridge.errors import InputError
 from livebridge.runtime.preflight import check_calibration_used, check_cameras, check_markers
 from livebridge.runtime.session import Session
@@ -139,8 +139,6 @@ def open_session_cameras(session: Session):
 def _open_url(session: Session, k: int, url: str, expand: bool = True) -> list:
     """The sources of the session's ``k``-th camera URL (as the session means it, see :func:`_session_url`,
     unless not ``expand``); an error names ``cameras.urls[k]``."""
-    from livebridge.devices.registry import open_cameras
-
     expanded = _session_url(url, session, k) if expand else url
     try:
         return open_cameras(expanded)
