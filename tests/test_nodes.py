@@ -38,13 +38,12 @@ def every_zmq_context_destroyed():
     yield
     import gc
 
-    deadline = time.monotonic() + 6.0  # a source's stop waits up to 5 s for its I/O thread
-    while True:
-        open_contexts = [o for o in gc.get_objects() if isinstance(o, zmq.Context) and not o.closed]
-        if not open_contexts or time.monotonic() > deadline:
-            break
-        time.sleep(0.05)
-    assert not open_contexts, f"{len(open_contexts)} zmq context(s) left open: {open_contexts}"
+    def open_contexts():
+        return [o for o in gc.get_objects() if isinstance(o, zmq.Context) and not o.closed]
+
+    # a source's stop waits up to 5 s for its I/O thread
+    _until(lambda: not open_contexts(), 6.0,
+           f"the zmq contexts to be destroyed ({len(open_contexts())} open when the test ended)")
 
 
 @pytest.fixture(scope="module")
