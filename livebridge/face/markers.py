@@ -233,28 +233,6 @@ def landmark_name(number: int) -> str:
     return f"lm_{number:02d}"
 
 
-def markers_at_vertices(vertex_ids, triangles: np.ndarray, names, regions, roles) -> MarkerSet:
-    """Markers exactly at mesh vertices: each on a triangle holding the vertex, barycentric 1 at its corner.
-
-    Parameters
-    ----------
-    vertex_ids : array_like of int, shape (n_markers,)
-    triangles : ndarray of int, shape (n_triangles, 3)
-        The mesh the markers are for (a vertex in no triangle is an error).
-    names, regions, roles : sequences of str, length n_markers
-    """
-    vertex_ids = np.asarray(vertex_ids, dtype=np.int64).reshape(-1)
-    triangles = np.asarray(triangles)
-    chosen, bary = [], []
-    for name, vertex in zip(names, vertex_ids):
-        rows, corners = np.nonzero(triangles == vertex)
-        if not len(rows):
-            raise InputError(f"vertex {vertex} is in no triangle of the mesh", field=f"marker {name}")
-        chosen.append(int(rows[0]))
-        bary.append(np.eye(3)[corners[0]])
-    return MarkerSet(tuple(names), np.array(chosen), np.array(bary), tuple(regions), tuple(roles))
-
-
 _NUMBERED = re.compile(r"^(?:[A-Za-z]+[_ ]?)?(\d+)$")
 
 
