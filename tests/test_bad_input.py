@@ -1279,6 +1279,13 @@ COMMANDS = (
         Bad("--au unknown", ("--au", "99"), ("au99", "no control points")),
         Bad("--au twice", ("--au", "au12"), ("--au", "au12", "more than once")),
         Bad("--side unknown", ("--side", "up"), ("--side", "up")),
+        Bad("--expression missing", ("--expression", "{dir}/nothing.obj"),
+            ("--expression", "nothing.obj", "file not found")),
+        Bad("--expression non-manifold", ("--expression", "{dir}/fan.obj"), ("fan.obj", "non-manifold")),
+        Bad("--expression-landmarks missing a landmark", ("--expression", "builtin", "--expression-landmarks",
+                                                          "{dir}/lm21.toml"), ("lm21.toml", "nose_tip", "missing")),
+        Bad("a source mesh with no --expression", ("--source", "{dir}/flipped.obj"),
+            ("flipped.obj", "--expression", "no muscles")),
     )),
     Command("take show", ("take", "show", "{dir}/take.npz"), (
         *_numbers("--rate", _NOT_FINITE + ("0", "-1", "1e9")),

@@ -49,8 +49,9 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
     source = _load_source(source_spec)
     vertices, triangles = load_mesh(target_spec, units)
     check_mesh(vertices, triangles, target_spec)
-    on_source, on_target = _landmarks(source_landmarks, source, target_landmarks, vertices, triangles)
-    _check_size(on_source, source, on_target, vertices, triangles, target_spec, units)
+    source_mesh = (source.neutral, source.triangles)
+    on_source, on_target = _landmarks(source_landmarks, source_mesh, target_landmarks, vertices, triangles)
+    _check_size(on_source, source_mesh, on_target, vertices, triangles, target_spec, units)
     result = retarget_basis(source, on_source, vertices, triangles, on_target, kernel)
     result.save(out)
     moving = int(np.count_nonzero(np.abs(result.elements).max(axis=(1, 2)) > 0))
@@ -60,8 +61,14 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
 
 @retarget.command("au")
 @click.option("--source", "source_spec", required=True, type=InputPath(builtins=("builtin",)),
-              help="Source actuation basis (.npz) or 'builtin': each AU's muscle recipe makes the expression.")
+              help="Source face: an actuation basis (.npz) or 'builtin' (each AU's muscle recipe makes the "
+                   "expression), or with --expression its neutral mesh (.obj).")
 @click.option("--source-landmarks", required=True, type=LANDMARKS_TYPE, help="Landmarks on the source.")
+@click.option("--expression", "expression_spec", type=MESH_TYPE, default=None,
+              help="The source person showing the AUs (.obj, any head pose; thesis §5.5): the chosen AUs' control "
+                   "points move as it shows instead of by the basis's recipes.")
+@click.option("--expression-landmarks", type=LANDMARKS_TYPE, default=None,
+              help="Landmarks on --expression (default: --source-landmarks, when it has the source's triangles).")
 @click.option("--target", "target_spec", required=True, type=MESH_TYPE,
               help="Target face: a mesh (.obj), a basis (.npz, its neutral) or 'builtin'.")
 @click.option("--target-landmarks", required=True, type=LANDMARKS_TYPE, help="Landmarks on the target.")
@@ -77,27 +84,49 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
 @click.option("--kernel", type=click.Choice(["r", "r2lnr2"]), default="r", show_default=True,
               help="TPS kernel: r (3D biharmonic) or r2lnr2 (the thesis's).")
 @click.option("--units", type=click.Choice(sorted(UNITS_TO_MM)), default="mm", show_default=True,
-              help="Units of an OBJ target (a basis is in mm).")
-def au(source_spec, source_landmarks, target_spec, target_landmarks, aus, magnitude: float, side: str,
-       control_points, out: Path, force: bool, kernel: str, units: str) -> None:
+              help="Units of the OBJ meshes (a basis is in mm).")
+def au(source_spec, source_landmarks, expression_spec, expression_landmarks, target_spec, target_landmarks, aus,
+       magnitude: float, side: str, control_points, out: Path, force: bool, kernel: str, units: str) -> None:
     """Write the target face showing action units carried from the source (Erdoğdu §5.5-5.6) as OBJ."""
     from livebridge.retarget.au import parse_aus, prepare_transfer, save_obj
     from livebridge.retarget.control_points import load_control_points
 
-    source = _load_source(source_spec)
+    if expression_spec is None and Path(source_spec).suffix.lower() == ".obj":
+        raise InputError("a source mesh has no muscles to make the AUs with: give the source person showing them "
+                         "(--expression) or a basis (.npz)", source_spec, "--expression")
+    source = _load_source(source_spec) if expression_spec is None else load_mesh(source_spec, units)
+    source_mesh = (source.neutral, source.triangles) if expression_spec is None else source
+    if expression_spec is not None:
+        check_mesh(*source_mesh, source_spec)
     vertices, triangles = load_mesh(target_spec, units)
     check_mesh(vertices, triangles, target_spec)
-    on_source, on_target = _landmarks(source_landmarks, source, target_landmarks, vertices, triangles)
-    _check_size(on_source, source, on_target, vertices, triangles, target_spec, units)
+    on_source, on_target = _landmarks(source_landmarks, source_mesh, target_landmarks, vertices, triangles)
+    _check_size(on_source, source_mesh, on_target, vertices, triangles, target_spec, units)
+    expression = None if expression_spec is None else _expression(
+        expression_spec, expression_landmarks, source_landmarks, source_mesh, units)
     points = load_control_points(control_points)
     _require_reference_names(points, (source_landmarks, on_source), (target_landmarks, on_target))
     sides = {"both": ("L", "R", "C"), "left": ("L",), "right": ("R",)}[side]
     transfer = prepare_transfer(points, parse_aus(aus), source, on_source, (vertices, triangles), on_target, sides,
-                                kernel)
+                                kernel, expression)
     moved = transfer.mesh(magnitude)
     save_obj(out, moved, triangles)
     click.echo(f"wrote {out}: {', '.join(aus)} at m = {magnitude:g} ({side}); largest move "
                f"{np.linalg.norm(moved - vertices, axis=1).max():.2f} mm")
+
+
+def _expression(spec, landmarks_spec, source_landmarks, source_mesh, units: str):
+    """(mesh, landmarks, spec) of ``--expression``; its landmarks are the source's when not given and it has
+    the source's triangles (a blendshape of the source)."""
+    vertices, triangles = load_mesh(spec, units)
+    check_mesh(vertices, triangles, spec)
+    if landmarks_spec is None:
+        if not np.array_equal(triangles, source_mesh[1]):
+            raise InputError("its triangles are not the source's, so the source's landmarks do not say where its "
+                             "landmarks are: give them with --expression-landmarks", spec, "--expression-landmarks")
+        landmarks_spec = source_landmarks
+    _, on_expression = _landmarks(source_landmarks, source_mesh, landmarks_spec, vertices, triangles)
+    return (vertices, triangles), on_expression, spec
 
 
 def _load_source(spec):
@@ -110,29 +139,30 @@ def _load_source(spec):
     return Basis.load(spec)
 
 
-def _landmarks(source_spec, source, target_spec, vertices, triangles):
-    """(source landmarks, target landmarks), checked on their meshes; errors name the file and the landmark."""
+def _landmarks(source_spec, source_mesh, target_spec, vertices, triangles):
+    """(source landmarks, target landmarks), checked on their meshes (``source_mesh``: (vertices, triangles));
+    errors name the file and the landmark."""
     from livebridge.retarget.checks import check_landmarks_on
     from livebridge.retarget.landmarks import load_landmark_set
 
-    on_source = load_landmark_set(source_spec).checked_on(len(source.triangles), source_spec)
+    on_source = load_landmark_set(source_spec).checked_on(len(source_mesh[1]), source_spec)
     on_target = load_landmark_set(target_spec).checked_on(len(triangles), target_spec)
     try:
         on_target.index_of(on_source.names)
     except InputError as error:
         raise InputError(error.message + f" (the source set {source_spec} names them)", target_spec,
                          "landmarks") from None
-    check_landmarks_on(on_source, source.neutral, source.triangles, source_spec)
+    check_landmarks_on(on_source, *source_mesh, source_spec)
     check_landmarks_on(on_target, vertices, triangles, target_spec)
     return on_source, on_target
 
 
-def _check_size(on_source, source, on_target, vertices, triangles, target_mesh, units: str) -> None:
+def _check_size(on_source, source_mesh, on_target, vertices, triangles, target_mesh, units: str) -> None:
     """Refuse a target whose landmarks spread :data:`SIZE_RATIO` times more or less than the source's: an OBJ
     read in the wrong ``--units``. The transfer itself would run and write a face moved in the wrong units (or
     find too few of its control points on the surface), so the error names the mesh and the option."""
     names = list(on_source.names)
-    here = on_source.positions(source.neutral, source.triangles)
+    here = on_source.positions(*source_mesh)
     there = on_target.positions(vertices, triangles)[on_target.index_of(names)]
     check_size(here, there, "the source's", target_mesh, units)
 

@@ -1,9 +1,10 @@
 """Action units carried from a source face to a target face (Erdoğdu §5.5-5.6): modeling, then animation.
 
 Modeling (§5.5): the control points of the chosen AUs sit on the neutral source face; on the expressive
-source face they have moved by ``v_i`` (:func:`control_point_moves` carries them there by the landmark spline
-and the nearest surface point, eq. 5.6; with a basis as the source the expression shares the neutral's
-topology and :func:`basis_moves` reads ``v_i`` exactly at each point).
+source face they have moved by ``v_i``. Given an expressive mesh of the source person (any topology, any head
+pose), :func:`control_point_moves` puts it on the neutral's pose (skull landmarks, then trimmed ICP) and carries
+the points there by the landmark spline and the nearest surface point (eq. 5.6); with a basis as the source
+the expression shares the neutral's topology and :func:`basis_moves` reads ``v_i`` exactly at each point.
 
 Animation (§5.6): the control points are carried to the neutral target face, moved by ``m v_i`` (upper face,
 eq. 5.10) or ``m v_i s_t / s_s`` (lower face, eq. 5.8; ``s``: the mouth-corner distance), and the target is
@@ -79,12 +80,51 @@ def mouth_width(landmarks: dict[str, np.ndarray]) -> float:
 
 # ------------------------------------------------------------------------------------------------ modeling
 def control_point_moves(points: np.ndarray, neutral_mesh, neutral_landmarks: LandmarkSet, expressive_mesh,
-                        expressive_landmarks: LandmarkSet, kernel: Kernel | str = Kernel.BIHARMONIC) -> np.ndarray:
-    """``v_i`` (n, 3): points on the neutral source face carried to the expressive one (§5.5.3), minus where
-    they were. ``*_mesh``: (vertices, triangles); the landmarks are on each mesh."""
+                        expressive_landmarks: LandmarkSet, kernel: Kernel | str = Kernel.BIHARMONIC,
+                        source=None) -> np.ndarray:
+    """``v_i`` (n, 3): points (n, 3) on the neutral source face carried to the expressive one, minus where
+    they were.
+
+    The expressive face is first put on the neutral's pose (:func:`on_neutral_pose`): the person's head
+    moved between the two, which is no part of the expression. An expressive mesh with the neutral's
+    triangles (a blendshape) moves each point as its triangle's corners move; any other (a scan, another
+    topology) by the thesis's way (§5.5.3): the landmark spline carries each point and it is snapped to the
+    nearest point of the expressive surface, which knows the motion along the skin at the landmarks only.
+    ``*_mesh``: (vertices, triangles); the landmarks are on each mesh; ``source`` (the expressive mesh's
+    file) is named in errors.
+    """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    return carry_control_points(points, neutral_mesh, neutral_landmarks, expressive_mesh, expressive_landmarks,
+    neutral_vertices, neutral_triangles = (np.asarray(a) for a in neutral_mesh)
+    vertices, triangles = (np.asarray(a) for a in expressive_mesh)
+    posed = on_neutral_pose(neutral_mesh, neutral_landmarks, vertices,
+                            expressive_landmarks.as_dict(vertices, triangles), source)
+    if vertices.shape == neutral_vertices.shape and np.array_equal(triangles, neutral_triangles):
+        triangle, barycentric, _ = closest_surface_points(points, neutral_vertices, neutral_triangles)
+        displacement = posed - neutral_vertices
+        return np.einsum("nk,nkd->nd", barycentric, displacement[neutral_triangles[triangle]])
+    return carry_control_points(points, neutral_mesh, neutral_landmarks, (posed, triangles), expressive_landmarks,
                                 kernel) - points
+
+
+def on_neutral_pose(neutral_mesh, neutral_landmarks: LandmarkSet, vertices: np.ndarray,
+                    landmarks: dict[str, np.ndarray], source=None) -> np.ndarray:
+    """An expressive mesh's ``vertices`` (m, 3; ``landmarks`` on it) moved rigidly onto the neutral face's
+    pose, shape (m, 3): Kabsch on the skull's landmarks, then trimmed point-to-plane ICP against the neutral's
+    surface (:func:`~livebridge.retarget.normalise.register_rigid`, as for expression scans)."""
+    from livebridge.face.meshio import vertex_normals
+    from livebridge.geometry.transforms import apply
+    from livebridge.retarget.normalise import register_rigid
+    from livebridge.retarget.scans import crop_radius
+
+    neutral_vertices, neutral_triangles = (np.asarray(a) for a in neutral_mesh)
+    marks = neutral_landmarks.as_dict(neutral_vertices, neutral_triangles)
+    _require(marks, ("nose_tip",))
+    origin = marks["nose_tip"]  # the registration works about the neutral's nose tip
+    normals = vertex_normals(neutral_vertices, neutral_triangles)
+    to_neutral = register_rigid(vertices, landmarks, neutral_vertices - origin, normals,
+                                {name: p - origin for name, p in marks.items()}, crop_radius(marks),
+                                source=source)
+    return apply(to_neutral, vertices) + origin
 
 
 def basis_moves(points: np.ndarray, basis: Basis, contractions: dict[str, float]) -> np.ndarray:
@@ -195,29 +235,66 @@ class AUTransfer:
         return warp_regions(self.vertices, self.triangles, self.landmarks, self.motion, magnitude, self.kernel)
 
 
-def prepare_transfer(control_points: ControlPointSet, groups, source: Basis, source_landmarks: LandmarkSet,
+def prepare_transfer(control_points: ControlPointSet, groups, source, source_landmarks: LandmarkSet,
                      target_mesh, target_landmarks: LandmarkSet, sides=("L", "R", "C"),
-                     kernel: Kernel | str = Kernel.BIHARMONIC) -> AUTransfer:
-    """AUs (``groups``: ``au12``, or muscle names; several combine) of a source basis, ready for the target.
+                     kernel: Kernel | str = Kernel.BIHARMONIC, expression=None) -> AUTransfer:
+    """AUs (``groups``: ``au12``, or muscle names; several combine) of a source face, ready for the target.
 
     Parameters
     ----------
     control_points : ControlPointSet
         On its reference face; carried to the source and to the target by their landmarks.
     groups : sequence of str
-    source : Basis
-        Its recipes' contractions make the expressive source (:func:`basis_moves`).
+    source : Basis or (vertices (n, 3), triangles (t, 3))
+        The neutral source face. Without ``expression`` it must be a basis: its recipes' contractions make
+        the expressive source (:func:`basis_moves`).
     source_landmarks, target_landmarks : LandmarkSet
     target_mesh : (vertices (m, 3), triangles (t, 3))
     sides : sequence of str
         Sides whose points move (``("L",)``: the subject's left only); the others' points stay fixed, and the
         midline's move half as far when only one side moves.
+    expression : ((vertices (k, 3), triangles (u, 3)), LandmarkSet, source), optional
+        The expressive source face (§5.5): the source person showing the AUs, any topology and head pose,
+        its landmarks, and its file (named in errors). Every chosen group's points move as it shows
+        (:func:`control_point_moves`).
     """
     kernel = Kernel.parse(kernel)
     chosen = control_points.subset(control_points.select(groups))
     target_vertices, target_triangles = (np.asarray(a) for a in target_mesh)
-    on_source = chosen.on(source.neutral, source.triangles, source_landmarks, kernel)
+    source_mesh = (source.neutral, source.triangles) if isinstance(source, Basis) else \
+        tuple(np.asarray(a) for a in source)
+    on_source = chosen.on(*source_mesh, source_landmarks, kernel)
     on_target = chosen.on(target_vertices, target_triangles, target_landmarks, kernel)
+    if expression is not None:
+        expressive_mesh, expressive_landmarks, expressive_file = expression
+        moves = control_point_moves(on_source, source_mesh, source_landmarks, expressive_mesh, expressive_landmarks,
+                                    kernel, expressive_file)
+    elif isinstance(source, Basis):
+        moves = _recipe_moves(control_points, chosen, on_source, source)
+    else:
+        raise InputError("a source mesh without a basis needs its expressive face (--expression) to show the AUs",
+                         field="--expression")
+    sides = tuple(sides)
+    share = np.array([1.0 if side in sides else (0.5 if side == "C" and len(sides) < 3 else 0.0)
+                      for side in chosen.sides])
+    source_marks = source_landmarks.as_dict(*source_mesh)
+    target_marks = target_landmarks.as_dict(target_vertices, target_triangles)
+    upper = np.array([region == "upper" for region in chosen.regions])
+    ratio = mouth_width(target_marks) / mouth_width(source_marks)
+    # the source's moves in the target's frame: the landmark spline's Jacobian at each point (sizes and pose)
+    from livebridge.retarget.basis import landmark_pairs
+
+    pairs = landmark_pairs(source_landmarks, source_mesh, target_landmarks, (target_vertices, target_triangles))
+    jacobian = fit_tps(*pairs, kernel).jacobian(on_source)
+    rotation = np.array([_rotation_of(j) for j in jacobian])
+    turned = np.einsum("nij,nj->ni", rotation, moves)
+    scaled = turned * np.where(upper, 1.0, ratio)[:, None] * share[:, None]
+    return AUTransfer(target_vertices, target_triangles, target_marks, merged(on_target, scaled, upper), kernel)
+
+
+def _recipe_moves(control_points: ControlPointSet, chosen: ControlPointSet, on_source: np.ndarray, source: Basis
+                  ) -> np.ndarray:
+    """``v_i`` (n, 3) of the chosen points (on the source's neutral) under each group's muscle recipe."""
     moves = np.zeros_like(on_source)
     for group in chosen.group_names:
         recipe = control_points.recipes.get(group)
@@ -226,23 +303,7 @@ def prepare_transfer(control_points: ControlPointSet, groups, source: Basis, sou
                              field=group)
         mask = np.array([g == group for g in chosen.groups])
         moves[mask] += basis_moves(on_source[mask], source, recipe.muscles)
-    sides = tuple(sides)
-    share = np.array([1.0 if side in sides else (0.5 if side == "C" and len(sides) < 3 else 0.0)
-                      for side in chosen.sides])
-    source_marks = source_landmarks.as_dict(source.neutral, source.triangles)
-    target_marks = target_landmarks.as_dict(target_vertices, target_triangles)
-    upper = np.array([region == "upper" for region in chosen.regions])
-    ratio = mouth_width(target_marks) / mouth_width(source_marks)
-    # the source's moves in the target's frame: the landmark spline's Jacobian at each point (sizes and pose)
-    from livebridge.retarget.basis import landmark_pairs
-
-    pairs = landmark_pairs(source_landmarks, (source.neutral, source.triangles), target_landmarks,
-                           (target_vertices, target_triangles))
-    jacobian = fit_tps(*pairs, kernel).jacobian(on_source)
-    rotation = np.array([_rotation_of(j) for j in jacobian])
-    turned = np.einsum("nij,nj->ni", rotation, moves)
-    scaled = turned * np.where(upper, 1.0, ratio)[:, None] * share[:, None]
-    return AUTransfer(target_vertices, target_triangles, target_marks, merged(on_target, scaled, upper), kernel)
+    return moves
 
 
 def _rotation_of(jacobian: np.ndarray) -> np.ndarray:
