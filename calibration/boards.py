@@ -100,11 +100,6 @@ class Board:
         return (self.cols - 1) * (self.rows - 1)
 
     @property
-    def corners_per_row(self) -> int:
-        """Corners along x in one row of ``object_points``."""
-        return self.cols if self.kind == "chessboard" else self.cols - 1
-
-    @property
     def min_corners(self) -> int:
         """Fewest corners a detection needs to be used."""
         return self.n_corners if self.kind == "chessboard" else 6

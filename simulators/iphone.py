@@ -117,7 +117,3 @@ class SimulatedIPhone:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
-
-    @property
-    def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()

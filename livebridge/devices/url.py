@@ -52,11 +52,6 @@ class DeviceURL:
             query[key] = values[0]
         return cls(url, parts.scheme.lower(), parts.netloc, parts.path, query)
 
-    @property
-    def location(self) -> str:
-        """``netloc + path``: the device, port or folder the URL names (``''`` when none)."""
-        return self.netloc + self.path
-
     def take(self, key: str, kind: type, default=None, within: tuple[float, float] | None = None):
         """The value of parameter ``key`` converted to ``kind`` (bool accepts 0/1/true/false/yes/no/on/off);
         ``default`` when the URL does not give it. ``within=(low, high)``: a number outside it (or NaN) is an
