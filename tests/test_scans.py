@@ -1135,6 +1135,53 @@ def test_retarget_scans_refuses_a_bad_scan_naming_the_file_and_landmark(tmp_path
     assert not (tmp_path / "b.npz").exists()
 
 
+def _occluded(points, marks, forward_mm):
+    """A scan with a hand before its left cheek: the skin within 25 mm of the point between the left mouth corner
+    and outer eye corner is gone (the scanner cannot see it), and the hand's surface is there instead,
+    ``forward_mm`` towards the scanner."""
+    forward = marks["nose_tip"] - np.mean([marks["eye_outer_L"], marks["eye_outer_R"], marks["chin"]], axis=0)
+    forward /= np.linalg.norm(forward)
+    cheek = 0.5 * (marks["mouth_corner_L"] + marks["eye_outer_L"])
+    behind = np.linalg.norm(points - cheek, axis=1) < 25.0
+    return points[~behind], np.vstack([points[~behind], points[behind] + forward_mm * forward])
+
+
+def test_something_between_the_scanner_and_the_face_is_left_out_and_said(tmp_path, small_scans, monkeypatch):
+    """A hand 40 mm before the cheek is the surface the scanner saw first there: the resampling would take it for
+    the face. Off the neutral's face by more than OFF_FACE_MM once registered, it is left out: the element is the
+    one the scan with the hole alone gives, and the build says what it left out."""
+    import shutil
+
+    import livebridge.retarget.scans as scans_module
+    from livebridge.cli import main
+    from livebridge.face.basis import Basis
+    from livebridge.retarget.point_files import read_points_csv
+
+    marks = read_points_csv(small_scans / "jaw.landmarks.csv")
+    holed, with_hand = _occluded(read_scan(small_scans / "jaw.ply").points, marks, 40.0)
+
+    def build(points, out):
+        for path in small_scans.iterdir():
+            shutil.copy(path, tmp_path / path.name)
+        write_ply(tmp_path / "jaw.ply", points, None, "ascii")
+        result = CliRunner().invoke(main, [
+            "retarget", "scans", "--neutral", str(tmp_path / "neutral.ply"), "--neutral-landmarks",
+            str(tmp_path / "neutral.landmarks.csv"), "--expression", f"jaw={tmp_path / 'jaw.ply'}", "--grid",
+            "40x40", "--out", str(tmp_path / out)])
+        assert result.exit_code == 0, result.output
+        return Basis.load(tmp_path / out).elements[0], result.output
+
+    reference, said = build(holed, "holed.npz")
+    assert "left out" not in said
+    element, said = build(with_hand, "hand.npz")
+    assert "jaw (jaw.ply)" in said and "left out" in said and "a hand" in said
+    size = np.sqrt(np.mean(np.sum(reference ** 2, axis=1)))
+    assert np.sqrt(np.mean(np.sum((element - reference) ** 2, axis=1))) < 0.02 * size  # 0.005 measured
+    monkeypatch.setattr(scans_module, "OFF_FACE_MM", np.inf)  # the hand kept: the element is not the jaw's
+    spoiled, _ = build(with_hand, "kept.npz")
+    assert np.sqrt(np.mean(np.sum((spoiled - reference) ** 2, axis=1))) > 0.15 * size  # 0.23 measured
+
+
 def test_the_build_tells_of_each_element_in_both_passes():
     """Coloured scans are tracked twice (against the neutral, then against the template of all the scans' skin):
     each pass names each element as it starts, so a build of minutes shows where it is."""

@@ -102,7 +102,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
     from livebridge.retarget.point_files import picked_points_file, read_points
     from livebridge.retarget.same_face import another_face
     from livebridge.retarget.scan import read_scan
-    from livebridge.retarget.scans import basis_from_scans, prepare_neutral
+    from livebridge.retarget.scans import OFF_FACE_MM, basis_from_scans, prepare_neutral
 
     outputs = [(option, path) for option, path in (("--out", out), ("--grid-obj", grid_obj),
                                                     ("--landmarks-out", landmarks_out)) if path is not None]
@@ -140,6 +140,10 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
         why = another_face(faces[name].gap_mm, faces[name].noise_mm)
         if why is not None:
             click.echo(f"warning: {name} ({scan_path.name}): {why}")
+        if faces[name].off_face_share >= OFF_FACE_NOTE:
+            click.echo(f"note: {name} ({scan_path.name}): {faces[name].off_face_share:.1%} of its points lie over "
+                       f"{OFF_FACE_MM:g} mm from the neutral's face once registered (something between the scanner and "
+                       "the face: a hand, glasses, a microphone?) and are left out")
     click.echo("building the elements")
     basis = basis_from_scans(neutral, faces, kernel, log=click.echo)
     basis.save(out)
@@ -164,6 +168,9 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
                    "be tracked everywhere")
 
 
+OFF_FACE_NOTE = 0.001
+"""The build says so when at least this share of an expression scan's points were left out as off the face
+(:data:`~livebridge.retarget.scans.OFF_FACE_MM`); fewer are stray points."""
 POOL_MIN_BYTES = 8_000_000
 """Expression scans smaller than this in all are prepared in this process: a worker takes about 2 s to start
 (its imports and the neutral face), a 60k-point scan (0.9 MB) about as long to prepare."""

@@ -67,6 +67,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
@@ -122,6 +123,12 @@ CONTROL_SMOOTHING = 0.1
 """TPS smoothing of the control-point warp (the snapped points carry the scanner's noise)."""
 SKIN_MARGIN_MM = 10.0
 """The skin images of coloured scans reach this far beyond the grid (tracking is poor at an image's edge)."""
+OFF_FACE_MM = 25.0
+"""An expression scan's registered points farther than this from every vertex of the neutral are not the face
+(a hand, glasses or a microphone between the scanner and the face), and left out: the resampling keeps the
+surface the scanner saw first. The bench's 16 ICT expressions reach at most 14 mm from the neutral (the opened
+jaw's chin; the pucker's lips 9 mm); a copy of the jaw scan 80 mm in front of it was its jaw element's 129 mm
+largest motion, 41.8 mm with the cut, as without the copy."""
 TEXTURE_REACH = 1.5
 """A textured scan is sampled into points out to this times the face crop's radius from its nose tip (the
 expressions' crop is the neutral's, and an opened jaw reaches below it)."""
@@ -184,6 +191,9 @@ class FaceScan:
     gap_mm, noise_mm : float
         An expression's: how far its registered points lie from the neutral's surface (median) and its own
         noise (:mod:`~livebridge.retarget.same_face`); NaN for a neutral.
+    off_face_share : float
+        An expression's: the share of its points (in the crop) left out as lying over :data:`OFF_FACE_MM`
+        from the neutral's face (:func:`_on_the_face`).
     """
 
     grid: FaceGrid
@@ -199,6 +209,7 @@ class FaceScan:
     fitted_heights: np.ndarray | None = None
     gap_mm: float = float("nan")
     noise_mm: float = float("nan")
+    off_face_share: float = 0.0
 
     @property
     def vertices(self) -> np.ndarray:
@@ -300,6 +311,17 @@ def _without_spikes(scan: Scan, points: np.ndarray, radius: float) -> tuple[Scan
     if keep.all():
         return scan, points
     return _points_where(scan, keep), points[keep]
+
+
+def _on_the_face(scan: Scan, points: np.ndarray, vertices: np.ndarray) -> tuple[Scan, np.ndarray, float]:
+    """An expression scan (``scan``, and ``points`` (n, 3) registered in the face frame) without the points
+    more than :data:`OFF_FACE_MM` from every vertex of the neutral (``vertices``, (m, 3)), and the share of its
+    points that were: something between the scanner and the face (a hand, glasses, a microphone) that the
+    resampling, which keeps the surface the scanner saw first, would take for the face."""
+    far = cKDTree(vertices).query(points, distance_upper_bound=OFF_FACE_MM)[0] > OFF_FACE_MM
+    if not far.any():
+        return scan, points, 0.0
+    return _points_where(scan, ~far), points[~far], float(far.mean())
 
 
 def _points_where(scan: Scan, keep: np.ndarray) -> Scan:
@@ -410,6 +432,7 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     scan2face = register_rigid(scan.points, landmarks, neutral.vertices, normals, neutral.landmarks, radius,
                                source=source, first_guess=first_guess)
     scan, points = _without_spikes(scan, apply(scan2face, scan.points), radius)
+    scan, points, off_face = _on_the_face(scan, points, neutral.vertices)
     moved = transform_landmarks(scan2face, landmarks)
     check_not_folded(neutral.landmarks, moved, landmarks_source or source)
     axes = None if neutral.skin is None else (neutral.skin.x, neutral.skin.y, neutral.skin_factor, neutral.skin_margin)
@@ -417,7 +440,7 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
                       axes)
     inside = points[crop_sphere(points, np.zeros(3), radius)]
     return replace(face, gap_mm=surface_gap(inside, neutral.vertices, normals),
-                   noise_mm=noise_level(inside, face.grid))
+                   noise_mm=noise_level(inside, face.grid), off_face_share=off_face)
 
 
 def check_sides(landmarks: dict[str, np.ndarray], reference: dict[str, np.ndarray], source=None) -> None:
@@ -479,8 +502,6 @@ def check_on_points(landmarks: dict[str, np.ndarray], points: np.ndarray, source
     resampled grid, which the neutral's crop may cut short of an opened jaw's chin.
     """
     from pathlib import Path
-
-    from scipy.spatial import cKDTree
 
     names = list(landmarks)
     distance, _ = cKDTree(points).query(np.array([landmarks[name] for name in names], dtype=np.float64))
