@@ -142,6 +142,23 @@ def test_retarget_scans_without_an_expressions_landmarks_names_both_files_it_loo
     assert not (tmp_path / "b.npz").exists()
 
 
+def test_retarget_scans_finds_the_neutrals_landmarks_as_it_finds_an_expressions(tmp_path, scan_folder):
+    shutil.copytree(scan_folder, tmp_path / "found")
+    common = ["retarget", "scans", "--expression", f"jaw={tmp_path / 'found' / 'jaw.ply'}", "--grid", "40x40"]
+    found = CliRunner().invoke(main, [*common, "--neutral", str(tmp_path / "found" / "neutral.ply"),
+                                      "--out", str(tmp_path / "found.npz")])
+    assert found.exit_code == 0, found.output
+    result = _scans(tmp_path / "found", "neutral.landmarks.csv")
+    assert result.exit_code == 0, result.output
+    built, named = (Basis.load(path).elements for path in (tmp_path / "found.npz", tmp_path / "found" / "b.npz"))
+    assert np.array_equal(built, named)
+    (tmp_path / "found" / "neutral.landmarks.csv").unlink()
+    missing = CliRunner().invoke(main, [*common, "--neutral", str(tmp_path / "found" / "neutral.ply"),
+                                        "--out", str(tmp_path / "missing.npz")])
+    assert_cli_refused(missing, "--neutral-landmarks", "neutral.landmarks.csv", "neutral_picked_points.pp")
+    assert not (tmp_path / "missing.npz").exists()
+
+
 @pytest.mark.parametrize("suffix", [".csv", ".toml"])
 def test_a_byte_order_mark_is_no_part_of_the_first_landmark(tmp_path, suffix):
     """Excel and Windows Notepad save UTF-8 with a byte order mark: the first row's name (or a CSV header) must

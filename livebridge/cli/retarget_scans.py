@@ -56,7 +56,9 @@ def reference_landmarks(spec: str, scale: float) -> dict:
 
 @click.command("scans", epilog=SCAN_HELP)
 @click.option("--neutral", "neutral_scan", required=True, type=InputPath(), help="The neutral scan.")
-@click.option("--neutral-landmarks", required=True, type=InputPath(), help="Landmarks of the neutral scan.")
+@click.option("--neutral-landmarks", default=None, type=InputPath(),
+              help="Landmarks of the neutral scan (default: NEUTRAL.landmarks.csv, or MeshLab's "
+                   "NEUTRAL_picked_points.pp when only that one is there).")
 @click.option("--expression", "expressions", multiple=True, required=True, type=Named(click.STRING, "SCAN[:LM]"),
               help="MUSCLE=SCAN[:LANDMARKS], once per element (Choe-Ko names get their region and side).")
 @click.option("--out", required=True, type=OutputFile(), help="Basis to write (.npz).")
@@ -85,7 +87,7 @@ def reference_landmarks(spec: str, scale: float) -> dict:
               help="Expression scans prepared at once, each in its own process holding one scan (about 1.2 GB a "
                    "million points). Default: one per core, as many as the free memory holds, when the expression "
                    "scans are over 8 MB in all (smaller ones prepare faster than processes start).")
-def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, force: bool, reference: str,
+def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: Path, force: bool, reference: str,
           method: str, grid_size, crop_radius, units: str, kernel: str, grid_obj, landmarks_out,
           mesh_spacing: float | None, workers: int | None) -> None:
     """Build an actuation basis for a scanned person from a neutral scan and one scan per muscle.
@@ -111,6 +113,12 @@ def scans(neutral_scan: Path, neutral_landmarks: Path, expressions, out: Path, f
         if same:  # the later file would overwrite the earlier
             raise click.BadParameter(f"{path}: {same[0]} writes there already; give each output its own file",
                                      param_hint=option)
+    if neutral_landmarks is None:  # as for an expression's SCAN without :LANDMARKS
+        neutral_landmarks = split_scan_spec(str(neutral_scan))[1]
+        if not neutral_landmarks.exists():
+            raise click.BadParameter(f"no landmark file {neutral_landmarks} (nor "
+                                     f"{picked_points_file(neutral_scan).name}): give it",
+                                     param_hint="--neutral-landmarks")
     scale = UNITS_TO_MM[units]
     columns, rows = grid_size
     named = unique_names(expressions, "--expression")
