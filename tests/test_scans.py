@@ -1182,6 +1182,32 @@ def test_something_between_the_scanner_and_the_face_is_left_out_and_said(tmp_pat
     assert np.sqrt(np.mean(np.sum((spoiled - reference) ** 2, axis=1))) > 0.15 * size  # 0.23 measured
 
 
+def test_something_before_the_face_in_the_neutral_scan_is_told(tmp_path, small_scans):
+    """The neutral is the reference the expressions are registered on, so nothing can be cut from it; but no
+    expression comes near a hand held before its cheek, and the build says where that is."""
+    import shutil
+
+    from livebridge.cli import main
+    from livebridge.retarget.point_files import read_points_csv
+
+    def build(folder, out):
+        return CliRunner().invoke(main, [
+            "retarget", "scans", "--neutral", str(folder / "neutral.ply"), "--expression", f"jaw={folder / 'jaw.ply'}",
+            "--grid", "40x40", "--out", str(out)])
+
+    clean = build(small_scans, tmp_path / "clean.npz")
+    assert clean.exit_code == 0, clean.output
+    assert "warning" not in clean.output
+    for path in small_scans.iterdir():
+        shutil.copy(path, tmp_path / path.name)
+    marks = read_points_csv(small_scans / "neutral.landmarks.csv")
+    _, with_hand = _occluded(read_scan(small_scans / "neutral.ply").points, marks, 40.0)
+    write_ply(tmp_path / "neutral.ply", with_hand, None, "ascii")
+    told = build(tmp_path, tmp_path / "told.npz")
+    assert told.exit_code == 0, told.output
+    assert "warning: neutral.ply" in told.output and "a hand" in told.output and "hole in the expression" in told.output
+
+
 def test_the_build_tells_of_each_element_in_both_passes():
     """Coloured scans are tracked twice (against the neutral, then against the template of all the scans' skin):
     each pass names each element as it starts, so a build of minutes shows where it is."""

@@ -102,7 +102,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
 
     from livebridge.face.muscle_place import misplaced
     from livebridge.retarget.point_files import picked_points_file, read_points
-    from livebridge.retarget.same_face import another_face
+    from livebridge.retarget.same_face import another_face, neutral_off_expressions, off_expressions
     from livebridge.retarget.scan import read_scan
     from livebridge.retarget.scans import OFF_FACE_MM, basis_from_scans, prepare_neutral
 
@@ -152,6 +152,10 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
             click.echo(f"note: {name} ({scan_path.name}): {faces[name].off_face_share:.1%} of its points lie over "
                        f"{OFF_FACE_MM:g} mm from the neutral's face once registered (something between the scanner and "
                        "the face: a hand, glasses, a microphone?) and are left out")
+    off_neutral = off_expressions(neutral_off_expressions(neutral.vertices, [face.vertices for face in faces.values()],
+                                                          OFF_FACE_MM), neutral.vertices, OFF_FACE_MM, len(faces))
+    if off_neutral is not None:
+        click.echo(f"warning: {neutral_scan.name}: {off_neutral}")
     click.echo("building the elements")
     basis = basis_from_scans(neutral, faces, kernel, log=click.echo)
     basis.save(out)
