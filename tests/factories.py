@@ -48,3 +48,15 @@ def write_builtin_scans(folder, seed: int, stems: dict[str, str], basis=None, co
         write_ply(folder / f"{stem}.ply", scan.points, None, "ascii", scan.colours)
         (folder / f"{stem}.landmarks.csv").write_text("name,x,y,z\n" + "".join(
             f"{k},{float(x)!r},{float(y)!r},{float(z)!r}\n" for k, (x, y, z) in scan.landmarks.items()))
+
+
+def split_triangles(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every triangle cut in four at its edges' midpoints: the same surface, another (4x denser) topology; the
+    first ``len(vertices)`` vertices are the given ones."""
+    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    unique, index = np.unique(edges, axis=0, return_inverse=True)
+    mid = len(vertices) + index.reshape(3, -1).T  # (t, 3): the midpoints of edges ab, bc, ca
+    a, b, c = triangles.T
+    ab, bc, ca = mid.T
+    split = np.concatenate([np.column_stack(t) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    return np.vstack([vertices, vertices[unique].mean(axis=1)]), split

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from factories import assert_cli_refused
+from factories import assert_cli_refused, split_triangles
 
 from livebridge.face.basis import CHOE_KO_MUSCLES
 from livebridge.face.builtin import builtin_basis
@@ -115,17 +115,6 @@ def _posed(vertices):
     return vertices @ Rotation.from_rotvec([0.05, -0.1, 0.04]).as_matrix().T + np.array([5.0, -12.0, 30.0])
 
 
-def _split(vertices, triangles):
-    """Every triangle cut in four at its edges' midpoints: the same surface, another topology."""
-    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    unique, index = np.unique(edges, axis=0, return_inverse=True)
-    mid = len(vertices) + index.reshape(3, -1).T  # (t, 3): the midpoints of edges ab, bc, ca
-    a, b, c = triangles.T
-    ab, bc, ca = mid.T
-    split = np.concatenate([np.column_stack(t) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
-    return np.vstack([vertices, vertices[unique].mean(axis=1)]), split
-
-
 @pytest.mark.parametrize("au", ["au12", "au1", "orbicularis_oculi_L"])
 def test_an_expressive_blendshape_in_another_pose_transfers_as_the_recipe_does(points, builtin, target, au):
     basis, source_landmarks = builtin
@@ -146,13 +135,13 @@ def test_an_expressive_mesh_of_another_topology_is_read_the_thesis_way(points, b
     basis, source_landmarks = builtin
     (vertices, triangles), landmarks = target
     expressive = _recipe_expression(basis, points, "au12")
-    split_vertices, split_triangles = _split(expressive, basis.triangles)
+    split_vertices, split_faces = split_triangles(expressive, basis.triangles)
     on_split = place_at_points(source_landmarks.as_dict(expressive, basis.triangles), split_vertices,
-                               split_triangles, 1e-6)
+                               split_faces, 1e-6)
     exact = prepare_transfer(points, ["au12"], basis, source_landmarks, (vertices, triangles), landmarks)
     shown = [prepare_transfer(points, ["au12"], (basis.neutral, basis.triangles), source_landmarks,
                               (vertices, triangles), landmarks,
-                              expression=((pose(split_vertices), split_triangles), on_split, "au12.obj")).mesh(1.0)
+                              expression=((pose(split_vertices), split_faces), on_split, "au12.obj")).mesh(1.0)
              for pose in (lambda v: v, _posed)]
     assert np.abs(shown[1] - shown[0]).max() < 0.05  # the head's pose is taken out
     truth = exact.mesh(1.0) - vertices
@@ -174,7 +163,7 @@ def test_cli_carries_an_expressive_obj_and_refuses_one_it_cannot_place(tmp_path,
     basis = builtin_basis()
     save_obj(tmp_path / "neutral.obj", basis.neutral, basis.triangles)
     save_obj(tmp_path / "smile.obj", _posed(_recipe_expression(basis, points, "au12")), basis.triangles)
-    save_obj(tmp_path / "split.obj", *_split(basis.neutral, basis.triangles))
+    save_obj(tmp_path / "split.obj", *split_triangles(basis.neutral, basis.triangles))
     common = ["retarget", "au", "--source-landmarks", "builtin-22", "--target", "builtin", "--target-landmarks",
               "builtin-22", "--au", "12"]
     runner = CliRunner()

@@ -61,7 +61,7 @@ def roughness(elements: np.ndarray, vertices: np.ndarray, triangles: np.ndarray)
 
     edges, _ = edge_counts(np.asarray(triangles))
     spacing = float(np.mean(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)))
-    mean = neighbour_mean(np.asarray(triangles), len(vertices))
+    mean = neighbour_mean(edges, len(vertices))
     out = np.full(len(elements), np.nan)
     for k, field in enumerate(np.asarray(elements, dtype=np.float64)):
         size = float(np.sum(field ** 2))

@@ -137,6 +137,11 @@ def thesis_22_from_68(markers_68: MarkerSet, vertices: np.ndarray, triangles: np
 
 
 # ------------------------------------------------------------------------------------------------ the surface
+CLOSEST_CHUNK = 32768
+"""Points are matched to the surface this many at a time: each holds some 40 candidate triangles' corners, and
+a 600k-vertex target at once took 4.8 GB."""
+
+
 def closest_surface_points(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, near: int = 8,
                            normals: np.ndarray | None = None, min_cos: float = 0.0):
     """The closest point on a triangle mesh to each point, as triangle + barycentric coordinates.
@@ -169,14 +174,29 @@ def closest_surface_points(points: np.ndarray, vertices: np.ndarray, triangles: 
 
     points, vertices = np.asarray(points, dtype=np.float64).reshape(-1, 3), np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
+    normals = None if normals is None else np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     used = np.unique(triangles)  # vertices in no triangle cannot lead to the surface
-    k = min(near, len(used))
-    _, nearest = cKDTree(vertices[used]).query(points, k=k)
+    tree = cKDTree(vertices[used])
+    incidence = csr_matrix((np.ones(triangles.size), (triangles.ravel(), np.repeat(np.arange(len(triangles)), 3))),
+                           shape=(len(vertices), len(triangles)))
+    if not len(points):
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
+    parts = [_closest_among_near(points[start:start + CLOSEST_CHUNK], vertices, triangles, used, tree, incidence,
+                                 min(near, len(used)),
+                                 None if normals is None else normals[start:start + CLOSEST_CHUNK], min_cos)
+             for start in range(0, len(points), CLOSEST_CHUNK)]
+    return tuple(np.concatenate(arrays) for arrays in zip(*parts))
+
+
+def _closest_among_near(points, vertices, triangles, used, tree, incidence, k: int, normals, min_cos: float):
+    """:func:`closest_surface_points` for one chunk of points, the mesh's vertex tree and vertex-triangle
+    incidence given."""
+    from scipy.sparse import csr_matrix
+
+    _, nearest = tree.query(points, k=k)
     # a point so far off (1e300 mm) that its distance overflows has no neighbour: cKDTree answers len(used);
     # any vertex will do, the distance below is then infinite and the caller refuses it
     nearest = used[np.minimum(np.asarray(nearest).reshape(len(points), k), len(used) - 1)]
-    incidence = csr_matrix((np.ones(triangles.size), (triangles.ravel(), np.repeat(np.arange(len(triangles)), 3))),
-                           shape=(len(vertices), len(triangles)))
     selection = csr_matrix((np.ones(nearest.size), (np.repeat(np.arange(len(points)), k), nearest.ravel())),
                            shape=(len(points), len(vertices)))
     point_of, triangle_of = (selection @ incidence).nonzero()
@@ -187,7 +207,7 @@ def closest_surface_points(points: np.ndarray, vertices: np.ndarray, triangles: 
     if normals is not None:
         facing = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
         facing /= np.maximum(np.linalg.norm(facing, axis=1, keepdims=True), np.finfo(float).tiny)
-        along = np.einsum("nd,nd->n", facing, np.asarray(normals, dtype=np.float64).reshape(-1, 3)[point_of])
+        along = np.einsum("nd,nd->n", facing, normals[point_of])
         disagrees = along <= min_cos
     order = np.lexsort((distance, disagrees, point_of))  # per point: agreeing first, then nearest first
     first = order[np.r_[True, point_of[order][1:] != point_of[order][:-1]]]

@@ -134,12 +134,17 @@ class ThinPlateSpline:
         frame = Frame.of(centres)
         return cls(centres, *frame.weights_and_affine(coefficients, frame.to(centres), kernel), kernel)
 
-    def __call__(self, points: np.ndarray) -> np.ndarray:
-        """``f(points)``, shape (m, 3), for points (m, 3)."""
+    def __call__(self, points: np.ndarray, chunk: int = 4096) -> np.ndarray:
+        """``f(points)``, shape (m, 3), for points (m, 3); ``chunk`` points at a time to bound memory (the
+        (m, n) kernel matrix of a 600k-vertex target and 1000 centres would be 4.7 GB)."""
         points = self.frame.to(_as_points(points, "points"))
+        centres = self.frame.to(self.centres)
         weights, affine = self.frame_coefficients[:-4], self.frame_coefficients[-4:]
+        out = affine[0] + points @ affine[1:]
         # the kernel and affine parts apart: the (m, n + 4) design matrix's copy cost more than its product
-        return self.kernel.matrix(points, self.frame.to(self.centres)) @ weights + affine[0] + points @ affine[1:]
+        for start in range(0, len(points), chunk):
+            out[start:start + chunk] += self.kernel.matrix(points[start:start + chunk], centres) @ weights
+        return out
 
     def jacobian(self, points: np.ndarray, chunk: int = 4096) -> np.ndarray:
         """``df/dp`` at points (m, 3), shape (m, 3 out, 3 in), from the kernel's gradient.
