@@ -91,12 +91,14 @@ def au(source_spec, source_landmarks, expression_spec, expression_landmarks, tar
     from livebridge.retarget.au import parse_aus, prepare_transfer, save_obj
     from livebridge.retarget.control_points import load_control_points
 
-    if expression_spec is None and Path(source_spec).suffix.lower() == ".obj":
-        raise InputError("a source mesh has no muscles to make the AUs with: give the source person showing them "
-                         "(--expression) or a basis (.npz)", source_spec, "--expression")
-    source = _load_source(source_spec) if expression_spec is None else load_mesh(source_spec, units)
-    source_mesh = (source.neutral, source.triangles) if expression_spec is None else source
-    if expression_spec is not None:
+    if expression_spec is None:
+        if Path(source_spec).suffix.lower() == ".obj":
+            raise InputError("a source mesh has no muscles to make the AUs with: give the source person showing "
+                             "them (--expression) or a basis (.npz)", source_spec, "--expression")
+        source = _load_source(source_spec)
+        source_mesh = (source.neutral, source.triangles)
+    else:
+        source = source_mesh = load_mesh(source_spec, units)
         check_mesh(*source_mesh, source_spec)
     vertices, triangles = load_mesh(target_spec, units)
     check_mesh(vertices, triangles, target_spec)
