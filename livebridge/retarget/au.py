@@ -23,7 +23,7 @@ import numpy as np
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.retarget.control_points import ControlPointSet, carry_control_points
-from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points
+from livebridge.retarget.landmarks import LandmarkSet, surface_values
 from livebridge.retarget.tps import Kernel, fit_tps
 
 MERGE_DISTANCE = 1.0
@@ -99,9 +99,7 @@ def control_point_moves(points: np.ndarray, neutral_mesh, neutral_landmarks: Lan
     posed = on_neutral_pose(neutral_mesh, neutral_landmarks, vertices,
                             expressive_landmarks.as_dict(vertices, triangles), source)
     if vertices.shape == neutral_vertices.shape and np.array_equal(triangles, neutral_triangles):
-        triangle, barycentric, _ = closest_surface_points(points, neutral_vertices, neutral_triangles)
-        displacement = posed - neutral_vertices
-        return np.einsum("nk,nkd->nd", barycentric, displacement[neutral_triangles[triangle]])
+        return surface_values(points, neutral_vertices, neutral_triangles, posed - neutral_vertices)
     return carry_control_points(points, neutral_mesh, neutral_landmarks, (posed, triangles), expressive_landmarks,
                                 kernel) - points
 
@@ -137,9 +135,7 @@ def basis_moves(points: np.ndarray, basis: Basis, contractions: dict[str, float]
     x = np.zeros(basis.n_muscles)
     for name, value in contractions.items():
         x[basis.index(name)] = value
-    displacement = np.tensordot(x, basis.elements, axes=1)
-    triangle, barycentric, _ = closest_surface_points(points, basis.neutral, basis.triangles)
-    return np.einsum("nk,nkd->nd", barycentric, displacement[basis.triangles[triangle]])
+    return surface_values(points, basis.neutral, basis.triangles, np.tensordot(x, basis.elements, axes=1))
 
 
 # ------------------------------------------------------------------------------------------------ animation

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from livebridge.errors import InputError
-from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points
+from livebridge.retarget.landmarks import LandmarkSet, surface_values
 from livebridge.retarget.tps import Kernel, fit_tps
 from livebridge.tomlio import load_toml, save_toml
 
@@ -273,5 +273,4 @@ def carry_control_points(control_points, source_mesh, source_landmarks: Landmark
     source_points, target_points = landmark_pairs(source_landmarks, source_mesh, target_landmarks, target_mesh)
     carried = fit_tps(source_points, target_points, kernel)(points)
     vertices, triangles = target_mesh
-    triangle, barycentric, _ = closest_surface_points(carried, vertices, triangles)
-    return np.einsum("nk,nkd->nd", barycentric, np.asarray(vertices, dtype=np.float64)[triangles[triangle]])
+    return surface_values(carried, vertices, triangles, np.asarray(vertices, dtype=np.float64))

@@ -174,18 +174,27 @@ def closest_surface_points(points: np.ndarray, vertices: np.ndarray, triangles: 
 
     points, vertices = np.asarray(points, dtype=np.float64).reshape(-1, 3), np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
+    if not len(points):
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
     normals = None if normals is None else np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     used = np.unique(triangles)  # vertices in no triangle cannot lead to the surface
     tree = cKDTree(vertices[used])
     incidence = csr_matrix((np.ones(triangles.size), (triangles.ravel(), np.repeat(np.arange(len(triangles)), 3))),
                            shape=(len(vertices), len(triangles)))
-    if not len(points):
-        return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
     parts = [_closest_among_near(points[start:start + CLOSEST_CHUNK], vertices, triangles, used, tree, incidence,
                                  min(near, len(used)),
                                  None if normals is None else normals[start:start + CLOSEST_CHUNK], min_cos)
              for start in range(0, len(points), CLOSEST_CHUNK)]
     return tuple(np.concatenate(arrays) for arrays in zip(*parts))
+
+
+def surface_values(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, values: np.ndarray
+                   ) -> np.ndarray:
+    """A per-vertex field ``values`` (n_vertices, d) of a mesh read at each of ``points`` (n, 3)'s closest surface
+    place (:func:`closest_surface_points`, barycentric in its triangle), shape (n, d); ``values`` = ``vertices``
+    snaps the points onto the surface."""
+    triangle, barycentric, _ = closest_surface_points(points, vertices, triangles)
+    return np.einsum("nk,nkd->nd", barycentric, np.asarray(values)[np.asarray(triangles)[triangle]])
 
 
 def _closest_among_near(points, vertices, triangles, used, tree, incidence, k: int, normals, min_cos: float):

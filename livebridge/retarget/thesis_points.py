@@ -14,7 +14,7 @@ import sys
 import numpy as np
 
 from livebridge.retarget.control_points import ControlGroup, ControlPointSet
-from livebridge.retarget.landmarks import closest_surface_points, load_landmark_set
+from livebridge.retarget.landmarks import load_landmark_set, surface_values
 
 POINTS_PER_MUSCLE = 4
 # (AU, description, region, recipe, points: (name, kind, landmark, dx, dy, on both sides?))
@@ -54,8 +54,7 @@ def _on_face(xy: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, normal
     front = np.flatnonzero(normals[:, 2] > 0.3)
     nearest = front[np.argmin(np.linalg.norm(vertices[front, None, :2] - xy[None], axis=2), axis=0)]
     guess = np.column_stack([xy, vertices[nearest, 2]])
-    triangle, barycentric, _ = closest_surface_points(guess, vertices, triangles)
-    return np.einsum("nk,nkd->nd", barycentric, vertices[triangles[triangle]])
+    return surface_values(guess, vertices, triangles, vertices)
 
 
 def thesis_control_points() -> ControlPointSet:
