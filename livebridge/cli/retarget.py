@@ -45,6 +45,7 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
           units: str) -> None:
     """Turn every element of a source basis into an element on a target mesh of any topology."""
     from livebridge.retarget.basis import retarget_basis
+    from livebridge.retarget.inner_parts import bone_parts
 
     source = _load_source(source_spec)
     vertices, triangles = load_mesh(target_spec, units)
@@ -57,6 +58,10 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
     moving = int(np.count_nonzero(np.abs(result.elements).max(axis=(1, 2)) > 0))
     click.echo(f"wrote {out}: {result.n_muscles} elements ({moving} moving) on {result.n_vertices} vertices, "
                f"kernel {kernel}")
+    parts = bone_parts(vertices, triangles, on_target)
+    if parts.any:
+        click.echo(f"note: closed parts inside the head move with their bone, not the skin: {int(parts.skull.sum())} "
+                   f"vertices on the skull (still), {int(parts.jaw.sum())} on the jaw (teeth, eyes; see the README)")
 
 
 @retarget.command("au")

@@ -41,6 +41,17 @@ def read_obj(path: str | Path) -> Mesh:
     return Mesh(obj.points, obj.triangles)
 
 
+def edge_counts(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (k, 2) as sorted vertex ids, how many triangles share each (k,)) of a triangle mesh.
+
+    A collapsed triangle's zero-length edges (a vertex to itself) are not edges."""
+    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    base = int(edges.max()) + 1
+    keys, counts = np.unique(edges[:, 0].astype(np.int64) * base + edges[:, 1], return_counts=True)
+    return np.stack([keys // base, keys % base], axis=1), counts
+
+
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals, of one mesh or a batch of deformations of it.
 

@@ -16,7 +16,8 @@ import numpy as np
 
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
-from livebridge.face.meshio import vertex_normals
+from livebridge.face.meshio import edge_counts, vertex_normals
+from livebridge.retarget.inner_parts import bone_parts, on_bones
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points
 from livebridge.retarget.tps import Kernel, ThinPlateSpline, fit_tps
 
@@ -121,17 +122,6 @@ def correspond(target_vertices: np.ndarray, target_triangles: np.ndarray, to_sou
     triangle, barycentric, distance = closest_surface_points(carried, source_vertices, source_triangles,
                                                              near=CORRESPOND_NEAR, normals=normals)
     return Correspondence(triangle, barycentric, distance, carried)
-
-
-def edge_counts(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(edges (k, 2) as sorted vertex ids, how many triangles share each (k,)) of a triangle mesh.
-
-    A collapsed triangle's zero-length edges (a vertex to itself) are not edges."""
-    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    edges = edges[edges[:, 0] != edges[:, 1]]
-    base = int(edges.max()) + 1
-    keys, counts = np.unique(edges[:, 0].astype(np.int64) * base + edges[:, 1], return_counts=True)
-    return np.stack([keys // base, keys % base], axis=1), counts
 
 
 def inside_boundary(vertices: np.ndarray, triangles: np.ndarray, step: float = BOUNDARY_STEP) -> np.ndarray:
@@ -531,7 +521,8 @@ def retarget_basis(source: Basis, source_landmarks: LandmarkSet, target_neutral:
     Returns
     -------
     Basis
-        Neutral ``target_neutral``; muscles with no effect in the source stay exactly zero.
+        Neutral ``target_neutral``; muscles with no effect in the source stay exactly zero. Closed parts inside
+        the target's head (teeth, eyeballs) move with their bone (:mod:`~livebridge.retarget.inner_parts`).
     """
     target_neutral = np.asarray(target_neutral, dtype=np.float64)
     target_triangles = np.asarray(target_triangles, dtype=np.int64)
@@ -549,6 +540,9 @@ def retarget_basis(source: Basis, source_landmarks: LandmarkSet, target_neutral:
     jacobian = smooth_jacobian(to_target, points, (target_neutral, target_triangles), reach)
     elements = transfer_elements(source.elements, source, correspondence, to_target, jacobian)
     elements = smooth_jumps(elements, target_triangles, correspondence_jumps(correspondence, source, target_triangles))
+    parts = bone_parts(target_neutral, target_triangles, target_landmarks)
+    if parts.any:
+        elements = on_bones(elements, target_neutral, parts)
     return Basis(target_neutral, target_triangles, elements, source.muscles)
 
 

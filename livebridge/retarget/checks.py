@@ -16,7 +16,7 @@ DEGENERATE_AREA = 1e-12
 
 def non_manifold_edges(triangles: np.ndarray) -> np.ndarray:
     """Edges (k, 2) (sorted vertex ids) shared by more than two triangles."""
-    from livebridge.retarget.basis import edge_counts
+    from livebridge.face.meshio import edge_counts
 
     unique, counts = edge_counts(triangles)
     return unique[counts > 2]
@@ -42,7 +42,7 @@ def check_mesh(vertices: np.ndarray, triangles: np.ndarray, source=None) -> None
     triangles, edges shared by more than two triangles (non-manifold), triangles wound every which way or all
     facing into the head (the transfer matches surfaces by the way they face). Triangles that repeat a vertex
     (no surface) are left out."""
-    from livebridge.retarget.basis import edge_counts
+    from livebridge.face.meshio import edge_counts
 
     triangles = _proper(np.asarray(triangles, dtype=np.int64))
     if not len(triangles):
@@ -116,7 +116,7 @@ def check_landmarks_on(landmarks: LandmarkSet, vertices: np.ndarray, triangles: 
         if not areas[triangle] > DEGENERATE_AREA * mean_area:
             raise InputError(f"off the surface: its triangle {int(triangle)} has no area (its corners coincide or "
                              "lie on a line)", source, name)
-    from livebridge.retarget.basis import edge_counts
+    from livebridge.face.meshio import edge_counts
 
     edges, counts = edge_counts(_proper(triangles))
     base = len(vertices) + 1

@@ -57,7 +57,8 @@ def roughness(elements: np.ndarray, vertices: np.ndarray, triangles: np.ndarray)
 
     ``elements`` (k, n_vertices, 3); ``vertices`` (n_vertices, 3); ``triangles`` (m, 3).
     """
-    from livebridge.retarget.basis import edge_counts, neighbour_mean
+    from livebridge.face.meshio import edge_counts
+    from livebridge.retarget.basis import neighbour_mean
 
     edges, _ = edge_counts(np.asarray(triangles))
     spacing = float(np.mean(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)))
