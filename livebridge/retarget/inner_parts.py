@@ -6,9 +6,10 @@ would follow the upper lip, an eyeball would be squashed by a closing lid. A too
 does: with the skull (not at all, in a face's actuation basis) or with the jaw.
 
 Which parts: connected components of the target that hold no landmark, have no open edge (a closed surface) and
-lie behind the skin. Open parts (eyelashes, the mouth's inner bag, eye blend meshes) are attached to the skin at
-their rim and keep the skin's motion. Which bone: a part whose centre lies below the line where the lips meet is
-on the jaw, any other on the skull. The jaw's motion in an element: the rigid motion (no scale) that best fits
+lie behind the face's front (:data:`BEHIND`). Open parts (eyelashes, the mouth's inner bag, eye blend meshes) are
+attached to the skin at their rim and keep the skin's motion, as do closed shells on the outside of the skin.
+Which bone: a part whose centre lies below the bite's plane (:data:`BITE_TILT`) is on the jaw, any other on the
+skull. The jaw's motion in an element: the rigid motion (no scale) that best fits
 the element's motion of the skin around the chin (:data:`CHIN_REACH`); soft tissue lags the bone, so this
 under-reads a jaw's swing (ICT's ``jawOpen``: 20.6 degrees read off the skin for its teeth's 25.3).
 """
@@ -81,8 +82,7 @@ def bone_parts(vertices: np.ndarray, triangles: np.ndarray, landmarks) -> BonePa
     off_skin = _behind_face(vertices, skin_triangles, label, candidates, axes, BEHIND * height)
     below = np.array([_below_bite(vertices[label == c].mean(axis=0), at, axes) for c in off_skin], dtype=bool)
     chin = skin & (np.linalg.norm(vertices - at["chin"], axis=1) < CHIN_REACH * height)
-    return BoneParts(np.isin(label, off_skin[~below]) if len(off_skin) else none,
-                     np.isin(label, off_skin[below]) if len(off_skin) else none, chin)
+    return BoneParts(np.isin(label, off_skin[~below]), np.isin(label, off_skin[below]), chin)
 
 
 def on_bones(elements: np.ndarray, vertices: np.ndarray, parts: BoneParts) -> np.ndarray:
@@ -155,8 +155,7 @@ def _behind_face(vertices: np.ndarray, skin_triangles: np.ndarray, label: np.nda
 
     across, up, front = axes
     skin = np.unique(skin_triangles)
-    plane = vertices[:, None, :] @ np.stack([across, up], axis=1)
-    plane = plane[:, 0]
+    plane = vertices @ np.stack([across, up], axis=1)
     cell = 2.0 * float(np.median(np.linalg.norm(vertices[skin_triangles[:, 0]] - vertices[skin_triangles[:, 1]],
                                                 axis=1)))
     cells = np.floor(plane[skin] / cell).astype(np.int64)
@@ -165,7 +164,6 @@ def _behind_face(vertices: np.ndarray, skin_triangles: np.ndarray, label: np.nda
     np.maximum.at(front_most, where.ravel(), vertices[skin] @ front)
     chosen = np.isin(label, candidates)
     envelope = griddata((keys + 0.5) * cell, front_most, plane[chosen], method="linear")
-    behind = envelope - vertices[chosen] @ front
+    behind = np.nan_to_num(envelope - vertices[chosen] @ front, nan=-np.inf)  # beside the face: not behind it
     owner = label[chosen]
-    return np.array([c for c in candidates if np.nanmedian(np.where(np.isnan(behind[owner == c]), -np.inf,
-                                                                    behind[owner == c])) > depth], dtype=np.int64)
+    return np.array([c for c in candidates if np.median(behind[owner == c]) > depth], dtype=np.int64)
