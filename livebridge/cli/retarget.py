@@ -53,15 +53,13 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
     source_mesh = (source.neutral, source.triangles)
     on_source, on_target = _landmarks(source_landmarks, source_mesh, target_landmarks, vertices, triangles)
     _check_size(on_source, source_mesh, on_target, vertices, triangles, target_spec, units)
-    result = retarget_basis(source, on_source, vertices, triangles, on_target, kernel)
+    parts = bone_parts(vertices, triangles, on_target)
+    result = retarget_basis(source, on_source, vertices, triangles, on_target, kernel, parts)
     result.save(out)
     moving = int(np.count_nonzero(np.abs(result.elements).max(axis=(1, 2)) > 0))
     click.echo(f"wrote {out}: {result.n_muscles} elements ({moving} moving) on {result.n_vertices} vertices, "
                f"kernel {kernel}")
-    parts = bone_parts(vertices, triangles, on_target)
-    if parts.any:
-        click.echo(f"note: closed parts inside the head move with their bone, not the skin: {int(parts.skull.sum())} "
-                   f"vertices on the skull (still), {int(parts.jaw.sum())} on the jaw (teeth, eyes; see the README)")
+    _say_parts(parts)
 
 
 @retarget.command("au")
@@ -120,6 +118,14 @@ def au(source_spec, source_landmarks, expression_spec, expression_landmarks, tar
     save_obj(out, moved, triangles)
     click.echo(f"wrote {out}: {', '.join(aus)} at m = {magnitude:g} ({side}); largest move "
                f"{np.linalg.norm(moved - vertices, axis=1).max():.2f} mm")
+    _say_parts(transfer.parts)
+
+
+def _say_parts(parts) -> None:
+    """Tell how many of the target's vertices are closed inner parts moved with a bone (``parts``: BoneParts)."""
+    if parts.any:
+        click.echo(f"note: closed parts inside the head move with their bone, not the skin: {int(parts.skull.sum())} "
+                   f"vertices on the skull (still), {int(parts.jaw.sum())} on the jaw (teeth, eyes; see the README)")
 
 
 def _expression(spec, landmarks_spec, source_landmarks, source_mesh, units: str):

@@ -10,7 +10,8 @@ Animation (§5.6): the control points are carried to the neutral target face, mo
 eq. 5.10) or ``m v_i s_t / s_s`` (lower face, eq. 5.8; ``s``: the mouth-corner distance), and the target is
 warped by one thin-plate spline per region through the moved points and fixed anchor points (the landmarks
 away from the moving points, and a band of target vertices along the border between the regions). A region
-with no moving point is not touched: a brow expression never moves the mouth.
+with no moving point is not touched: a brow expression never moves the mouth. Closed parts inside a target
+head (teeth, eyeballs) then move with their bone, not with the spline (:mod:`~livebridge.retarget.inner_parts`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import numpy as np
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.retarget.control_points import ControlPointSet, carry_control_points
+from livebridge.retarget.inner_parts import JAW_MUSCLES, BoneParts, bone_parts, on_bones
 from livebridge.retarget.landmarks import LandmarkSet, surface_values
 from livebridge.retarget.tps import Kernel, fit_tps
 
@@ -225,10 +227,21 @@ class AUTransfer:
     landmarks: dict
     motion: Motion
     kernel: Kernel
+    parts: BoneParts
+    """The target's closed inner parts on the skull and the jaw."""
+    turns_jaw: bool
+    """Whether the AUs turn the jaw (else the jaw's parts stay still, as the skull's)."""
 
     def mesh(self, magnitude: float) -> np.ndarray:
-        """The target's vertices (m, 3) at AU magnitude ``m`` in [0, 1]."""
-        return warp_regions(self.vertices, self.triangles, self.landmarks, self.motion, magnitude, self.kernel)
+        """The target's vertices (m, 3) at AU magnitude ``m`` in [0, 1]: the regions' splines, then the inner
+        parts on their bones (the skull's still, the jaw's moved rigidly as the chin's skin moves)."""
+        warped = warp_regions(self.vertices, self.triangles, self.landmarks, self.motion, magnitude, self.kernel)
+        if not self.parts.any:
+            return warped
+        moved = on_bones((warped - self.vertices)[None], self.vertices, self.parts, [self.turns_jaw])[0]
+        on_bone = self.parts.skull | self.parts.jaw
+        warped[on_bone] = self.vertices[on_bone] + moved[on_bone]
+        return warped
 
 
 def prepare_transfer(control_points: ControlPointSet, groups, source, source_landmarks: LandmarkSet,
@@ -285,7 +298,9 @@ def prepare_transfer(control_points: ControlPointSet, groups, source, source_lan
     rotation = np.array([_rotation_of(j) for j in jacobian])
     turned = np.einsum("nij,nj->ni", rotation, moves)
     scaled = turned * np.where(upper, 1.0, ratio)[:, None] * share[:, None]
-    return AUTransfer(target_vertices, target_triangles, target_marks, merged(on_target, scaled, upper), kernel)
+    return AUTransfer(target_vertices, target_triangles, target_marks, merged(on_target, scaled, upper), kernel,
+                      bone_parts(target_vertices, target_triangles, target_landmarks),
+                      _turns_jaw(control_points, chosen.group_names))
 
 
 def _recipe_moves(control_points: ControlPointSet, chosen: ControlPointSet, on_source: np.ndarray, source: Basis
@@ -300,6 +315,16 @@ def _recipe_moves(control_points: ControlPointSet, chosen: ControlPointSet, on_s
         mask = np.array([g == group for g in chosen.groups])
         moves[mask] += basis_moves(on_source[mask], source, recipe.muscles)
     return moves
+
+
+def _turns_jaw(control_points: ControlPointSet, groups) -> bool:
+    """Whether any of ``groups`` turns the jaw: a jaw muscle (:data:`~livebridge.retarget.inner_parts.JAW_MUSCLES`)
+    by name or in its recipe; a group without a recipe may (only its chin's skin says)."""
+    for group in groups:
+        recipe = control_points.recipes.get(group)
+        if group in JAW_MUSCLES or recipe is None or not recipe.muscles or set(recipe.muscles) & set(JAW_MUSCLES):
+            return True
+    return False
 
 
 def _rotation_of(jacobian: np.ndarray) -> np.ndarray:

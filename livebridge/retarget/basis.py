@@ -17,7 +17,7 @@ import numpy as np
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.face.meshio import edge_counts, vertex_normals
-from livebridge.retarget.inner_parts import bone_parts, on_bones
+from livebridge.retarget.inner_parts import BoneParts, bone_parts, jaw_turners, on_bones
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points
 from livebridge.retarget.tps import Kernel, ThinPlateSpline, fit_tps
 
@@ -503,7 +503,7 @@ def moved_vertices(elements: np.ndarray, fraction: float = SAMPLED_MOTION) -> np
 
 def retarget_basis(source: Basis, source_landmarks: LandmarkSet, target_neutral: np.ndarray,
                    target_triangles: np.ndarray, target_landmarks: LandmarkSet,
-                   kernel: Kernel | str = Kernel.BIHARMONIC) -> Basis:
+                   kernel: Kernel | str = Kernel.BIHARMONIC, parts: BoneParts | None = None) -> Basis:
     """The source basis carried onto the target mesh: same muscles (names, regions, sides), target topology.
 
     Parameters
@@ -517,6 +517,9 @@ def retarget_basis(source: Basis, source_landmarks: LandmarkSet, target_neutral:
     target_landmarks : LandmarkSet
         On the target mesh; must name every landmark of ``source_landmarks``.
     kernel : Kernel or str
+    parts : BoneParts, optional
+        The target's closed inner parts (:func:`~livebridge.retarget.inner_parts.bone_parts`, found when not
+        given).
 
     Returns
     -------
@@ -540,9 +543,9 @@ def retarget_basis(source: Basis, source_landmarks: LandmarkSet, target_neutral:
     jacobian = smooth_jacobian(to_target, points, (target_neutral, target_triangles), reach)
     elements = transfer_elements(source.elements, source, correspondence, to_target, jacobian)
     elements = smooth_jumps(elements, target_triangles, correspondence_jumps(correspondence, source, target_triangles))
-    parts = bone_parts(target_neutral, target_triangles, target_landmarks)
+    parts = bone_parts(target_neutral, target_triangles, target_landmarks) if parts is None else parts
     if parts.any:
-        elements = on_bones(elements, target_neutral, parts)
+        elements = on_bones(elements, target_neutral, parts, jaw_turners(source.names))
     return Basis(target_neutral, target_triangles, elements, source.muscles)
 
 

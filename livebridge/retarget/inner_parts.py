@@ -9,9 +9,12 @@ Which parts: connected components of the target that hold no landmark, have no o
 lie behind the face's front (:data:`BEHIND`). Open parts (eyelashes, the mouth's inner bag, eye blend meshes) are
 attached to the skin at their rim and keep the skin's motion, as do closed shells on the outside of the skin.
 Which bone: a part whose centre lies below the bite's plane (:data:`BITE_TILT`) is on the jaw, any other on the
-skull. The jaw's motion in an element: the rigid motion (no scale) that best fits
-the element's motion of the skin around the chin (:data:`CHIN_REACH`); soft tissue lags the bone, so this
-under-reads a jaw's swing (ICT's ``jawOpen``: 20.6 degrees read off the skin for its teeth's 25.3).
+skull. Only the elements that turn the jaw (:data:`JAW_MUSCLES`) move the jaw's parts, by the rigid motion (no
+scale) that best fits the element's motion of the skin around the chin (:data:`CHIN_REACH`); soft tissue lags
+the bone, so this under-reads a jaw's swing (ICT's ``jawOpen``: 20.6 degrees read off the skin for its teeth's
+25.3). In every other element the jaw's parts stay still: a smile, a chin raiser or a lip press moves the chin's
+skin, not the bone under it (read off that skin, ICT's lower teeth moved 3.3 mm RMS in its basis's smile, 3.5 mm in
+the thesis's AU12 and 5.0 mm in AU17, where ICT's own ``mouthSmile_L`` keeps them still).
 """
 
 from __future__ import annotations
@@ -31,6 +34,9 @@ BITE_TILT = 12.0
 """Degrees the plane between the jaw's parts and the skull's rises towards the back of the head, from the plane
 through the lips' meeting point square to the chin-to-eyes line: the line of the bite. Measured on ICT's head,
 where it leaves each tooth's centre 6-7 mm from the plane."""
+JAW_MUSCLES = ("jaw",)
+"""The muscles that turn the jaw (the Choe-Ko basis's jaw opening). A basis naming none of them has every element
+move the jaw's parts as its chin's skin moves."""
 FRAME_LANDMARKS = ("eye_outer_L", "eye_outer_R", "chin", "nose_tip", "lip_upper_inner", "lip_lower_inner")
 """The landmarks that place the face, its front and the jaw; without them the parts keep the skin's motion."""
 
@@ -85,22 +91,28 @@ def bone_parts(vertices: np.ndarray, triangles: np.ndarray, landmarks) -> BonePa
     return BoneParts(np.isin(label, off_skin[~below]), np.isin(label, off_skin[below]), chin)
 
 
-def on_bones(elements: np.ndarray, vertices: np.ndarray, parts: BoneParts) -> np.ndarray:
+def on_bones(elements: np.ndarray, vertices: np.ndarray, parts: BoneParts, turns_jaw) -> np.ndarray:
     """``elements`` (k, n_vertices, 3) with the skull's parts still and the jaw's parts moved rigidly as the
-    chin's skin moves in each element (a new array)."""
+    chin's skin moves in the elements that turn the jaw (``turns_jaw``, k bools; see :func:`jaw_turners`), still
+    in the others (a new array)."""
     from livebridge.geometry.transforms import apply, umeyama
 
     out = np.array(elements, dtype=np.float64, copy=True)
-    out[:, parts.skull] = 0.0
+    out[:, parts.skull | parts.jaw] = 0.0
     if not parts.jaw.any() or parts.chin.sum() < 3:
         return out
     chin, jaw = vertices[parts.chin], vertices[parts.jaw]
     for k, element in enumerate(elements):
-        if not np.any(element[parts.chin]):
-            out[k, parts.jaw] = 0.0
-            continue
-        out[k, parts.jaw] = apply(umeyama(chin, chin + element[parts.chin], with_scale=False), jaw) - jaw
+        if turns_jaw[k] and np.any(element[parts.chin]):
+            out[k, parts.jaw] = apply(umeyama(chin, chin + element[parts.chin], with_scale=False), jaw) - jaw
     return out
+
+
+def jaw_turners(muscle_names) -> np.ndarray:
+    """Which of a basis's muscles (names) turn the jaw, shape (k,) bool: those in :data:`JAW_MUSCLES`, or all of
+    them when it names none (their chin's skin is all that says)."""
+    turns = np.isin(list(muscle_names), JAW_MUSCLES)
+    return turns if turns.any() else np.ones(len(turns), dtype=bool)
 
 
 def _components(triangles: np.ndarray, n: int) -> np.ndarray:
