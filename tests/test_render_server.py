@@ -143,7 +143,8 @@ def test_client_gets_init_mesh_then_frames(server):
 
 
 def test_a_stalled_client_never_slows_the_publisher_or_the_other_clients(rng):
-    """One client stops reading entirely; publishing stays instant and a live client gets the newest frame."""
+    """One client stops reading entirely; publishing waits for no client (nor for the server's loop) and a live
+    client gets the newest frame."""
     from websockets.sync.client import connect
 
     basis = random_basis(rng, 49, 4)
@@ -157,14 +158,21 @@ def test_a_stalled_client_never_slows_the_publisher_or_the_other_clients(rng):
         with connect(f"ws://127.0.0.1:{srv.port}/ws") as live:
             live.recv(timeout=5), live.recv(timeout=5)
             _wait(lambda: srv.n_clients == 2)
-            worst = 0.0
+            # with the server's loop held, 100 publishes still return: publish takes a lock and wakes the loop,
+            # it never waits for the loop or a client
+            gate = threading.Event()
+            srv._call_soon(lambda: gate.wait(30))
+            publisher = threading.Thread(target=lambda: [
+                srv.publish(RenderFrame(-1, time.monotonic(), np.zeros(4), np.zeros((60, 3)))) for _ in range(100)])
+            publisher.start()
+            publisher.join(timeout=20)
+            held = publisher.is_alive()
+            gate.set()
+            assert not held
             for seq in range(3000):  # ~2.6 MB: far more than the stalled socket's buffers hold
-                start = time.perf_counter()
                 srv.publish(RenderFrame(seq, time.monotonic(), np.full(4, seq % 7 / 7), np.zeros((60, 3))))
-                worst = max(worst, time.perf_counter() - start)
                 if seq % 10 == 0:
                     time.sleep(0.001)
-            assert worst < 0.05  # never waits for a client (only a lock and a wake-up)
             last = None
             deadline = time.monotonic() + 5
             while time.monotonic() < deadline:
