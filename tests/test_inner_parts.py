@@ -205,6 +205,12 @@ def test_cli_says_which_parts_move_with_a_bone(shared_data, ict, tmp_path):
             str(tmp_path / "smile.obj")]
     result = CliRunner().invoke(main, args)
     assert result.exit_code == 0, result.output
-    assert "on the skull (still)" in result.output
-    smile = read_obj(tmp_path / "smile.obj").vertices
-    assert np.allclose(smile[parts.skull], mesh.vertices[parts.skull] * 10.0, atol=1e-5)  # as written, 6 decimals
+    assert "on the skull (still)" in result.output and "in cm" in result.output
+    smile = read_obj(tmp_path / "smile.obj")
+    assert np.allclose(smile.vertices[parts.skull], mesh.vertices[parts.skull], rtol=1e-8, atol=0)  # the OBJ's cm
+    assert np.abs(smile.vertices - mesh.vertices).max() > 1.0  # the smile, in cm
+
+    def kept(path):  # the quads with their texture coordinates, the materials
+        return [line for line in path.read_text().splitlines() if line.startswith(("f ", "vt ", "usemtl", "mtllib"))]
+
+    assert kept(tmp_path / "smile.obj") == kept(head)

@@ -82,7 +82,9 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
               help="Move one side's control points only (the subject's left: +x).")
 @click.option("--control-points", default="thesis", type=InputPath(builtins=("thesis",)), show_default=True,
               help="Control point set: 'thesis' (shipped) or a control-point TOML file.")
-@click.option("--out", required=True, type=OutputFile(), help="AU mesh to write (.obj, mm).")
+@click.option("--out", required=True, type=OutputFile(),
+              help="AU mesh to write (.obj): an OBJ target's own file with its vertices moved (in --units; its "
+                   "texture coordinates, polygons and materials kept), else a triangle mesh in mm.")
 @force_option
 @click.option("--kernel", type=click.Choice(["r", "r2lnr2"]), default="r", show_default=True,
               help="TPS kernel: r (3D biharmonic) or r2lnr2 (the thesis's).")
@@ -91,7 +93,7 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
 def au(source_spec, source_landmarks, expression_spec, expression_landmarks, target_spec, target_landmarks, aus,
        magnitude: float, side: str, control_points, out: Path, force: bool, kernel: str, units: str) -> None:
     """Write the target face showing action units carried from the source (Erdoğdu §5.5-5.6) as OBJ."""
-    from livebridge.retarget.au import parse_aus, prepare_transfer, save_obj
+    from livebridge.retarget.au import parse_aus, prepare_transfer, save_moved_obj, save_obj
     from livebridge.retarget.control_points import load_control_points
 
     if expression_spec is None:
@@ -115,9 +117,14 @@ def au(source_spec, source_landmarks, expression_spec, expression_landmarks, tar
     transfer = prepare_transfer(points, parse_aus(aus), source, on_source, (vertices, triangles), on_target, sides,
                                 kernel, expression)
     moved = transfer.mesh(magnitude)
-    save_obj(out, moved, triangles)
+    as_target = Path(target_spec).suffix.lower() == ".obj" and save_moved_obj(out, target_spec, moved,
+                                                                              UNITS_TO_MM[units])
+    if not as_target:
+        save_obj(out, moved, triangles)
+    written = (f"the target's own file moved, in {units} (its texture coordinates, polygons and materials kept, "
+               "its normals dropped)" if as_target else "triangles, mm")
     click.echo(f"wrote {out}: {', '.join(aus)} at m = {magnitude:g} ({side}); largest move "
-               f"{np.linalg.norm(moved - vertices, axis=1).max():.2f} mm")
+               f"{np.linalg.norm(moved - vertices, axis=1).max():.2f} mm; {written}")
     _say_parts(transfer.parts)
 
 

@@ -245,3 +245,40 @@ def _obj_colour(cells, number, path):
         return [float(value) for value in cells]
     except ValueError:
         raise InputError(f"line {number}: vertex colour must be numbers, got {cells}", path) from None
+
+
+_LINE_ENDS = "\r\n\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029"
+
+
+def with_vertices(data: bytes, vertices: np.ndarray) -> bytes | None:
+    """An OBJ file's bytes (``data``) with its vertices moved to ``vertices`` (n, 3; in the file's units): each
+    ``v`` line's x y z replaced, what follows them on the line (a vertex colour) kept; its normals dropped (the
+    ``vn`` lines and the faces' normal indices: they no longer fit the moved surface, and a renderer computes
+    them when a file has none); every other line as written (texture coordinates, polygons, groups,
+    materials, comments). None when the file's ``v`` lines are not n (read as :func:`read_obj_lines` reads them).
+    """
+    bom = data.startswith(_BOM)
+    text = data[len(_BOM) if bom else 0:].decode("utf-8", errors="surrogateescape")
+    out, k = [], 0
+    for line in text.splitlines(keepends=True):
+        body = line.rstrip(_LINE_ENDS)
+        ending, parts = line[len(body):], body.split()
+        keyword = parts[0] if parts else ""
+        if keyword == "v":
+            if k >= len(vertices):
+                return None
+            out.append(" ".join(["v", *(f"{value:.9g}" for value in vertices[k]), *parts[4:]]) + ending)
+            k += 1
+        elif keyword == "f":
+            out.append(" ".join(["f", *(_without_normal(token) for token in parts[1:])]) + ending)
+        elif keyword != "vn":
+            out.append(line)
+    if k != len(vertices):
+        return None
+    return (_BOM if bom else b"") + "".join(out).encode("utf-8", errors="surrogateescape")
+
+
+def _without_normal(corner: str) -> str:
+    """A face corner ``v``, ``v/t``, ``v//n`` or ``v/t/n`` without its normal index."""
+    fields = corner.split("/")
+    return fields[0] if len(fields) < 2 or not fields[1] else f"{fields[0]}/{fields[1]}"
