@@ -12,7 +12,7 @@ from livebridge.cli._options import InputPath, OutputFile, force_option
 
 @click.group()
 def basis() -> None:
-    """Actuation bases: import from meshes, show, check, refine."""
+    """Actuation bases: import from meshes, export as meshes, show, check, refine."""
 
 
 @basis.command("import")
@@ -32,6 +32,39 @@ def import_(manifest: str, shapes: Path | None, out: Path, force: bool) -> None:
                f"{len(result.triangles)} triangles")
     for warning in side_warnings(result.muscles, result.elements, result.neutral):
         click.echo(f"warning: {warning}")
+
+
+@basis.command("export")
+@click.argument("basis_file", metavar="BASIS", type=InputPath(builtins=("builtin",)))
+@click.option("--out", "folder", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Folder to write neutral.obj, one OBJ per muscle and basis.toml into (created if need be).")
+@click.option("--like", type=InputPath(), default=None,
+              help="The OBJ the basis lives on (e.g. the target of `retarget basis`): every file keeps its "
+                   "texture coordinates, polygons and materials.")
+@click.option("--units", type=click.Choice(["mm", "cm", "m"]), default="mm", show_default=True,
+              help="Units to write (and of --like).")
+@force_option
+def export(basis_file, folder: Path, like: Path | None, units: str, force: bool) -> None:
+    """Write BASIS (a basis file or 'builtin') as OBJ meshes: the neutral and one blendshape per muscle, with the
+    manifest `basis import` reads them back by."""
+    from livebridge.errors import InputError
+    from livebridge.face.basis import Basis
+    from livebridge.face.basis_export import export_basis, export_files
+
+    if basis_file == "builtin":
+        from livebridge.face.builtin import builtin_basis
+
+        loaded = builtin_basis()
+    else:
+        loaded = Basis.load(basis_file)
+    there = [path.name for path in export_files(loaded, folder) if path.exists()]
+    if there and not force:
+        raise InputError(f"{', '.join(there[:3])}{' ...' if len(there) > 3 else ''} already there; add --force to "
+                         "overwrite", folder)
+    files = export_basis(loaded, folder, units, like)
+    click.echo(f"wrote {len(files) - 1} OBJ files ({units}{', laid out as ' + str(like) if like else ', triangles'}) "
+               f"and {files[-1].name} into {folder}: `livebridge basis import {files[-1]} --out BASIS.npz` reads "
+               "them back")
 
 
 attach(basis, (

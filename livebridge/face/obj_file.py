@@ -282,3 +282,12 @@ def _without_normal(corner: str) -> str:
     """A face corner ``v``, ``v/t``, ``v//n`` or ``v/t/n`` without its normal index."""
     fields = corner.split("/")
     return fields[0] if len(fields) < 2 or not fields[1] else f"{fields[0]}/{fields[1]}"
+
+
+def triangle_obj(vertices: np.ndarray, triangles: np.ndarray, comment: str = "") -> bytes:
+    """A triangle mesh's OBJ file: ``vertices`` (n, 3) as written (6 decimals), ``triangles`` (m, 3) from 0,
+    ``comment`` as its first line."""
+    lines = [f"# {comment}"] if comment else []
+    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in np.asarray(vertices, dtype=np.float64)]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in np.asarray(triangles)]
+    return ("\n".join(lines) + "\n").encode()

@@ -372,8 +372,7 @@ def save_moved_obj(path: str | Path, target: str | Path, vertices: np.ndarray, m
 def save_obj(path: str | Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
     """A triangle mesh as Wavefront OBJ (vertices in mm), written atomically."""
     from livebridge.atomic import write_bytes_atomically
+    from livebridge.face.obj_file import triangle_obj
 
-    lines = [f"# livebridge retarget au: {len(vertices)} vertices, {len(triangles)} triangles, mm"]
-    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
-    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in triangles]
-    write_bytes_atomically(path, ("\n".join(lines) + "\n").encode(), "OBJ file")
+    comment = f"livebridge retarget au: {len(vertices)} vertices, {len(triangles)} triangles, mm"
+    write_bytes_atomically(path, triangle_obj(vertices, triangles, comment), "OBJ file")
