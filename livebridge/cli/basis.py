@@ -47,16 +47,11 @@ def import_(manifest: str, shapes: Path | None, out: Path, force: bool) -> None:
 def export(basis_file, folder: Path, like: Path | None, units: str, force: bool) -> None:
     """Write BASIS (a basis file or 'builtin') as OBJ meshes: the neutral and one blendshape per muscle, with the
     manifest `basis import` reads them back by."""
+    from livebridge.cli.markers import load_basis
     from livebridge.errors import InputError
-    from livebridge.face.basis import Basis
     from livebridge.face.basis_export import export_basis, export_files
 
-    if basis_file == "builtin":
-        from livebridge.face.builtin import builtin_basis
-
-        loaded = builtin_basis()
-    else:
-        loaded = Basis.load(basis_file)
+    loaded = load_basis(basis_file)
     there = [path.name for path in export_files(loaded, folder) if path.exists()]
     if there and not force:
         raise InputError(f"{', '.join(there[:3])}{' ...' if len(there) > 3 else ''} already there; add --force to "

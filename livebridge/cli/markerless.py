@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from livebridge.cli._options import FRAMES, ImageFile, InputPath, OutputFile, force_option
+from livebridge.cli.markers import load_basis
 
 
 @click.group("markerless")
@@ -44,7 +45,7 @@ def train_command(take: str, out: Path, force: bool, report: Path | None, basis_
 
     if method == "ica":
         require_sklearn()
-    basis = _basis(basis_spec)
+    basis = load_basis(basis_spec)
     prompts = load_gesture_list(gesture_spec, basis.names)
     frames = TakeFrames(take, max_frames or None)
     images = [image for _, image in frames.frames()]
@@ -130,14 +131,6 @@ def analyse_command(take: str, model_path: Path, out: Path | None, force: bool, 
         click.echo(f"contractions -> {out}")
 
 
-def _basis(spec):
-    if spec == "builtin":
-        from livebridge.face.builtin import builtin_basis
-
-        return builtin_basis()
-    from livebridge.face.basis import Basis
-
-    return Basis.load(spec)
 
 
 def _crop(text: str) -> tuple[int, int, int, int]:

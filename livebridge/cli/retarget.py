@@ -11,6 +11,7 @@ from livebridge.cli._attach import attach
 from livebridge.cli._options import FiniteFloat, ImageFile, InputPath, OutputFile, force_option
 from livebridge.cli.basis_show import _draw_mesh, _view
 from livebridge.cli.landmarks import MESH_TYPE, UNITS_TO_MM, load_mesh
+from livebridge.cli.markers import load_basis
 from livebridge.errors import InputError
 from livebridge.retarget.checks import check_mesh
 from livebridge.retarget.landmarks import SHIPPED_LANDMARK_SETS
@@ -47,7 +48,7 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
     from livebridge.retarget.basis import retarget_basis
     from livebridge.retarget.inner_parts import bone_parts
 
-    source = _load_source(source_spec)
+    source = load_basis(source_spec)
     vertices, triangles = load_mesh(target_spec, units)
     check_mesh(vertices, triangles, target_spec)
     source_mesh = (source.neutral, source.triangles)
@@ -100,7 +101,7 @@ def au(source_spec, source_landmarks, expression_spec, expression_landmarks, tar
         if Path(source_spec).suffix.lower() == ".obj":
             raise InputError("a source mesh has no muscles to make the AUs with: give the source person showing "
                              "them (--expression) or a basis (.npz)", source_spec, "--expression")
-        source = _load_source(source_spec)
+        source = load_basis(source_spec)
         source_mesh = (source.neutral, source.triangles)
     else:
         source = source_mesh = load_mesh(source_spec, units)
@@ -147,16 +148,6 @@ def _expression(spec, landmarks_spec, source_landmarks, source_mesh, units: str)
         landmarks_spec = source_landmarks
     _, on_expression = _landmarks(source_landmarks, source_mesh, landmarks_spec, vertices, triangles)
     return (vertices, triangles), on_expression, spec
-
-
-def _load_source(spec):
-    if spec == "builtin":
-        from livebridge.face.builtin import builtin_basis
-
-        return builtin_basis()
-    from livebridge.face.basis import Basis
-
-    return Basis.load(spec)
 
 
 def _landmarks(source_spec, source_mesh, target_spec, vertices, triangles):
@@ -225,7 +216,7 @@ def _require_reference_names(points, *landmark_sets) -> None:
 @force_option
 def show(bases, contractions_file, frames: int, out: Path, force: bool) -> None:
     """Play one contraction take on several bases (a source and its retargeted copies), side by side."""
-    faces = [(Path(spec).stem if spec != "builtin" else "built-in face", _load_source(spec)) for spec in bases]
+    faces = [(Path(spec).stem if spec != "builtin" else "built-in face", load_basis(spec)) for spec in bases]
     if contractions_file is None:
         names, values, labels = demo_take(faces[0][1].names)
     else:
