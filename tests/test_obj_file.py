@@ -114,15 +114,16 @@ def test_a_mesh_reads_the_same_with_a_byte_order_mark_tabs_and_indented_lines(tm
 
 @pytest.mark.parametrize("form", sorted(FORMS))
 def test_a_moved_obj_keeps_everything_but_its_positions_and_normals(form, rng):
-    """``with_vertices``: new positions, the vertex colours, texture coordinates, polygons (quads stay quads),
+    """``ObjLayout``: new positions, the vertex colours, texture coordinates, polygons (quads stay quads),
     groups and materials as written; no normals (they no longer fit the surface), CRLF and a byte order mark
     kept."""
-    from livebridge.face.obj_file import _BOM, read_obj_data, with_vertices
+    from livebridge.face.obj_file import _BOM, ObjLayout, read_obj_data
 
     data = _BOM + _obj(form, rng, colours=True, polygons=(3, 4, 5), crlf=True)
     before = read_obj_data(data, Path("head.obj"))
     moved_to = before.points * 1.5 + rng.normal(0, 1, before.points.shape)
-    out = with_vertices(data, moved_to)
+    layout = ObjLayout.of(data)
+    out = layout.moved(moved_to)
     after = read_obj_data(out, Path("moved.obj"))
     assert np.allclose(after.points, moved_to, rtol=1e-8, atol=1e-6)
     assert np.array_equal(after.colours, before.colours) and np.array_equal(after.texcoords, before.texcoords)
@@ -134,5 +135,7 @@ def test_a_moved_obj_keeps_everything_but_its_positions_and_normals(form, rng):
                                          for c in line.split()[1:])
     assert [line for line in text.splitlines() if line.startswith(("g ", "s ", "o ", "#"))] == \
         [line for line in data.decode("utf-8-sig").splitlines() if line.startswith(("g ", "s ", "o ", "#"))]
-    assert with_vertices(data, moved_to[:-1]) is None and with_vertices(data, np.vstack([moved_to, [[0, 0, 0]]])) \
-        is None  # not this file's vertices
+    assert layout.n_vertices == len(before.points)
+    for wrong in (moved_to[:-1], np.vstack([moved_to, [[0, 0, 0]]])):  # not this file's vertices
+        with pytest.raises(ValueError):
+            layout.moved(wrong)

@@ -131,8 +131,6 @@ def analyse_command(take: str, model_path: Path, out: Path | None, force: bool, 
         click.echo(f"contractions -> {out}")
 
 
-
-
 def _crop(text: str) -> tuple[int, int, int, int]:
     try:
         values = tuple(int(v) for v in text.split(","))

@@ -4,7 +4,7 @@
 neutral face moved by the muscle's full contraction: a blendshape target) and ``DIR/basis.toml``, the manifest
 ``livebridge basis import DIR/basis.toml`` reads them back with (every muscle's region, side and description
 in it). With ``--like MESH.obj`` (the mesh the basis lives on, e.g. the target of ``livebridge retarget
-basis``) every file is that OBJ with its vertices moved (:func:`~livebridge.face.obj_file.with_vertices`): its
+basis``) every file is that OBJ with its vertices moved (:class:`~livebridge.face.obj_file.ObjLayout`): its
 texture coordinates, polygons and materials kept, so the shapes drop into the character's rig; otherwise
 triangles. Vertices are written in ``units``.
 """
@@ -34,14 +34,14 @@ def export_basis(basis: Basis, folder: str | Path, units: str = "mm", like: str 
     the files written (:func:`export_files`). ``like``: an OBJ of the basis's mesh (its vertices and faces, in
     ``units``) whose layout every file keeps."""
     from livebridge.atomic import write_bytes_atomically
-    from livebridge.face.obj_file import triangle_obj, with_vertices
+    from livebridge.face.obj_file import triangle_obj
     from livebridge.tomlio import save_toml
 
     if units not in UNITS_TO_MM:
         raise InputError(f"unknown unit {units!r}; use one of {', '.join(UNITS_TO_MM)}", field="units")
     if NEUTRAL_NAME in basis.names:
         raise InputError(f"a muscle is named {NEUTRAL_NAME!r}, the neutral's file name", field="muscles")
-    template = None if like is None else _checked_like(Path(like), basis, units)
+    layout = None if like is None else _checked_like(Path(like), basis, units)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     scale = 1.0 / UNITS_TO_MM[units]
@@ -49,15 +49,17 @@ def export_basis(basis: Basis, folder: str | Path, units: str = "mm", like: str 
     shapes = [basis.neutral, *(basis.neutral + element for element in basis.elements)]
     for path, shape in zip(files, shapes):
         data = triangle_obj(shape * scale, basis.triangles, f"livebridge basis export: {path.stem}, {units}") \
-            if template is None else with_vertices(template, shape * scale)
+            if layout is None else layout.moved(shape * scale)
         write_bytes_atomically(path, data, "OBJ file")
     save_toml(files[-1], _manifest(basis, units))
     return files
 
 
-def _checked_like(path: Path, basis: Basis, units: str) -> bytes:
-    """The bytes of the OBJ ``path``, refused (naming it) unless it is the basis's mesh: its vertices and faces."""
+def _checked_like(path: Path, basis: Basis, units: str):
+    """The :class:`~livebridge.face.obj_file.ObjLayout` of the OBJ ``path``, refused (naming it) unless it is the
+    basis's mesh: its vertices and faces."""
     from livebridge.face.meshio import read_obj
+    from livebridge.face.obj_file import ObjLayout
 
     mesh = read_obj(path)
     if len(mesh.vertices) != basis.n_vertices or not np.array_equal(mesh.triangles, basis.triangles):
@@ -67,7 +69,7 @@ def _checked_like(path: Path, basis: Basis, units: str) -> bytes:
     if off > 1e-3 * max(float(np.ptp(basis.neutral, axis=0).max()), 1.0):
         raise InputError(f"its vertices lie up to {off:.3g} mm from the basis's neutral read in {units}: another "
                          "mesh, pose or unit (give its unit with --units)", path)
-    return path.read_bytes()
+    return ObjLayout.of(path.read_bytes())
 
 
 def _manifest(basis: Basis, units: str) -> dict:

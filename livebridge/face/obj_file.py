@@ -250,32 +250,64 @@ def _obj_colour(cells, number, path):
 _LINE_ENDS = "\r\n\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029"
 
 
-def with_vertices(data: bytes, vertices: np.ndarray) -> bytes | None:
-    """An OBJ file's bytes (``data``) with its vertices moved to ``vertices`` (n, 3; in the file's units): each
-    ``v`` line's x y z replaced, what follows them on the line (a vertex colour) kept; its normals dropped (the
-    ``vn`` lines and the faces' normal indices: they no longer fit the moved surface, and a renderer computes
-    them when a file has none); every other line as written (texture coordinates, polygons, groups,
-    materials, comments). None when the file's ``v`` lines are not n (read as :func:`read_obj_lines` reads them).
+@dataclass(frozen=True)
+class ObjLayout:
+    """An OBJ file with its vertex positions left open, parsed once: :meth:`moved` writes it with any positions.
+
+    Each ``v`` line's x y z are replaced, what follows them on the line (a vertex colour) kept; the normals are
+    dropped (the ``vn`` lines and the faces' normal indices: they no longer fit a moved surface, and a renderer
+    computes them when a file has none); every other line stays as written (texture coordinates, polygons,
+    groups, materials, comments, line ends, a byte order mark). Lines are read as :func:`read_obj_lines` reads
+    them, so the ``v`` lines are the vertices :func:`read_obj_data` gives.
+
+    Attributes
+    ----------
+    between : tuple of str
+        The text before the first ``v`` line's position, between each two, and after the last (n + 1).
+    tails : tuple of str
+        What follows each ``v`` line's x y z, its line end included (n).
+    bom : bool
     """
-    bom = data.startswith(_BOM)
-    text = data[len(_BOM) if bom else 0:].decode("utf-8", errors="surrogateescape")
-    out, k = [], 0
-    for line in text.splitlines(keepends=True):
-        body = line.rstrip(_LINE_ENDS)
-        ending, parts = line[len(body):], body.split()
-        keyword = parts[0] if parts else ""
-        if keyword == "v":
-            if k >= len(vertices):
-                return None
-            out.append(" ".join(["v", *(f"{value:.9g}" for value in vertices[k]), *parts[4:]]) + ending)
-            k += 1
-        elif keyword == "f":
-            out.append(" ".join(["f", *(_without_normal(token) for token in parts[1:])]) + ending)
-        elif keyword != "vn":
-            out.append(line)
-    if k != len(vertices):
-        return None
-    return (_BOM if bom else b"") + "".join(out).encode("utf-8", errors="surrogateescape")
+
+    between: tuple
+    tails: tuple
+    bom: bool
+
+    @classmethod
+    def of(cls, data: bytes) -> ObjLayout:
+        """The layout of an OBJ file's bytes."""
+        bom = data.startswith(_BOM)
+        text = data[len(_BOM) if bom else 0:].decode("utf-8", errors="surrogateescape")
+        between, tails, pending = [], [], []
+        for line in text.splitlines(keepends=True):
+            body = line.rstrip(_LINE_ENDS)
+            ending, parts = line[len(body):], body.split()
+            keyword = parts[0] if parts else ""
+            if keyword == "v":
+                between.append("".join(pending) + "v ")
+                tails.append("".join(f" {part}" for part in parts[4:]) + ending)
+                pending = []
+            elif keyword == "f":
+                pending.append(" ".join(["f", *(_without_normal(token) for token in parts[1:])]) + ending)
+            elif keyword != "vn":
+                pending.append(line)
+        between.append("".join(pending))
+        return cls(tuple(between), tuple(tails), bom)
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.tails)
+
+    def moved(self, vertices: np.ndarray) -> bytes:
+        """The file with its vertices at ``vertices`` (n_vertices, 3; in the file's units, 9 significant
+        digits)."""
+        vertices = np.asarray(vertices, dtype=np.float64)
+        if vertices.shape != (self.n_vertices, 3):
+            raise ValueError(f"{self.n_vertices} vertices expected, got an array of shape {vertices.shape}")
+        pieces = [self.between[0]]
+        for (x, y, z), tail, after in zip(vertices.tolist(), self.tails, self.between[1:]):
+            pieces.append(f"{x:.9g} {y:.9g} {z:.9g}{tail}{after}")
+        return (_BOM if self.bom else b"") + "".join(pieces).encode("utf-8", errors="surrogateescape")
 
 
 def _without_normal(corner: str) -> str:

@@ -357,15 +357,15 @@ def parse_aus(values) -> list[str]:
 def save_moved_obj(path: str | Path, target: str | Path, vertices: np.ndarray, mm_per_unit: float) -> bool:
     """The ``target`` OBJ file with its vertices moved to ``vertices`` (n, 3; mm), in the file's own units
     (``mm_per_unit``), written atomically to ``path``: its texture coordinates, polygons, groups and materials
-    kept, its normals dropped (:func:`~livebridge.face.obj_file.with_vertices`). False (nothing written) when
-    its ``v`` lines are not the n vertices."""
+    kept, its normals dropped (:class:`~livebridge.face.obj_file.ObjLayout`). False (nothing written) when its
+    ``v`` lines are not the n vertices."""
     from livebridge.atomic import write_bytes_atomically
-    from livebridge.face.obj_file import with_vertices
+    from livebridge.face.obj_file import ObjLayout
 
-    moved = with_vertices(Path(target).read_bytes(), np.asarray(vertices, dtype=np.float64) / mm_per_unit)
-    if moved is None:
+    layout = ObjLayout.of(Path(target).read_bytes())
+    if layout.n_vertices != len(vertices):
         return False
-    write_bytes_atomically(path, moved, "OBJ file")
+    write_bytes_atomically(path, layout.moved(np.asarray(vertices, dtype=np.float64) / mm_per_unit), "OBJ file")
     return True
 
 
