@@ -105,7 +105,7 @@ def _recipe_expression(basis, points, group):
     x = np.zeros(basis.n_muscles)
     for name, value in points.recipes[group].muscles.items():
         x[basis.index(name)] = value
-    return basis.neutral + np.tensordot(x, basis.elements, axes=1)
+    return basis.synthesize(x)
 
 
 def _posed(vertices):
