@@ -30,17 +30,18 @@ def assert_cli_refused(result, *words) -> None:
         assert word in error, (word, error)
 
 
-def write_builtin_scans(folder, seed: int, stems: dict[str, str], basis=None, colour: bool = False) -> None:
+def write_builtin_scans(folder, seed: int, stems: dict[str, str], basis=None, colour: bool = False,
+                        landmarks: str = "builtin-22") -> None:
     """The built-in face's (or ``basis``'s, on the built-in face's topology) neutral and expressions as 8000-point
-    scans, without colour unless ``colour``, ``STEM.ply`` (ascii) and ``STEM.landmarks.csv`` (``name,x,y,z``) in
-    ``folder``; ``stems``: ``"neutral"`` or a muscle -> file stem."""
+    scans, without colour unless ``colour``, ``STEM.ply`` (ascii) and ``STEM.landmarks.csv`` (``name,x,y,z``; the
+    shipped ``landmarks`` set's points) in ``folder``; ``stems``: ``"neutral"`` or a muscle -> file stem."""
     from livebridge.bench.scans import synthetic_scans
     from livebridge.face.builtin import builtin_basis
     from livebridge.retarget.landmarks import load_landmark_set
     from livebridge.retarget.scan import write_ply
 
     muscles = tuple(name for name in stems if name != "neutral")
-    neutral, expressions = synthetic_scans(basis or builtin_basis(), load_landmark_set("builtin-22"),
+    neutral, expressions = synthetic_scans(basis or builtin_basis(), load_landmark_set(landmarks),
                                            np.random.default_rng(seed), n_points=8000, hole_muscle=None, colour=colour,
                                            muscles=muscles)
     for name, stem in stems.items():

@@ -24,6 +24,7 @@ from livebridge.retarget.landmarks import (
     closest_surface_points,
     load_landmark_set,
     thesis_22_from_68,
+    thesis_points_from_68,
 )
 
 
@@ -137,6 +138,28 @@ def test_thesis_22_needs_a_68_point_set(face):
 
     with pytest.raises(InputError, match="lm_00"):
         thesis_22_from_68(builtin_landmarks().subset(np.arange(1, 68)), face.neutral, face.triangles)
+
+
+def test_a_68_point_file_s_numbers_read_as_the_thesis_s_names(face):
+    """What a landmark detector writes for a scan (``lm_00`` .. ``lm_67``) gives the thesis's 22 as the shipped
+    derivation does, without the iBUG points they came from (one control point twice) or the jaw line (out of
+    the face crop), and keeps the rest; names already there are left alone."""
+    markers = builtin_landmarks()
+    points = dict(zip(markers.names, markers.positions(face.neutral, face.triangles)))
+    thesis = load_landmark_set("builtin-22").as_dict(face.neutral, face.triangles)
+    named = thesis_points_from_68(points, face.neutral)
+    for name, source in THESIS_22:
+        if isinstance(source, int):
+            np.testing.assert_array_equal(named[name], points[landmark_name(source)], err_msg=name)
+            assert landmark_name(source) not in named
+        else:  # the scan point nearest the midpoint, where the shipped set takes the nearest surface point
+            assert np.linalg.norm(named[name] - thesis[name]) < 2.0, name
+    assert not any(landmark_name(number) in named for number in range(17))
+    assert all(landmark_name(number) in named for number in (28, 37, 38, 40, 41, 43, 44, 46, 47, 60, 64))
+    assert len(named) == 22 + 68 - 17 - 20 + 1  # lm_08 (the chin) is both jaw line and a thesis point
+    mixed = {**thesis, "lm_30": points["lm_30"] + 5.0}  # a nose tip of its own: lm_30 is another point then
+    kept = thesis_points_from_68(mixed, face.neutral)
+    assert kept.keys() == mixed.keys() and all(kept[name] is mixed[name] for name in mixed)
 
 
 def _run(*args):

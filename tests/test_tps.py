@@ -134,11 +134,13 @@ def test_jacobian_equals_central_differences(rng, kernel):
     assert np.abs(jacobian).max() > 0.5
 
 
-@pytest.mark.parametrize("smoothing", [0.0, 25.0])
+@pytest.mark.parametrize("smoothing", [0.0, 25.0, "per point"])
 def test_biharmonic_spline_equals_rbfinterpolator_linear(rng, smoothing):
     centres = _cloud(rng, 60)
     targets = _smooth_warp(centres) + rng.normal(scale=1, size=centres.shape)
     queries = _cloud(rng, 2000, scale=90.0)
+    if smoothing == "per point":  # some points held loosely, some interpolated
+        smoothing = np.where(rng.random(len(centres)) < 0.5, 0.0, rng.uniform(1.0, 100.0, len(centres)))
     ours = fit_tps(centres, targets, Kernel.BIHARMONIC, smoothing=smoothing)(queries)
     peer = RBFInterpolator(centres, targets, kernel="linear", degree=1, smoothing=smoothing)(queries)
     assert np.abs(ours - peer).max() < 1e-9
@@ -231,6 +233,10 @@ def test_bad_options_are_input_errors(rng):
     centres = _cloud(rng, 8)
     with pytest.raises(InputError, match="smoothing must be"):
         fit_tps(centres, centres, smoothing=-1.0)
+    with pytest.raises(InputError, match=r"one per control point \(8\), got shape \(7,\)"):
+        fit_tps(centres, centres, smoothing=np.ones(7))
+    with pytest.raises(InputError, match="finite and >= 0 at every control point"):
+        Warp(centres, centres, smoothing=np.r_[np.ones(7), np.inf])
     with pytest.raises(InputError, match="unknown TPS kernel 'gaussian'"):
         fit_tps(centres, centres, kernel="gaussian")
     with pytest.raises(InputError, match="vertex 2 is not finite"):

@@ -88,7 +88,13 @@ from livebridge.retarget.grid import (
     spikes,
     square_axes,
 )
-from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points, place_at_points
+from livebridge.retarget.landmarks import (
+    THESIS_22_NAMES,
+    LandmarkSet,
+    closest_surface_points,
+    place_at_points,
+    thesis_points_from_68,
+)
 from livebridge.retarget.mesh_samples import SAMPLE_SPACING_MM
 from livebridge.retarget.normalise import (
     RIGID_LANDMARKS,
@@ -121,6 +127,20 @@ LANDMARK_SMOOTHING = 1.0
 """TPS smoothing of the landmark spline (landmarks are placed by hand or detected: never exact)."""
 CONTROL_SMOOTHING = 0.1
 """TPS smoothing of the control-point warp (the snapped points carry the scanner's noise)."""
+STILL_SPACING_MM = 9.0
+"""Candidate still anchors of the shape-only warp (:func:`still_anchors`) lie on grid lines about this far apart
+(every 6th of the bench's 1.47 mm grid)."""
+STILL_GAP_MM = 0.3
+"""A still anchor's expressive surface lies within this of its neutral vertex (the bench's 0.2 mm scans: a still
+face's gaps 0.07-0.09 mm at the lower quartile, 0.13-0.16 at the median)."""
+MOVED_LANDMARK_MM = 2.0
+"""A landmark that moved about this much (over a hand-placed landmark's noise) holds the still anchors off."""
+STILL_REACH_MM = 30.0
+"""How far from a moved landmark the skin may move with it."""
+ANCHOR_CLEARANCE_MM = 3.0
+"""No still anchor this near a landmark: the spline would bend sharply between the two."""
+MIN_STILLNESS = 0.01
+"""Still anchors held more loosely than 100 times a landmark are left out of the spline."""
 SKIN_MARGIN_MM = 10.0
 """The skin images of coloured scans reach this far beyond the grid (tracking is poor at an image's edge)."""
 OFF_FACE_MM = 25.0
@@ -247,9 +267,12 @@ SPARSE_CELLS = 4.0
 
 
 def crop_radius(landmarks: dict[str, np.ndarray]) -> float:
-    """:data:`CROP_FACTOR` times the farthest landmark from the nose tip, mm."""
+    """:data:`CROP_FACTOR` times the farthest of the thesis's 22 landmarks (of any, without them) from the nose
+    tip, mm: a 68-point file's jaw line runs round the face's outline to the ears, and 1.2 times that (148 mm
+    on the ICT face, 110 from the 22) would crop the neck and ears too."""
     tip = np.asarray(landmarks["nose_tip"], dtype=np.float64)
-    return CROP_FACTOR * max(float(np.linalg.norm(np.asarray(p) - tip)) for p in landmarks.values())
+    named = [landmarks[name] for name in THESIS_22_NAMES if name in landmarks] or list(landmarks.values())
+    return CROP_FACTOR * max(float(np.linalg.norm(np.asarray(p) - tip)) for p in named)
 
 
 def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dict[str, np.ndarray],
@@ -262,8 +285,10 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     to it (:func:`~livebridge.retarget.chart.face_chart`); its surface fitted to its points at the grid's
     vertices (:mod:`~livebridge.retarget.surface_fit`). A mesh is first sampled into points every
     ``mesh_spacing`` mm (default 0.5: :mod:`~livebridge.retarget.mesh_samples`), coloured from its texture or
-    vertices. Errors name
-    ``source`` (the landmark file) or ``scan_source`` (the scan file: a flat scan)."""
+    vertices. Errors name ``source`` (the landmark file) or ``scan_source`` (the scan file: a flat scan).
+    Landmarks numbered as the 68-point iBUG layout are named as the thesis's
+    (:func:`~livebridge.retarget.landmarks.thesis_points_from_68`)."""
+    landmarks = thesis_points_from_68(landmarks, scan.points)
     scan2face = normalisation(landmarks, reference, method, source)
     moved = transform_landmarks(scan2face, landmarks)
     check_sides(moved, reference, source)
@@ -424,6 +449,7 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
         A mesh is sampled into points this far apart, mm (default 0.5:
         :mod:`~livebridge.retarget.mesh_samples`), coloured from its texture or vertices.
     """
+    landmarks = thesis_points_from_68(landmarks, scan.points)  # as the neutral's: see prepare_neutral
     check_on_points(landmarks, scan.points, landmarks_source, source)
     radius = float(neutral.grid.x[-1])
     first_guess = landmark_rigid(landmarks, neutral.landmarks, source)
@@ -658,23 +684,76 @@ def _carried(grid: FaceGrid, chart: SkinChart, motion: np.ndarray, trust: np.nda
 def geometric_element(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,
                       kernel: Kernel | str = Kernel.BIHARMONIC, source=None) -> np.ndarray:
     """The displacement (n_vertices, 3) from the landmark TPS, control points snapped to the expressive
-    surface and the TPS warp through them (§5.5): the motion along the skin is known at the landmarks only."""
+    surface and the TPS warp through them (§5.5): the motion along the skin is known at the landmarks only.
+
+    The landmark TPS also holds the skin still where the scans say it is (:func:`still_anchors`): the thesis's
+    spline through the landmarks alone carries a moved landmark's motion over every part of the face no
+    landmark pins (a lip corner's 11 mm out to the cheek's edge)."""
     names = [name for name in neutral.landmarks if name in expression.landmarks]
     if len(names) < 4:
         raise InputError(f"the expression scan shares {len(names)} landmarks with the neutral (at least 4)",
                          source, "landmarks")
-    f = fit_tps(np.array([neutral.landmarks[n] for n in names]), np.array([expression.landmarks[n] for n in names]),
-                kernel, LANDMARK_SMOOTHING)
+    before = np.array([neutral.landmarks[n] for n in names])
+    after = np.array([expression.landmarks[n] for n in names])
+    anchors, stillness = still_anchors(neutral, expression, before, after)
+    still = neutral.vertices[anchors]
+    smoothing = np.concatenate([np.full(len(names), LANDMARK_SMOOTHING), LANDMARK_SMOOTHING / stillness])
+    f = fit_tps(np.vstack([before, still]), np.vstack([after, still]), kernel, smoothing)
     controls = _control_vertices(neutral.grid, stride)
     start = neutral.vertices[controls]
-    triangle, barycentric, _ = closest_surface_points(f(start), expression.vertices, expression.triangles)
-    corners = expression.triangles[triangle]
-    known = ~_border_vertices(expression.grid)[corners].any(axis=1)
+    end, known = _on_expression(f(start), expression)
     if known.sum() < 4:
         raise InputError("the expression scan does not overlap the neutral face", source, "points")
-    end = np.einsum("nk,nkd->nd", barycentric, expression.vertices[corners])
     warp = fit_tps(start[known], end[known], kernel, CONTROL_SMOOTHING)
     return warp(neutral.vertices) - neutral.vertices
+
+
+def still_anchors(neutral: FaceScan, expression: FaceScan, before: np.ndarray, after: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Where a shape-only expression is taken to leave the skin still: vertex ids (k,) of the neutral grid, and
+    how surely, (k,) in (0, 1] (the landmark TPS holds each with ``1 / stillness`` times a landmark's smoothing).
+
+    ``before``, ``after``: the landmarks on the neutral and on the expression, (n, 3). The candidates are grid
+    points :data:`STILL_SPACING_MM` apart, inside the expression scan and :data:`ANCHOR_CLEARANCE_MM` from every
+    landmark. A scan with one muscle contracted moves the skin near that muscle's landmarks and changes the
+    surface there, so a candidate is the surer still the nearer the expressive surface passes it (sure within
+    :data:`STILL_GAP_MM`, or the scan's own noise if larger; not at all beyond twice that) and the farther it is
+    from every landmark that moved (not at all within 0.75 :data:`STILL_REACH_MM` of one that moved over 1.5
+    :data:`MOVED_LANDMARK_MM`; sure beyond 1.25 of it, or from one that moved under half of it). Graded, not
+    cut: one scan point more or fewer must not tip a candidate in or out (cut at the thresholds, a jaw element
+    changed by 16 % of its RMS motion with a hand's points left out of its scan; graded, 0.8 %).
+
+    The skin can slide without changing the surface (a cheek raised by the levator labii): there this is
+    wrong. Measured without colour on the bench's ICT scans (seeds 7, 8 at 60k points, seed 11 at 150k,
+    textured meshes, another face): see the README's figures."""
+    candidates = _control_vertices(neutral.grid, max(1, round(STILL_SPACING_MM / neutral.grid.spacing)))
+    points = neutral.vertices[candidates]
+    on, inside = _on_expression(points, expression)
+    noise = expression.noise_mm if np.isfinite(expression.noise_mm) else 0.0
+    limit = max(STILL_GAP_MM, noise)
+    stillness = inside * (1.0 - _ramp(np.linalg.norm(on - points, axis=1), limit, 2.0 * limit))
+    stillness *= cKDTree(before).query(points)[0] > ANCHOR_CLEARANCE_MM
+    moved = _ramp(np.linalg.norm(after - before, axis=1), 0.5 * MOVED_LANDMARK_MM, 1.5 * MOVED_LANDMARK_MM)
+    for landmark in np.flatnonzero(moved):
+        near = 1.0 - _ramp(np.linalg.norm(points - before[landmark], axis=1), 0.75 * STILL_REACH_MM,
+                           1.25 * STILL_REACH_MM)
+        stillness *= 1.0 - moved[landmark] * near
+    keep = stillness > MIN_STILLNESS
+    return candidates[keep], stillness[keep]
+
+
+def _ramp(values: np.ndarray, low: float, high: float) -> np.ndarray:
+    """0 up to ``low``, 1 from ``high``, linear between."""
+    return np.clip((np.asarray(values, dtype=np.float64) - low) / (high - low), 0.0, 1.0)
+
+
+def _on_expression(points: np.ndarray, expression: FaceScan) -> tuple[np.ndarray, np.ndarray]:
+    """The closest points (n, 3) of the expression's grid surface to ``points`` (n, 3), and whether each lies
+    inside the scan (n,): not on a triangle touching its edge or a hole, where the closest point is no match."""
+    triangle, barycentric, _ = closest_surface_points(points, expression.vertices, expression.triangles)
+    corners = expression.triangles[triangle]
+    known = ~_border_vertices(expression.grid)[corners].any(axis=1)
+    return np.einsum("nk,nkd->nd", barycentric, expression.vertices[corners]), known
 
 
 def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],

@@ -181,7 +181,7 @@ class ThinPlateSpline:
 
 
 def fit_tps(control_points: np.ndarray, targets: np.ndarray, kernel: Kernel | str = Kernel.BIHARMONIC,
-            smoothing: float = 0.0) -> ThinPlateSpline:
+            smoothing: float | np.ndarray = 0.0) -> ThinPlateSpline:
     """The spline that carries ``control_points`` to ``targets`` with the least bending energy.
 
     Parameters
@@ -191,9 +191,10 @@ def fit_tps(control_points: np.ndarray, targets: np.ndarray, kernel: Kernel | st
     targets : ndarray, shape (n, 3)
         ``v_i``, where ``c_i`` goes.
     kernel : Kernel or str
-    smoothing : float
+    smoothing : float or ndarray, shape (n,)
         ``lambda >= 0``. 0 interpolates; above 0 the spline minimises ``sum |f(c_i) - v_i|^2 + lambda E(f)``
-        (``E`` = :meth:`ThinPlateSpline.bending_energy`) for noisy landmarks, as scipy's ``RBFInterpolator``.
+        (``E`` = :meth:`ThinPlateSpline.bending_energy`) for noisy landmarks, as scipy's ``RBFInterpolator``;
+        one per control point weighs each residual by ``1 / lambda_i`` instead (a point held loosely).
 
     Raises
     ------
@@ -204,7 +205,7 @@ def fit_tps(control_points: np.ndarray, targets: np.ndarray, kernel: Kernel | st
     kernel = Kernel.parse(kernel)
     centres = check_control_points(control_points)
     values = check_targets(targets, len(centres))
-    smoothing = check_smoothing(smoothing)
+    smoothing = check_smoothing(smoothing, len(centres))
     frame = Frame.of(centres)
     # LAPACK gesv as RBFInterpolator calls it: measured 2-4x faster than scipy.linalg.solve (which adds a
     # condition estimate) and than lu_factor + lu_solve (OpenBLAS threads getrs even for 26 x 26)
@@ -238,7 +239,7 @@ class Warp:
         self.kernel = Kernel.parse(kernel)
         self.control_points = check_control_points(control_points)
         self.control_points.setflags(write=False)
-        self.smoothing = check_smoothing(smoothing)
+        self.smoothing = check_smoothing(smoothing, len(self.control_points))
         frame = Frame.of(self.control_points)
         centres = frame.to(self.control_points)
         self._lu = lu_factor(system_matrix(centres, self.kernel, frame.smoothing(self.smoothing, self.kernel)),
@@ -302,7 +303,7 @@ class Frame:
         """``(p - shift) / scale``, shape (m, 3), for points (m, 3)."""
         return (points - self.shift) / self.scale
 
-    def smoothing(self, smoothing: float, kernel: Kernel) -> float:
+    def smoothing(self, smoothing: float | np.ndarray, kernel: Kernel) -> float | np.ndarray:
         """The frame's ``lambda`` for the same spline as ``smoothing`` in the points' own units."""
         return smoothing / self.scale ** kernel.degree
 
@@ -335,10 +336,10 @@ def design_matrix(points: np.ndarray, centres: np.ndarray, kernel: Kernel) -> np
     return np.hstack([kernel.matrix(points, centres), np.ones((len(points), 1)), points])
 
 
-def system_matrix(centres: np.ndarray, kernel: Kernel, smoothing: float = 0.0) -> np.ndarray:
+def system_matrix(centres: np.ndarray, kernel: Kernel, smoothing: float | np.ndarray = 0.0) -> np.ndarray:
     """``L = [[K + s lambda I, P], [P^T, 0]]``, shape (n + 4, n + 4) (eq. 4.13; ``s`` = :attr:`Kernel.sign`).
 
-    ``P = [1, c]``; ``smoothing`` is ``lambda``.
+    ``P = [1, c]``; ``smoothing`` is ``lambda``, one for all or (n,) along the diagonal.
     """
     n = len(centres)
     system = np.zeros((n + 4, n + 4))
@@ -349,11 +350,20 @@ def system_matrix(centres: np.ndarray, kernel: Kernel, smoothing: float = 0.0) -
     return system
 
 
-def check_smoothing(smoothing: float) -> float:
-    """``smoothing`` as a float ``lambda >= 0``, or an :class:`InputError`."""
-    if not (np.isfinite(smoothing) and smoothing >= 0):
-        raise InputError(f"smoothing must be a finite number >= 0, got {smoothing}", field="smoothing")
-    return float(smoothing)
+def check_smoothing(smoothing: float | np.ndarray, n: int) -> float | np.ndarray:
+    """``smoothing`` as a float ``lambda >= 0`` or a read-only (n,) array of them, or an :class:`InputError`."""
+    if np.ndim(smoothing) == 0:
+        if not (np.isfinite(smoothing) and smoothing >= 0):
+            raise InputError(f"smoothing must be a finite number >= 0, got {smoothing}", field="smoothing")
+        return float(smoothing)
+    values = np.array(smoothing, dtype=np.float64)
+    if values.shape != (n,):
+        raise InputError(f"smoothing must be one number or one per control point ({n}), got shape {values.shape}",
+                         field="smoothing")
+    if not (np.isfinite(values).all() and (values >= 0).all()):
+        raise InputError("smoothing must be finite and >= 0 at every control point", field="smoothing")
+    values.setflags(write=False)
+    return values
 
 
 def check_control_points(points: np.ndarray) -> np.ndarray:
