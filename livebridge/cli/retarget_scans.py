@@ -143,7 +143,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
     for name, face in prepared_expressions(neutral, jobs, worker_count(workers, [path for _, path, *_ in jobs])):
         faces[name] = face
         scan_path = files[name][0]
-        if neutral.skin is None or faces[name].skin is None:
+        if not (neutral.coloured and faces[name].coloured):
             uncoloured.append(name)
         why = another_face(faces[name].gap_mm, faces[name].noise_mm)
         if why is not None:
@@ -174,7 +174,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
         if why is not None:
             click.echo(f"warning: {muscle.name}: {why}")
     if uncoloured:
-        which = "the neutral scan" if neutral.skin is None else ", ".join(uncoloured)
+        which = "the neutral scan" if not neutral.coloured else ", ".join(uncoloured)
         click.echo(f"note: no colour in {which}: the motion along the skin (most of a brow raise or a smile) is "
                    "then known only at the landmarks; scans with colour (per point, or a textured OBJ or PLY) let it "
                    "be tracked everywhere")
