@@ -9,6 +9,7 @@ from click.testing import CliRunner
 from factories import assert_cli_refused
 
 from livebridge.cli import main
+from livebridge.errors import InputError
 from livebridge.face import builtin
 from livebridge.face.builtin import builtin_basis, builtin_landmarks
 from livebridge.face.markers import landmark_name
@@ -160,6 +161,10 @@ def test_a_68_point_file_s_numbers_read_as_the_thesis_s_names(face):
     mixed = {**thesis, "lm_30": points["lm_30"] + 5.0}  # a nose tip of its own: lm_30 is another point then
     kept = thesis_points_from_68(mixed, face.neutral)
     assert kept.keys() == mixed.keys() and all(kept[name] is mixed[name] for name in mixed)
+    from_one = {f"lm_{int(name[3:]) + 1:02d}": xyz for name, xyz in points.items()}  # an iBUG .pts count
+    with pytest.raises(InputError, match="lm_68: the 68 iBUG points are numbered lm_00 ... lm_67") as refused:
+        thesis_points_from_68(from_one, face.neutral, "scan.landmarks.csv")
+    assert "scan.landmarks.csv" in str(refused.value)
 
 
 def _run(*args):

@@ -138,32 +138,37 @@ def thesis_22_from_68(markers_68: MarkerSet, vertices: np.ndarray, triangles: np
     return LandmarkSet(THESIS_22_NAMES, **rows, mesh_triangles=markers_68.mesh_triangles)
 
 
-def thesis_points_from_68(points: dict[str, np.ndarray], surface: np.ndarray) -> dict[str, np.ndarray]:
+def thesis_points_from_68(points: dict[str, np.ndarray], surface: np.ndarray, source=None) -> dict[str, np.ndarray]:
     """``points`` (name to (3,)) with the thesis's 22 names where a 68-point iBUG file numbers them instead.
 
     A landmark detector writes ``lm_00`` .. ``lm_67`` (:func:`~livebridge.face.markers.landmark_name`); each
     thesis name that is missing while its iBUG point (:data:`THESIS_22`) is there takes that point, which is then
     dropped (the two would be one control point twice). A nose saddle is the point of ``surface`` (n, 3; the
     scan's points) nearest the midpoint of iBUG 28 and that side's inner eye corner. The jaw line
-    (:data:`JAW_LINE_68`) is left out: it runs round the face's outline to the ears, out of the face crop. Every
-    other point is kept: the brows', eyes', nose's and lips' contours join the landmark spline (on the bench's ICT
-    scans without colour, seed 7 at 60k points, mean relative RMS error 0.591 with only the 8 lid points kept,
-    0.546 with all of them), the lids' (``lm_37`` ...) also feed :mod:`~livebridge.retarget.eyelids`."""
+    (:data:`JAW_LINE_68`) is left out: it runs round the face's outline to the ears, out of the face crop. A
+    number over 67 (a file counted from 1) is an error naming ``source``. Every other point is kept: the brows',
+    eyes', nose's and lips' contours join the landmark spline (on the bench's ICT scans without colour, seed 7 at
+    60k points, mean relative RMS error 0.591 with only the 8 lid points kept, 0.546 with all of them), the lids'
+    (``lm_37`` ...) also feed :mod:`~livebridge.retarget.eyelids`."""
+    beyond = sorted(name for name in points if name.startswith("lm_") and name[3:].isdigit() and int(name[3:]) > 67)
+    if beyond:  # one too high throughout, silently, if read as they are
+        raise InputError(f"{beyond[0]}: the 68 iBUG points are numbered lm_00 ... lm_67 (from 0, as dlib does); "
+                         "a file numbered from 1 needs every number lowered by one", source, beyond[0])
+    surface = np.asarray(surface, dtype=np.float64)
     out = dict(points)
     used = set()
-    for name, source in THESIS_22:
+    for name, origin in THESIS_22:
         if name in points:
             continue
-        if isinstance(source, tuple):
-            ends = [landmark_name(SADDLE_BRIDGE), landmark_name(source[1])]
-            surface = np.asarray(surface, dtype=np.float64)
+        if isinstance(origin, tuple):
+            ends = [landmark_name(SADDLE_BRIDGE), landmark_name(origin[1])]
             if all(end in points for end in ends) and len(surface):
                 middle = 0.5 * (np.asarray(points[ends[0]], float) + np.asarray(points[ends[1]], float))
                 nearest = np.argmin(np.einsum("nd,nd->n", surface - middle, surface - middle))
                 out[name] = np.asarray(surface[nearest], dtype=np.float64)
-        elif landmark_name(source) in points:
-            out[name] = np.asarray(points[landmark_name(source)], dtype=np.float64)
-            used.add(landmark_name(source))
+        elif landmark_name(origin) in points:
+            out[name] = np.asarray(points[landmark_name(origin)], dtype=np.float64)
+            used.add(landmark_name(origin))
     outline = {landmark_name(number) for number in JAW_LINE_68}
     return {name: xyz for name, xyz in out.items() if name not in used and name not in outline}
 

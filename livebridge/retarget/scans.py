@@ -294,7 +294,7 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     vertices. Errors name ``source`` (the landmark file) or ``scan_source`` (the scan file: a flat scan).
     Landmarks numbered as the 68-point iBUG layout are named as the thesis's
     (:func:`~livebridge.retarget.landmarks.thesis_points_from_68`)."""
-    landmarks = thesis_points_from_68(landmarks, scan.points)
+    landmarks = thesis_points_from_68(landmarks, scan.points, source)
     scan2face = normalisation(landmarks, reference, method, source)
     moved = transform_landmarks(scan2face, landmarks)
     check_sides(moved, reference, source)
@@ -456,7 +456,7 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
         A mesh is sampled into points this far apart, mm (default 0.5:
         :mod:`~livebridge.retarget.mesh_samples`), coloured from its texture or vertices.
     """
-    landmarks = thesis_points_from_68(landmarks, scan.points)  # as the neutral's: see prepare_neutral
+    landmarks = thesis_points_from_68(landmarks, scan.points, landmarks_source or source)  # see prepare_neutral
     check_on_points(landmarks, scan.points, landmarks_source, source)
     radius = float(neutral.grid.x[-1])
     first_guess = landmark_rigid(landmarks, neutral.landmarks, source)
