@@ -96,7 +96,8 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
     regular grid; each expression's displacement of the neutral grid comes from a landmark TPS, control
     points snapped to the expressive surface and a TPS warp (Erdoğdu §5.4-5.5). When the neutral and an
     expression scan both carry colour, the skin's pattern is tracked between them, so the motion along the
-    skin is measured everywhere; without colour it is known only at the landmarks.
+    skin is measured everywhere; without colour it is known only at the landmarks (held still where the
+    surface did not change, and a closing eyelid's read from where the eye opening went).
     """
     import numpy as np
 
@@ -176,8 +177,8 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
     if uncoloured:
         which = "the neutral scan" if not neutral.coloured else ", ".join(uncoloured)
         click.echo(f"note: no colour in {which}: the motion along the skin (most of a brow raise or a smile) is "
-                   "then known only at the landmarks; scans with colour (per point, or a textured OBJ or PLY) let it "
-                   "be tracked everywhere")
+                   "then known only at the landmarks (and a closing eyelid's from the eye opening); scans with "
+                   "colour (per point, or a textured OBJ or PLY) let it be tracked everywhere")
 
 
 OFF_FACE_NOTE = 0.001
