@@ -574,8 +574,8 @@ def shape_element(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL
     base = geometric_element(neutral, expression, stride, kernel, source)
     if neutral.skin is None or expression.skin is None:
         return base
-    guess, _, _ = _lids_guess(neutral, expression, base)
-    return neutral.chart.motion_from_chart(neutral.vertices, guess)
+    guess, _, eyes = _lids_guess(neutral, expression, base)
+    return neutral.chart.motion_from_chart(neutral.vertices, guess) if eyes else base
 
 
 def _lids_guess(neutral: FaceScan, expression: FaceScan, base: np.ndarray
