@@ -1318,34 +1318,18 @@ def test_a_landmark_file_given_as_the_expression_scan_is_refused_as_too_sparse(t
     assert_cli_refused(result, "jaw.landmarks.csv", "points", "too sparse", "--grid")
 
 
-def _shape_only_errors(landmarks: str) -> np.ndarray:
-    """Relative RMS errors of the built-in face's smile and jaw built without colour from 8000-point scans whose
-    landmarks are the shipped set ``landmarks`` (0.5 mm noise), on a 60 x 60 grid."""
-    from livebridge.bench.scans import truth_on_grid
-    from livebridge.face.builtin import builtin_basis
-    from livebridge.retarget.basis import relative_errors
-    from livebridge.retarget.landmarks import load_landmark_set
-    from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
-
-    basis = builtin_basis()
-    neutral_scan, scans = synthetic_scans(basis, load_landmark_set(landmarks), np.random.default_rng(5),
-                                          n_points=8000, hole_muscle=None, colour=False,
-                                          muscles=("zygomatic_major_L", "jaw"))
-    reference = load_landmark_set("builtin-22").as_dict(basis.neutral, basis.triangles)
-    neutral = prepare_neutral(neutral_scan.as_scan(), neutral_scan.landmarks, reference, shape=(60, 60))
-    faces = {name: prepare_expression(scan.as_scan(), scan.landmarks, neutral, name) for name, scan in scans.items()}
-    built = basis_from_scans(neutral, faces)
-    return relative_errors(built.elements, truth_on_grid(basis, neutral_scan, neutral, built.names))
-
-
 def test_landmarks_of_a_68_point_detector_build_as_the_thesis_s_22(tmp_path):
     """Landmark files that number the 68 iBUG points (what dlib or face-alignment write) build the basis as the
     thesis's 22 names do: the built-in face's smile and jaw, shape only, within 0.05 of the 22's errors (measured
     68: 0.75 / 0.25, 22: 0.78 / 0.31 relative RMS); and through the command, whose landmark file out names the 22."""
     from livebridge.cli import main
-    from livebridge.retarget.landmarks import THESIS_22_NAMES, LandmarkSet
+    from livebridge.face.builtin import builtin_basis
+    from livebridge.retarget.landmarks import THESIS_22_NAMES, LandmarkSet, load_landmark_set
 
-    errors = {landmarks: _shape_only_errors(landmarks) for landmarks in ("builtin-22", "builtin-68")}
+    errors = {landmarks: build_and_measure(builtin_basis(), load_landmark_set(landmarks), np.random.default_rng(5),
+                                           grid=(60, 60), n_points=8000, hole_muscle=None, colour=False,
+                                           muscles=("zygomatic_major_L", "jaw")).errors_without_colour
+              for landmarks in ("builtin-22", "builtin-68")}
     assert (errors["builtin-68"] < errors["builtin-22"] + 0.05).all(), errors
     write_builtin_scans(tmp_path, 5, {"neutral": "neutral", "jaw": "jaw"}, landmarks="builtin-68")
     assert "lm_30," in (tmp_path / "jaw.landmarks.csv").read_text()

@@ -277,15 +277,18 @@ class ScanFigures:
 
 def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[int, int] | None = None,
                       **scan_options) -> ScanFigures:
-    """Coloured scans of ``basis``; the basis built from them with skin tracking and from shape alone (the
-    same prepared scans, colour ignored); each against the ICT elements and the true expressive surfaces."""
+    """Coloured scans of ``basis`` (unless ``colour=False`` among ``scan_options``; ``landmarks`` the 22 or a
+    68-point set); the basis built from them with skin tracking and from shape alone (the same prepared scans,
+    colour ignored); each against the ICT elements and the true expressive surfaces."""
     from livebridge.retarget.basis import relative_errors
     from livebridge.retarget.grid import GRID_SHAPE
+    from livebridge.retarget.landmarks import thesis_points_from_68
     from livebridge.retarget.same_face import gap_limit
     from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
 
     neutral_scan, expression_scans = synthetic_scans(basis, landmarks, rng, **scan_options)
-    reference = landmarks.as_dict(basis.neutral, basis.triangles)
+    # a 68-point set's own face as the reference too, named as the thesis's 22 (as the scans' landmarks are)
+    reference = thesis_points_from_68(landmarks.as_dict(basis.neutral, basis.triangles), basis.neutral)
     start = time.perf_counter()
     neutral = prepare_neutral(neutral_scan.as_scan(), neutral_scan.landmarks, reference, shape=grid or GRID_SHAPE)
     faces = {name: prepare_expression(s.as_scan(), s.landmarks, neutral, name) for name, s in expression_scans.items()}
