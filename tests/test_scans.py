@@ -1267,6 +1267,43 @@ def test_retarget_scans_in_other_units_are_refused_naming_the_landmarks_and_unit
     assert (tmp_path / "basis.npz").exists()
 
 
+def test_the_basis_is_written_on_the_scan_with_frame_scan(tmp_path):
+    """``--frame scan`` writes the basis (and the grid OBJ) in the neutral scan's own coordinates: on its points,
+    whatever the normalisation; the rigid build is the face-frame basis moved rigidly, elements turned with it."""
+    from livebridge.cli import main
+    from livebridge.face.basis import Basis
+    from livebridge.geometry.transforms import umeyama
+    from livebridge.retarget.landmarks import closest_surface_points
+
+    write_builtin_scans(tmp_path, 6, {"neutral": "neutral", "jaw": "jaw"})
+    points = read_scan(tmp_path / "neutral.ply").points
+    built = {}
+    for frame, method in (("face", "rigid"), ("scan", "rigid"), ("scan", "affine")):
+        tag = f"{frame}_{method}"
+        result = CliRunner().invoke(main, [
+            "retarget", "scans", "--neutral", str(tmp_path / "neutral.ply"), "--neutral-landmarks",
+            str(tmp_path / "neutral.landmarks.csv"), "--expression", f"jaw={tmp_path / 'jaw.ply'}", "--grid", "40x40",
+            "--frame", frame, "--normalise", method, "--out", str(tmp_path / f"{tag}.npz"), "--grid-obj",
+            str(tmp_path / f"{tag}.obj")])
+        assert result.exit_code == 0, result.output
+        assert f"{frame} frame" in result.output
+        built[tag] = Basis.load(tmp_path / f"{tag}.npz")
+        assert np.allclose(read_scan(tmp_path / f"{tag}.obj").points, built[tag].neutral, atol=1e-5)
+    def on_it(basis):  # the share of the scan's points within 0.5 mm of the basis's neutral surface
+        triangle, barycentric, _ = closest_surface_points(points, basis.neutral, basis.triangles)
+        on = np.einsum("nk,nkd->nd", barycentric, basis.neutral[basis.triangles[triangle]])
+        return float(np.mean(np.linalg.norm(points - on, axis=1) < 0.5))
+
+    share = {tag: on_it(basis) for tag, basis in built.items()}
+    assert share["face_rigid"] < 0.01, share  # the scan is posed away from the face frame
+    # the grid covers the face crop, about half of the scan (measured 0.42 in both)
+    assert share["scan_rigid"] > 0.35 and share["scan_affine"] > 0.35, share
+    face, scan = built["face_rigid"], built["scan_rigid"]
+    face2scan = umeyama(face.neutral, scan.neutral, with_scale=False)
+    np.testing.assert_allclose(apply(face2scan, face.neutral), scan.neutral, atol=1e-6)
+    np.testing.assert_allclose(face.elements @ face2scan[:3, :3].T, scan.elements, atol=1e-6)
+
+
 def test_a_reference_face_without_the_normalisation_landmarks_is_refused_naming_its_file(tmp_path):
     from livebridge.cli import main
 

@@ -68,6 +68,11 @@ def reference_landmarks(spec: str, scale: float) -> dict:
 @click.option("--normalise", "method", type=click.Choice(["rigid", "similarity", "affine"]), default="rigid",
               show_default=True, help="rigid/similarity keep the person's shape; affine is the thesis's T = A B^-1 "
                                       "(the face takes the reference's proportions).")
+@click.option("--frame", type=click.Choice(["face", "scan"]), default="face", show_default=True,
+              help="Coordinates of the basis and --grid-obj: face (the normalised face: nose tip at the origin, "
+                   "looking along +z with +y up, as the render client shows a face) or scan (the neutral scan's "
+                   "own axes and origin, in mm: the basis lies on the scan, in its proportions whatever "
+                   "--normalise).")
 @click.option("--grid", "grid_size", type=Size(2, 2000), default="150x150", show_default=True,
               help="Resampling grid, columns x rows.")
 @click.option("--crop-radius", type=FiniteFloat(0, 1e4, low_open=True), default=None,
@@ -88,7 +93,7 @@ def reference_landmarks(spec: str, scale: float) -> dict:
                    "million points). Default: one per core, as many as the free memory holds, when the expression "
                    "scans are over 8 MB in all (smaller ones prepare faster than processes start).")
 def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: Path, force: bool, reference: str,
-          method: str, grid_size, crop_radius, units: str, kernel: str, grid_obj, landmarks_out,
+          method: str, frame: str, grid_size, crop_radius, units: str, kernel: str, grid_obj, landmarks_out,
           mesh_spacing: float | None, workers: int | None) -> None:
     """Build an actuation basis for a scanned person from a neutral scan and one scan per muscle.
 
@@ -105,7 +110,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
     from livebridge.retarget.point_files import picked_points_file, read_points
     from livebridge.retarget.same_face import another_face, neutral_off_expressions, off_expressions
     from livebridge.retarget.scan import read_scan
-    from livebridge.retarget.scans import OFF_FACE_MM, basis_from_scans, prepare_neutral
+    from livebridge.retarget.scans import OFF_FACE_MM, basis_from_scans, in_scan_frame, prepare_neutral
 
     outputs = [(option, path) for option, path in (("--out", out), ("--grid-obj", grid_obj),
                                                     ("--landmarks-out", landmarks_out)) if path is not None]
@@ -159,14 +164,15 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
         click.echo(f"warning: {neutral_scan.name}: {off_neutral}")
     click.echo("building the elements")
     basis = basis_from_scans(neutral, faces, kernel, log=click.echo)
-    basis.save(out)
+    saved = in_scan_frame(basis, neutral) if frame == "scan" else basis
+    saved.save(out)
     if grid_obj is not None:
-        neutral.mesh_grid.write_obj(grid_obj)
+        neutral.mesh_grid.write_obj(grid_obj, saved.neutral)
     if landmarks_out is not None:
         neutral.landmark_set(neutral_landmarks).save(landmarks_out)
-    largest = np.linalg.norm(basis.elements, axis=2).max(axis=1)
+    largest = np.linalg.norm(saved.elements, axis=2).max(axis=1)
     click.echo(f"wrote {out}: {basis.n_muscles} elements on {basis.n_vertices} grid vertices "
-               f"({columns}x{rows}, normalise {method}, kernel {kernel})")
+               f"({columns}x{rows}, normalise {method}, kernel {kernel}, {frame} frame)")
     for muscle, size in zip(basis.muscles, largest):
         how = "shape only" if muscle.name in uncoloured else "skin tracked"
         click.echo(f"  {muscle.name:24s} {muscle.region:5s} largest motion {size:6.2f} mm  ({how})")

@@ -115,9 +115,11 @@ class FaceGrid:
         quads = self.quads
         return np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
 
-    def write_obj(self, path: str | Path) -> None:
-        """The quad mesh with its UVs as an OBJ file (``v``, ``vt``, ``f v/vt``)."""
-        lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in self.vertices]
+    def write_obj(self, path: str | Path, vertices: np.ndarray | None = None) -> None:
+        """The quad mesh with its UVs as an OBJ file (``v``, ``vt``, ``f v/vt``); at ``vertices`` (n_vertices, 3)
+        when given (the grid's vertices moved: into a scan's coordinates)."""
+        vertices = self.vertices if vertices is None else vertices
+        lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
         lines += [f"vt {u:.6f} {v:.6f}" for u, v in self.uv]
         lines += ["f " + " ".join(f"{i}/{i}" for i in quad + 1) for quad in self.quads]
         Path(path).write_text("\n".join(lines) + "\n")

@@ -73,7 +73,7 @@ from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.face.meshio import vertex_normals
 from livebridge.face.muscle_place import muscle_for
-from livebridge.geometry.transforms import apply, transform_scale
+from livebridge.geometry.transforms import apply, invert, transform_scale
 from livebridge.retarget.chart import PLANAR, SkinChart, face_chart
 from livebridge.retarget.eyelids import closing_openings, eyelid_guess, moving_lids
 from livebridge.retarget.grid import (
@@ -818,6 +818,16 @@ def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
     muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks)
                     for name, element in zip(expressions, elements))
     return Basis(neutral.mesh_vertices, neutral.triangles, elements, muscles)
+
+
+def in_scan_frame(basis: Basis, neutral: FaceScan) -> Basis:
+    """``basis`` (built on ``neutral``'s grid, in the face frame) in the neutral scan's own coordinates, mm:
+    its neutral mesh taken back by the inverse of ``scan2face``, its elements by that map's linear part, so the
+    basis lies on the scan and each element moves it as it moved the normalised face (an affine
+    normalisation's change of proportions undone too)."""
+    face2scan = invert(neutral.scan2face)
+    return Basis(apply(face2scan, basis.neutral), basis.triangles, basis.elements @ face2scan[:3, :3].T,
+                 basis.muscles)
 
 
 def _with_templates(neutral: FaceScan, expressions: dict[str, FaceScan], kernel: Kernel | str, say
