@@ -1273,7 +1273,7 @@ def test_the_basis_is_written_on_the_scan_with_frame_scan(tmp_path):
     from livebridge.cli import main
     from livebridge.face.basis import Basis
     from livebridge.geometry.transforms import umeyama
-    from livebridge.retarget.landmarks import closest_surface_points
+    from livebridge.retarget.landmarks import surface_values
 
     write_builtin_scans(tmp_path, 6, {"neutral": "neutral", "jaw": "jaw"})
     points = read_scan(tmp_path / "neutral.ply").points
@@ -1290,8 +1290,7 @@ def test_the_basis_is_written_on_the_scan_with_frame_scan(tmp_path):
         built[tag] = Basis.load(tmp_path / f"{tag}.npz")
         assert np.allclose(read_scan(tmp_path / f"{tag}.obj").points, built[tag].neutral, atol=1e-5)
     def on_it(basis):  # the share of the scan's points within 0.5 mm of the basis's neutral surface
-        triangle, barycentric, _ = closest_surface_points(points, basis.neutral, basis.triangles)
-        on = np.einsum("nk,nkd->nd", barycentric, basis.neutral[basis.triangles[triangle]])
+        on = surface_values(points, basis.neutral, basis.triangles, basis.neutral)
         return float(np.mean(np.linalg.norm(points - on, axis=1) < 0.5))
 
     share = {tag: on_it(basis) for tag, basis in built.items()}

@@ -239,16 +239,14 @@ def surface_errors(built: np.ndarray, vertices: np.ndarray, basis, neutral_scan:
     """
     from livebridge.geometry.transforms import apply
     from livebridge.retarget.basis import MOVED_FRACTION
-    from livebridge.retarget.landmarks import closest_surface_points
+    from livebridge.retarget.landmarks import surface_values
 
     mesh2face = face.scan2face @ neutral_scan.face2scanner
     out = np.full(len(names), np.nan)
     for k, name in enumerate(names):
         expressive = apply(mesh2face, basis.neutral + basis.elements[basis.index(name)])
         points = vertices + built[k]
-        triangle, bary, _ = closest_surface_points(points, expressive, basis.triangles)
-        closest = np.einsum("nk,nkd->nd", bary, expressive[basis.triangles[triangle]])
-        distance = np.linalg.norm(points - closest, axis=1)
+        distance = np.linalg.norm(points - surface_values(points, expressive, basis.triangles, expressive), axis=1)
         size = np.linalg.norm(truth[k], axis=1)
         moved = size > MOVED_FRACTION * size.max()
         out[k] = np.sqrt(np.mean(distance[moved] ** 2) / np.mean(size[moved] ** 2))
