@@ -139,3 +139,27 @@ def test_a_moved_obj_keeps_everything_but_its_positions_and_normals(form, rng):
     for wrong in (moved_to[:-1], np.vstack([moved_to, [[0, 0, 0]]])):  # not this file's vertices
         with pytest.raises(ValueError):
             layout.moved(wrong)
+
+
+@pytest.mark.parametrize("corners", [3, 4])
+@pytest.mark.parametrize("textured", [False, True])
+def test_the_writer_s_files_read_back_as_written(corners, textured, rng):
+    """Triangles or quads, with per-vertex texture coordinates and a material or plain: read back (in bulk and line
+    by line alike) to the same vertices, faces (quads fanned), texture coordinates and material."""
+    from livebridge.face.obj_file import mesh_obj, read_obj_data
+
+    vertices = rng.normal(0.0, 50.0, (30, 3))
+    faces = np.array([rng.choice(30, corners, replace=False) for _ in range(20)])
+    uv = rng.random((30, 2)) if textured else None
+    data = mesh_obj(vertices, faces, "a test mesh", uv=uv, material=("skin.mtl", "skin") if textured else None)
+    for read in (read_obj_data(data, Path("m.obj")), read_obj_lines(data, Path("m.obj"))):
+        assert np.allclose(read.points, vertices, atol=5e-7, rtol=0)
+        fanned = faces[:, [0, 1, 2]] if corners == 3 else np.concatenate([faces[:, [0, 1, 2]], faces[:, [0, 2, 3]]])
+        assert sorted(map(tuple, read.triangles)) == sorted(map(tuple, fanned))
+        if textured:
+            assert np.allclose(read.texcoords, uv, atol=5e-8, rtol=0)
+            assert np.array_equal(read.corner_uv, read.triangles)  # one texture coordinate per vertex
+            assert read.libraries == ["skin.mtl"] and set(read.face_material) == {"skin"}
+        else:
+            assert len(read.texcoords) == 0 and (read.corner_uv == -1).all() and read.libraries == []
+    assert data.startswith(b"# a test mesh\n")

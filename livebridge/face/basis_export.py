@@ -34,7 +34,7 @@ def export_basis(basis: Basis, folder: str | Path, units: str = "mm", like: str 
     the files written (:func:`export_files`). ``like``: an OBJ of the basis's mesh (its vertices and faces, in
     ``units``) whose layout every file keeps."""
     from livebridge.atomic import write_bytes_atomically
-    from livebridge.face.obj_file import triangle_obj
+    from livebridge.face.obj_file import mesh_obj
     from livebridge.tomlio import save_toml
 
     if units not in UNITS_TO_MM:
@@ -48,7 +48,7 @@ def export_basis(basis: Basis, folder: str | Path, units: str = "mm", like: str 
     files = export_files(basis, folder)
     shapes = [basis.neutral, *(basis.neutral + element for element in basis.elements)]
     for path, shape in zip(files, shapes):
-        data = triangle_obj(shape * scale, basis.triangles, f"livebridge basis export: {path.stem}, {units}") \
+        data = mesh_obj(shape * scale, basis.triangles, f"livebridge basis export: {path.stem}, {units}") \
             if layout is None else layout.moved(shape * scale)
         write_bytes_atomically(path, data, "OBJ file")
     save_toml(files[-1], _manifest(basis, units))

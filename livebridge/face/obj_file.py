@@ -316,10 +316,22 @@ def _without_normal(corner: str) -> str:
     return fields[0] if len(fields) < 2 or not fields[1] else f"{fields[0]}/{fields[1]}"
 
 
-def triangle_obj(vertices: np.ndarray, triangles: np.ndarray, comment: str = "") -> bytes:
-    """A triangle mesh's OBJ file: ``vertices`` (n, 3) as written (6 decimals), ``triangles`` (m, 3) from 0,
-    ``comment`` as its first line."""
+def mesh_obj(vertices: np.ndarray, faces: np.ndarray, comment: str = "", uv: np.ndarray | None = None,
+             material: tuple[str, str] | None = None) -> bytes:
+    """A polygon mesh's OBJ file: ``vertices`` (n, 3) as written (6 decimals), ``faces`` (m, k) from 0 (k corners
+    each: triangles, quads), ``comment`` as its first line.
+
+    ``uv`` (n, 2): one texture coordinate per vertex (7 decimals, OBJ convention: v up), each corner written
+    ``v/vt``. ``material`` = (material file name, material name): the ``mtllib`` and ``usemtl`` lines.
+    """
     lines = [f"# {comment}"] if comment else []
+    if material is not None:
+        lines.append(f"mtllib {material[0]}")
     lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in np.asarray(vertices, dtype=np.float64)]
-    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in np.asarray(triangles)]
+    if uv is not None:
+        lines += [f"vt {u:.7f} {v:.7f}" for u, v in np.asarray(uv, dtype=np.float64)]
+    if material is not None:
+        lines.append(f"usemtl {material[1]}")
+    corner = "{0}/{0}" if uv is not None else "{0}"
+    lines += ["f " + " ".join(corner.format(i) for i in face) for face in np.asarray(faces, dtype=np.int64) + 1]
     return ("\n".join(lines) + "\n").encode()

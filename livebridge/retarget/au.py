@@ -372,7 +372,7 @@ def save_moved_obj(path: str | Path, target: str | Path, vertices: np.ndarray, m
 def save_obj(path: str | Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
     """A triangle mesh as Wavefront OBJ (vertices in mm), written atomically."""
     from livebridge.atomic import write_bytes_atomically
-    from livebridge.face.obj_file import triangle_obj
+    from livebridge.face.obj_file import mesh_obj
 
     comment = f"livebridge retarget au: {len(vertices)} vertices, {len(triangles)} triangles, mm"
-    write_bytes_atomically(path, triangle_obj(vertices, triangles, comment), "OBJ file")
+    write_bytes_atomically(path, mesh_obj(vertices, triangles, comment), "OBJ file")

@@ -117,12 +117,12 @@ class FaceGrid:
 
     def write_obj(self, path: str | Path, vertices: np.ndarray | None = None) -> None:
         """The quad mesh with its UVs as an OBJ file (``v``, ``vt``, ``f v/vt``); at ``vertices`` (n_vertices, 3)
-        when given (the grid's vertices moved: into a scan's coordinates)."""
+        when given (the grid's vertices moved: into a scan's coordinates); written whole or not at all."""
+        from livebridge.atomic import write_bytes_atomically
+        from livebridge.face.obj_file import mesh_obj
+
         vertices = self.vertices if vertices is None else vertices
-        lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
-        lines += [f"vt {u:.6f} {v:.6f}" for u, v in self.uv]
-        lines += ["f " + " ".join(f"{i}/{i}" for i in quad + 1) for quad in self.quads]
-        Path(path).write_text("\n".join(lines) + "\n")
+        write_bytes_atomically(path, mesh_obj(vertices, self.quads, uv=self.uv), "grid OBJ file")
 
 
 def square_axes(radius: float, shape: tuple[int, int] = GRID_SHAPE) -> tuple[np.ndarray, np.ndarray]:

@@ -721,15 +721,12 @@ def write_textured_obj(path: str | Path, points: np.ndarray, triangles: np.ndarr
     """
     import cv2
 
+    from livebridge.face.obj_file import mesh_obj
+
     path = Path(path)
     mtl, png = path.with_suffix(".mtl"), path.with_suffix(".png")
     bgr = np.round(np.clip(np.asarray(image, dtype=np.float64), 0, 1)[..., ::-1] * 65535).astype(np.uint16)
     if not cv2.imwrite(str(png), bgr):
         raise InputError("could not write the texture image", png)
     mtl.write_text(f"newmtl skin\nKd 1 1 1\nmap_Kd {png.name}\n", encoding="utf-8")
-    lines = [f"mtllib {mtl.name}"]
-    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in np.asarray(points, dtype=np.float64)]
-    lines += [f"vt {u:.7f} {v:.7f}" for u, v in np.asarray(uv, dtype=np.float64)]
-    lines.append("usemtl skin")
-    lines += [f"f {a}/{a} {b}/{b} {c}/{c}" for a, b, c in np.asarray(triangles, dtype=np.int64) + 1]
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    path.write_bytes(mesh_obj(points, triangles, uv=uv, material=(mtl.name, "skin")))
