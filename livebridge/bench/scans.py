@@ -271,6 +271,8 @@ class ScanFigures:
     gaps: np.ndarray
     """Per element, its scan's distance from the neutral's surface over the limit of
     :func:`~livebridge.retarget.same_face.another_face` (over 1: told as another face)."""
+    neutral: object = None
+    """The prepared neutral (:class:`~livebridge.retarget.scans.FaceScan`) the basis was built on."""
 
 
 def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[int, int] | None = None,
@@ -306,7 +308,7 @@ def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[in
     gaps = np.array([faces[name].gap_mm / gap_limit(faces[name].noise_mm) for name in names])
     return ScanFigures(names, coloured.n_vertices, truth, coloured.elements, shape_only.elements,
                        relative_errors(coloured.elements, truth), relative_errors(shape_only.elements, truth),
-                       surface(coloured), surface(shape_only), prepared + colour_s, prepared + shape_s, gaps)
+                       surface(coloured), surface(shape_only), prepared + colour_s, prepared + shape_s, gaps, neutral)
 
 
 def run(quick: bool, log) -> dict:

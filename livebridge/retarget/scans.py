@@ -110,6 +110,7 @@ from livebridge.retarget.skin_flow import (
     SMOOTH_SPACINGS,
     fine_axes,
     in_front,
+    outline_share,
     pixels_of,
     shrink_noise,
     skin_motion,
@@ -632,9 +633,12 @@ def tracked_motion(neutral: FaceScan, expression: FaceScan, stride: int = CONTRO
     # geometric warp: the skin went out of the scanner's view (under an opened jaw's chin, round the face's
     # outline) or into a hole, where the warp snaps it to the wrong, visible, surface. Not around a closing
     # eye, where the eyelids' guess stands (see the module's docstring).
+    # Near the skin images' outline the flow is taken less and the carried motion more (see OUTLINE_MM).
     fallback = _carried(neutral.grid, chart, motion, trust, stride, kernel, seam)
     if fallback is not None:
-        carried = np.where(lids, 0.0, 1.0 - trust)
+        kept = outline_share(neutral.skin, at)
+        motion = guess + kept[:, None] * (motion - guess)
+        carried = np.where(lids, 0.0, 1.0 - trust * kept)
         motion = motion + carried[:, None] * (fallback - guess)
     return chart.motion_from_chart(vertices, motion), trust
 

@@ -166,6 +166,19 @@ lifted onto the slope in :func:`shrink_noise`: skin turned further away is nearl
 With x-y images 0.05, 0.1 and 0.2 gave the same bench figures (mean relative error 0.1137 at 60k points a
 scan), 0.3 0.1139. With the cylinder chart's view (60k / 150k points, seed 7) 0.2 and 0.3 traded
 lips_pressor (0.121 -> 0.120 / 0.119 at 60k) against risorius_L (0.059 -> 0.060 / 0.062 at 150k)."""
+OUTLINE_MM = (PATCH_MM / 2, PATCH_MM)
+"""Within the first of these of the skin image's outline (:func:`outline_share`) a skin point's own flow is not
+taken, beyond the second in full, linearly between; the carried motion of the skin tracked well takes the rest
+(:func:`~livebridge.retarget.scans.tracked_motion`). A DIS patch that reaches past the outline matches the
+two images' outlines, and two scans in different poses do not end at the same skin: the flow there keeps its
+first guess, the landmark spline extrapolated 70-100 mm out, trusted 0.9-0.99 (the photometric check sees the
+same skin). On the bench's other face (60k points, seed 7) skin more than 30 mm from everything an element
+moves kept up to 1.94 mm of motion at the face's side and under the chin (mean of its RMS over the 16 elements
+0.087 mm), with this 1.24 mm (0.081), mean relative error of the 16 elements 0.1014 -> 0.1004, none worse;
+the ICT face at 60k (seeds 7, 8, 11), 150k and textured meshes: no element worse by more than 0.0005, the
+largest such motion down from 0.85 to 0.34 mm at 150k. Letting the flow's trust itself fall there instead
+(fewer trusted skin points for the still-skin correction and the second tracking) cost the jaw, whose chin the
+outline guides: 0.071 -> 0.078 (ICT face), 0.090 -> 0.101 (other face)."""
 COARSE_FACTOR = 2
 """Before the full-resolution passes, one flow on images this many times coarser (see :func:`_flow`).
 Without it, zygomatic_major_R's smile at 60k points a scan measured 0.165 (seed 7) and 0.230 (seed 8) in
@@ -210,7 +223,7 @@ def fine_axes(x: np.ndarray, y: np.ndarray, spacing: float = FINE_MM) -> tuple[n
 def skin_image(grid: FaceGrid, contrast_mm: float = CONTRAST_MM) -> tuple[np.ndarray, np.ndarray]:
     """The luminance of a coloured grid contrast-normalised over ``contrast_mm``, (n_rows, n_cols) float32
     (0 where masked), and its valid mask."""
-    valid = np.isfinite(grid.heights) & np.isfinite(grid.colours).all(axis=2)
+    valid = skin_valid(grid)
     luminance = np.where(valid, np.nan_to_num(grid.colours) @ np.array([0.299, 0.587, 0.114]), 0.0)
     sigma = contrast_mm / grid.spacing
     mean = _masked_blur(luminance, valid, sigma)
@@ -218,6 +231,31 @@ def skin_image(grid: FaceGrid, contrast_mm: float = CONTRAST_MM) -> tuple[np.nda
     spread = np.sqrt(_masked_blur(detail ** 2, valid, sigma))
     scale = max(float(np.median(spread[valid])) * 0.1, 1e-6) if valid.any() else 1.0
     return np.where(valid, detail / np.maximum(spread, scale), 0.0).astype(np.float32), valid
+
+
+def skin_valid(grid: FaceGrid) -> np.ndarray:
+    """The pixels (n_rows, n_cols) bool of a grid that hold skin: a height, and a colour if it has colour."""
+    valid = np.isfinite(grid.heights)
+    return valid if grid.colours is None else valid & np.isfinite(grid.colours).all(axis=2)
+
+
+def outline_share(grid: FaceGrid, at: np.ndarray, inner_mm: float = OUTLINE_MM[0],
+                  outer_mm: float = OUTLINE_MM[1]) -> np.ndarray:
+    """How much of its own flow each of the points ``at`` (n, 2; (row, column) pixels of the skin image ``grid``)
+    may keep by its distance from the skin image's outline (see :data:`OUTLINE_MM`): 0 within ``inner_mm``, 1
+    beyond ``outer_mm``, linear between; shape (n,).
+
+    The outline is where the skin stops on the way out to the image's edge (the scan's silhouette and crop, the
+    image's own edge); holes within the face (the eyes, the nostrils, a mouth) are not.
+    """
+    from scipy import ndimage
+
+    framed = np.pad(skin_valid(grid), 1, constant_values=False)
+    labels, _ = ndimage.label(~framed)
+    outside = labels == labels[0, 0]  # the frame joins every gap that reaches the image's edge
+    distance = cv2.distanceTransform((~outside).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1] * grid.spacing
+    near = np.nan_to_num(at_vertices(distance[..., None], at)[:, 0], nan=0.0)
+    return np.clip((near - inner_mm) / max(outer_mm - inner_mm, 1e-9), 0.0, 1.0)
 
 
 def _masked_blur(image: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
