@@ -166,19 +166,23 @@ lifted onto the slope in :func:`shrink_noise`: skin turned further away is nearl
 With x-y images 0.05, 0.1 and 0.2 gave the same bench figures (mean relative error 0.1137 at 60k points a
 scan), 0.3 0.1139. With the cylinder chart's view (60k / 150k points, seed 7) 0.2 and 0.3 traded
 lips_pressor (0.121 -> 0.120 / 0.119 at 60k) against risorius_L (0.059 -> 0.060 / 0.062 at 150k)."""
-OUTLINE_MM = (PATCH_MM / 2, PATCH_MM)
+OUTLINE_MM = (1.5 * PATCH_MM, 3 * PATCH_MM)
 """Within the first of these of the skin image's outline (:func:`outline_share`) a skin point's own flow is not
 taken, beyond the second in full, linearly between; the carried motion of the skin tracked well takes the rest
-(:func:`~livebridge.retarget.scans.tracked_motion`). A DIS patch that reaches past the outline matches the
-two images' outlines, and two scans in different poses do not end at the same skin: the flow there keeps its
-first guess, the landmark spline extrapolated 70-100 mm out, trusted 0.9-0.99 (the photometric check sees the
-same skin). On the bench's other face (60k points, seed 7) skin more than 30 mm from everything an element
-moves kept up to 1.94 mm of motion at the face's side and under the chin (mean of its RMS over the 16 elements
-0.087 mm), with this 1.24 mm (0.081), mean relative error of the 16 elements 0.1014 -> 0.1004, none worse;
-the ICT face at 60k (seeds 7, 8, 11), 150k and textured meshes: no element worse by more than 0.0005, the
-largest such motion down from 0.85 to 0.34 mm at 150k. Letting the flow's trust itself fall there instead
-(fewer trusted skin points for the still-skin correction and the second tracking) cost the jaw, whose chin the
-outline guides: 0.071 -> 0.078 (ICT face), 0.090 -> 0.101 (other face)."""
+(:func:`~livebridge.retarget.scans.tracked_motion`). A DIS patch that reaches past the outline matches the two
+images' outlines, and two scans in different poses do not end at the same skin: the flow there kept its first
+guess, the landmark spline extrapolated 70-100 mm out, trusted 0.9-0.99 (the photometric check sees the same
+skin). DIS's coarser pyramid levels take the same patches in pixels, twice as wide in mm a level, so the
+outline reaches further than one patch. On the bench's other face (60k points, seed 7) skin more than 30 mm from
+everything an element moves kept up to 1.94 mm of motion at the face's sides and under the chin (mean over the
+16 elements of its RMS 0.087 mm); mean relative error of the 16 elements 0.1014. With the flow given way over
+(4, 8) mm: 1.24 mm, 0.1004; (8, 16): 0.76 mm, 0.0994; (12, 24): 0.72 mm, 0.0985; (16, 32): 0.73 mm, 0.0990.
+With (12, 24) on the ICT face (60k points, seeds 7, 8, 11; 150k; textured meshes) no element is worse by more
+than 0.001 and the lip corner is better in every draw (0.114 -> 0.113, 0.117 -> 0.115, 0.117 -> 0.110, 0.074 ->
+0.070, 0.066 -> 0.057), the right eyelid 0.242 -> 0.228 at seed 7 (its skin beside the eye, not its lids: no lid
+vertex lies within 24 mm of the outline). Letting the flow's trust itself fall near the outline instead (fewer
+trusted skin points for the still-skin correction and the second tracking) cost the jaw, whose chin the outline
+guides: 0.071 -> 0.078 (ICT face), 0.090 -> 0.101 (other face) for (4, 8)."""
 COARSE_FACTOR = 2
 """Before the full-resolution passes, one flow on images this many times coarser (see :func:`_flow`).
 Without it, zygomatic_major_R's smile at 60k points a scan measured 0.165 (seed 7) and 0.230 (seed 8) in
