@@ -10,8 +10,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from livebridge.retarget.scans import FaceScan
 
 SCAN_POINTS = 60_000
 DENSE_SCAN_POINTS = 150_000
@@ -271,8 +275,8 @@ class ScanFigures:
     gaps: np.ndarray
     """Per element, its scan's distance from the neutral's surface over the limit of
     :func:`~livebridge.retarget.same_face.another_face` (over 1: told as another face)."""
-    neutral: object = None
-    """The prepared neutral (:class:`~livebridge.retarget.scans.FaceScan`) the basis was built on."""
+    neutral: FaceScan | None = None
+    """The prepared neutral the basis was built on."""
 
 
 def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[int, int] | None = None,
