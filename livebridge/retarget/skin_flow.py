@@ -179,10 +179,11 @@ everything an element moves kept up to 1.94 mm of motion at the face's sides and
 (4, 8) mm: 1.24 mm, 0.1004; (8, 16): 0.76 mm, 0.0994; (12, 24): 0.72 mm, 0.0985; (16, 32): 0.73 mm, 0.0990.
 With (12, 24) on the ICT face (60k points, seeds 7, 8, 11; 150k; textured meshes) no element is worse by more
 than 0.001 and the lip corner is better in every draw (0.114 -> 0.113, 0.117 -> 0.115, 0.117 -> 0.110, 0.074 ->
-0.070, 0.066 -> 0.057), the right eyelid 0.242 -> 0.228 at seed 7 (its skin beside the eye, not its lids: no lid
-vertex lies within 24 mm of the outline). Letting the flow's trust itself fall near the outline instead (fewer
-trusted skin points for the still-skin correction and the second tracking) cost the jaw, whose chin the outline
-guides: 0.071 -> 0.078 (ICT face), 0.090 -> 0.101 (other face) for (4, 8)."""
+0.070, 0.066 -> 0.057), the right eyelid 0.242 -> 0.228 at seed 7 (seeds 8 and 11 unchanged; the gain is on
+its upper lid, 5-8 mm of motion, which lies beyond the outline's reach: the other scans' changed motion there
+enters the second tracking through the template of the neutral skin). Letting the flow's trust itself fall
+near the outline instead (fewer trusted skin points for the still-skin correction and the second tracking) cost
+the jaw, whose chin the outline guides: 0.071 -> 0.078 (ICT face), 0.090 -> 0.101 (other face) for (4, 8)."""
 COARSE_FACTOR = 2
 """Before the full-resolution passes, one flow on images this many times coarser (see :func:`_flow`).
 Without it, zygomatic_major_R's smile at 60k points a scan measured 0.165 (seed 7) and 0.230 (seed 8) in
