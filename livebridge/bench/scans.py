@@ -336,7 +336,8 @@ def run(quick: bool, log) -> dict:
 def _measure_other_face(basis, log) -> dict:
     """The same figures for another person's face: the ICT face and its elements under the retarget bench's
     known warp (:func:`~livebridge.bench.retarget.known_warp`: narrower, taller and flatter, a wider mouth, a
-    longer nose), scanned as the ICT face is; this face has no scan-specific tuning behind it."""
+    longer nose), scanned as the ICT face is; of the scan pipeline's settings only the outline's reach
+    (:data:`~livebridge.retarget.skin_flow.OUTLINE_MM`) was chosen with this face among the draws measured."""
     from livebridge.bench.retarget import warped_basis
     from livebridge.retarget.landmarks import load_landmark_set
 
