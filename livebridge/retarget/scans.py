@@ -112,6 +112,7 @@ from livebridge.retarget.skin_flow import (
     in_front,
     outline_share,
     pixels_of,
+    ramp,
     shrink_noise,
     skin_motion,
     still_skin_correction,
@@ -771,20 +772,15 @@ def still_anchors(neutral: FaceScan, expression: FaceScan, before: np.ndarray, a
     on, inside = _on_expression(points, expression)
     noise = expression.noise_mm if np.isfinite(expression.noise_mm) else 0.0
     limit = max(STILL_GAP_MM, noise)
-    stillness = inside * (1.0 - _ramp(np.linalg.norm(on - points, axis=1), limit, 2.0 * limit))
+    stillness = inside * (1.0 - ramp(np.linalg.norm(on - points, axis=1), limit, 2.0 * limit))
     stillness *= cKDTree(before).query(points)[0] > ANCHOR_CLEARANCE_MM
-    moved = _ramp(np.linalg.norm(after - before, axis=1), 0.5 * MOVED_LANDMARK_MM, 1.5 * MOVED_LANDMARK_MM)
+    moved = ramp(np.linalg.norm(after - before, axis=1), 0.5 * MOVED_LANDMARK_MM, 1.5 * MOVED_LANDMARK_MM)
     for landmark in np.flatnonzero(moved):
-        near = 1.0 - _ramp(np.linalg.norm(points - before[landmark], axis=1), 0.75 * STILL_REACH_MM,
+        near = 1.0 - ramp(np.linalg.norm(points - before[landmark], axis=1), 0.75 * STILL_REACH_MM,
                            1.25 * STILL_REACH_MM)
         stillness *= 1.0 - moved[landmark] * near
     keep = stillness > MIN_STILLNESS
     return candidates[keep], stillness[keep]
-
-
-def _ramp(values: np.ndarray, low: float, high: float) -> np.ndarray:
-    """0 up to ``low``, 1 from ``high``, linear between."""
-    return np.clip((np.asarray(values, dtype=np.float64) - low) / (high - low), 0.0, 1.0)
 
 
 def _on_expression(points: np.ndarray, expression: FaceScan) -> tuple[np.ndarray, np.ndarray]:

@@ -259,8 +259,12 @@ def outline_share(grid: FaceGrid, at: np.ndarray, inner_mm: float = OUTLINE_MM[0
     labels, _ = ndimage.label(~framed)
     outside = labels == labels[0, 0]  # the frame joins every gap that reaches the image's edge
     distance = cv2.distanceTransform((~outside).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1] * grid.spacing
-    near = np.nan_to_num(at_vertices(distance[..., None], at)[:, 0], nan=0.0)
-    return np.clip((near - inner_mm) / max(outer_mm - inner_mm, 1e-9), 0.0, 1.0)
+    return ramp(np.nan_to_num(at_vertices(distance[..., None], at)[:, 0], nan=0.0), inner_mm, outer_mm)
+
+
+def ramp(values: np.ndarray, low: float, high: float) -> np.ndarray:
+    """0 up to ``low``, 1 from ``high``, linear between (a step at ``low`` when the two are equal)."""
+    return np.clip((np.asarray(values, dtype=np.float64) - low) / max(high - low, 1e-9), 0.0, 1.0)
 
 
 def _masked_blur(image: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
