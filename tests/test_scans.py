@@ -912,9 +912,9 @@ def test_shape_alone_holds_the_skin_still_where_the_scans_show_no_motion(ict_sca
 
 
 def test_the_outline_share_falls_to_nothing_at_the_skin_s_outline_and_not_at_its_holes(rng):
-    """Within half a DIS patch of where the skin stops on its way out (or of the image's edge) a point keeps none
-    of its own flow, beyond a patch all of it, linearly between; an eye or a nostril inside the face does not
-    count."""
+    """Within ``OUTLINE_MM[0]`` of where the skin stops on its way out (or of the image's edge) a point keeps none
+    of its own flow, beyond ``OUTLINE_MM[1]`` all of it, linearly between; an eye or a nostril inside the face
+    does not count."""
     from livebridge.retarget.grid import FaceGrid
     from livebridge.retarget.skin_flow import OUTLINE_MM, outline_share
 
