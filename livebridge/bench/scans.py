@@ -337,7 +337,8 @@ def _measure_other_face(basis, log) -> dict:
     """The same figures for another person's face: the ICT face and its elements under the retarget bench's
     known warp (:func:`~livebridge.bench.retarget.known_warp`: narrower, taller and flatter, a wider mouth, a
     longer nose), scanned as the ICT face is; of the scan pipeline's settings only the outline's reach
-    (:data:`~livebridge.retarget.skin_flow.OUTLINE_MM`) was chosen with this face among the draws measured."""
+    (:data:`~livebridge.retarget.skin_flow.OUTLINE_MM`) and the way a closing eye's hole is filled for the flow
+    (:func:`~livebridge.retarget.skin_flow.closing_holes`) were chosen with this face among the draws measured."""
     from livebridge.bench.retarget import warped_basis
     from livebridge.retarget.landmarks import load_landmark_set
 
