@@ -101,8 +101,9 @@ def test_a_closing_lid_moves_the_guess_down_above_the_eye(rng):
 def test_retarget_scans_takes_lid_landmarks_beside_the_22(tmp_path, ict):
     """A landmark file with the thesis's 22 and the lids' iBUG points (as a 68-point detector gives them):
     `livebridge retarget scans` matches them by name, and the built eyelid element closes the upper lid as the
-    ICT element does (its 20 most moved vertices move down, within 40% of the ICT's motion: measured 0.26-0.32;
-    the flow from the shape warp alone gave about 0.6)."""
+    ICT element does (its 20 most moved vertices move down, within 40% of the ICT's motion: measured 0.24, 0.22
+    before the neutral's opening showed the flow the expression's skin (``skin_flow.closing_holes``), 0.26-0.32
+    in earlier sessions; the flow from the shape warp alone gave about 0.6)."""
     from click.testing import CliRunner
 
     from livebridge.bench.scans import synthetic_scans, truth_on_grid, with_landmarks
@@ -281,7 +282,7 @@ def test_the_lids_known_slide_is_tracked_closed_or_squinting(upper_after, lower_
     """The upper lid's skin slides 8 mm down (closed) or 2.5 mm (a squint leaving a slit 5 mm tall at its middle,
     which the skin image's gap fills at the eye's ends); tracked twice as a basis from scans does (the second
     time from the first tracking's motion, the margins pinned again where the openings say), the upper lid's
-    motion is within 0.1 of its RMS (measured 0.03 closed, 0.06 squinting; the squint 0.43-0.52 when read from
+    motion is within 0.1 of its RMS (measured 0.04 closed, 0.07 squinting; the squint 0.43-0.52 when read from
     the skin image's holes alone: as closed). The lids' skin is trusted nearly everywhere here, so whether its
     untracked skin keeps the eyelids' guess or takes the carried motion (see ``retarget/scans.py``'s docstring)
     shows little (0.180 / 0.180 closed)."""
@@ -299,8 +300,9 @@ def test_a_closing_eye_s_fill_band_takes_the_motion_of_the_skin_beyond_it():
     """The neutral's opening shrinks by the skin image's gap: the band between its edge and the lid's margin is
     the resampling's fill from the rim, whose pattern (a rim curling back over the eye) the expression does not
     show; its flow scatters. Its grid vertices take the motion of the lid's skin just beyond the band (the margin's,
-    8 mm down here) instead: within 0.12 of it (measured 0.09 and 0.09 with two scans' noise; 0.16 and 0.14 from
-    the band's own flow, trusted at 0.94-0.96)."""
+    8 mm down here) instead: within 0.12 of it (measured 0.06 and 0.05 with two scans' noise, 0.08 and 0.07 before
+    the neutral's opening showed the flow the expression's skin, ``skin_flow.closing_holes``; 0.16 and 0.14 from
+    the band's own flow, trusted at 0.94-0.96, as measured before that)."""
     from livebridge.retarget.scans import tracked_motion
 
     for seed in (1, 2):
