@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from livebridge.errors import InputError
-from livebridge.markerless.analysis import Analyser, AnalysisState, _RegionTables, classify_region
+from livebridge.markerless.analysis import Analyser, AnalysisState, RegionState, _RegionTables, classify_region
 from livebridge.markerless.gestures import GestureConfig, find_gestures
 from livebridge.markerless.model import MarkerlessModel, RegionModel
 from livebridge.markerless.normalise import Normalisation, NormalisedFrame, lighting_normalise
@@ -47,6 +47,22 @@ def test_signature_basis_spans_the_samples_and_ica_unmixes_independent_sources(m
         correlation = np.abs(np.corrcoef(basis.T, sources.T)[:3, 3:])
         assert (correlation.max(axis=0) > 0.99).all()
 
+
+
+def test_ica_keeps_every_source_of_a_region_with_many_samples_of_few_pixels():
+    """A region of 585 pixels and 61 gesture frames, its principal images over two orders of magnitude: the
+    ICA basis keeps all 24 directions, independent and spanning the samples' principal subspace. FastICA's own
+    whitening (whiten_solver="eigh") of these orthogonal principal images collapsed its sources onto one image
+    (condition number ~5e15), and the bench's eye and brow regions then read neutral whatever the face did."""
+    rng = np.random.default_rng(0)
+    images = rng.standard_normal((585, 30)) * np.geomspace(50, 1, 30)
+    samples = images @ rng.standard_normal((30, 61)) + 5 * rng.standard_normal((585, 1))
+    basis = signature_basis(samples, n_components=24, method="ica", seed=0)
+    assert basis.shape == (585, 24)
+    assert np.linalg.cond(basis) < 10
+    principal = signature_basis(samples, n_components=24, method="pca")
+    projected = principal @ np.linalg.lstsq(principal, basis, rcond=None)[0]
+    np.testing.assert_allclose(projected, basis, atol=1e-6 * np.abs(basis).max())
 
 def test_signatures_are_unit_and_scale_invariant():
     rng = np.random.default_rng(2)
@@ -97,6 +113,23 @@ def _toy_model(region):
     return MarkerlessModel(("a", "b"), (region,), norm, np.zeros((20, 20), np.float32),
                            {"a": (crops, (0, 0, 20, 20)), "b": (crops + 7, (0, 0, 20, 20))})
 
+
+
+def test_a_held_region_s_stale_state_counts_only_where_no_region_that_sees_reports_the_muscle():
+    from dataclasses import replace
+
+    region, _, _ = _toy_region()
+    model = _toy_model(region)
+    model = MarkerlessModel(model.muscle_names, (region, replace(region, name="r2")), model.normalisation,
+                            model.neutral_image, model.gestures)
+    analyser = Analyser(model)
+    stale, still = RegionState("r", 1, 0.6, 0.1, held=True), RegionState("r2", -1, 0.0, 0.9)
+    values, held = analyser.contractions((stale, still))
+    assert values[1] == 0.0 and not held.any()  # the region that sees says: at rest
+    values, held = analyser.contractions((stale, replace(still, held=True)))
+    assert abs(values[1] - 0.3) < 1e-9 and held.all()  # both held: their mean, flagged
+    values, held = analyser.contractions((replace(stale, held=False), still))
+    assert abs(values[1] - 0.3) < 1e-9 and not held.any()
 
 def test_analyser_holds_lost_and_unrecognised_frames_and_stays_finite():
     region, neutral, directions = _toy_region()
@@ -177,6 +210,22 @@ def test_bounded_gestures_run_from_first_motion_to_first_maximum():
         assert truth[g.peak] >= 0.95 * truth[peak]
         assert g.start < g.peak < g.end < (k + 1) * block
 
+
+
+def test_a_saturating_activity_s_gesture_peaks_where_the_broader_activity_does():
+    """The few most changed pixels stop changing before a large gesture is full (a jaw's at 0.8 of its
+    opening here): the bounded gesture then ends where a broader activity, still growing, peaks."""
+    truth, broad, block = _raised_cosine_take()
+    strength = np.array([truth[k * block:(k + 1) * block].max() for k in range(5)]).repeat(block)
+    saturated = np.minimum(broad, 0.8 * strength)
+    early = find_gestures(saturated)
+    found = find_gestures(saturated, breadth=broad)
+    assert len(early) == len(found) == 5
+    for k, (e, g) in enumerate(zip(early, found)):
+        peak = k * block + int(np.argmax(truth[k * block:(k + 1) * block]))
+        assert truth[e.peak] < 0.85 * truth[peak]
+        assert peak - 6 <= g.peak <= peak and truth[g.peak] >= 0.95 * truth[peak]
+        assert (g.start, g.end) == (e.start, e.end)
 
 def test_gestures_with_lost_frames_and_none_at_all():
     _, activity, block = _raised_cosine_take(n_gestures=3)

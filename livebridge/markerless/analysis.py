@@ -16,7 +16,8 @@ Beyond the paper:
 - contractions come from the regions: a (pseudo-)muscle active at level ``l`` gives ``l`` times its
   actuation vector to the basis muscles the region reports; a muscle reported by several regions takes their
   mean weighted by the share of its region of influence in each (a region that sees little of a muscle
-  says little about it); the result is finite and in [0, 1] whatever the input.
+  says little about it), over the regions that see the face now: a held region's stale state counts only
+  where every region reporting the muscle is held; the result is finite and in [0, 1] whatever the input.
 """
 
 from __future__ import annotations
@@ -206,16 +207,18 @@ class Analyser:
     def contractions(self, states: tuple[RegionState, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Basis contractions (n_muscles,) in [0, 1] and held flags (n_muscles,) from region states."""
         n = self.model.n_muscles
-        total = np.zeros(n)
-        weight = np.zeros(n)
-        held = np.zeros(n, dtype=bool)
+        total, weight = np.zeros((2, n)), np.zeros((2, n))  # row 0: regions that see, row 1: held ones
         for tables, region_state in zip(self.tables, states):
-            weight += tables.weights
-            if region_state.held:
-                held |= tables.reports
+            row = int(region_state.held)
+            weight[row] += tables.weights
             if region_state.muscle >= 0:
                 level = min(max(region_state.level, 0.0), 1.0)
-                total += tables.weights * (level * tables.actuations[region_state.muscle])
-        values = np.divide(total, weight, out=np.zeros(n), where=weight > 0)
+                total[row] += tables.weights * (level * tables.actuations[region_state.muscle])
+        # a region held for long (one the head's turn took out of view) would otherwise keep adding its last
+        # state: in `livebridge bench markerless` one held a cheek at 0.25 through every later gesture
+        seen = weight[0] > 0
+        row = np.where(seen, 0, 1)
+        chosen_total, chosen_weight = total[row, np.arange(n)], weight[row, np.arange(n)]
+        values = np.divide(chosen_total, chosen_weight, out=np.zeros(n), where=chosen_weight > 0)
         np.clip(np.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0, out=values)
-        return values, held
+        return values, ~seen & (weight[1] > 0)

@@ -4,7 +4,10 @@ A training take holds isolated gestures separated by rests at neutral. The *acti
 far its (normalised) face image is from neutral, one number per frame. A gesture is a run of frames whose
 activity rises clearly above the neutral floor; its *bounded* part (the paper's) runs from the first
 non-neutral frame to the first frame of maximum actuation, where the activity first comes within a small
-tolerance of the run's peak.
+tolerance of the run's peak. An activity that finds weak gestures (the few most changed pixels) saturates
+before a large one is full (an opening jaw's strongest changes stop growing at 0.8 of its opening), so the
+peak may be read from a second, broader activity too: the first frame where both have come within the
+tolerance of their maxima.
 """
 
 from __future__ import annotations
@@ -76,7 +79,8 @@ def neutral_floor(activity: np.ndarray) -> tuple[float, float]:
     return floor, max(spread, 1e-9 * max(1.0, abs(floor)))
 
 
-def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig()) -> list[Gesture]:
+def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig(),
+                  breadth: np.ndarray | None = None) -> list[Gesture]:
     """Bounded gestures in an activity curve.
 
     Parameters
@@ -85,6 +89,9 @@ def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig())
         Distance of each frame from neutral (any non-negative measure); NaN for frames not seen (never
         part of a gesture).
     config : GestureConfig
+    breadth : ndarray, shape (n_frames,), optional
+        A broader activity that keeps growing where ``activity`` saturates: a gesture's peak is not before
+        its first frame within the tolerance of its maximum over the gesture.
 
     Returns
     -------
@@ -99,6 +106,13 @@ def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig())
     if config.smooth > 1:
         filled = median_filter(filled, size=config.smooth, mode="nearest")
     floor, _ = neutral_floor(filled[seen])
+    broad = broad_floor = None
+    if breadth is not None:
+        broad = np.where(seen, np.asarray(breadth, dtype=np.float64), np.nan)
+        broad = np.where(np.isfinite(broad), broad, np.nanmin(broad))
+        if config.smooth > 1:
+            broad = median_filter(broad, size=config.smooth, mode="nearest")
+        broad_floor, _ = neutral_floor(broad[seen])
     active = (filled > floor + config.detect_k * spread) & seen
     moving = (filled > floor + config.noise_k * spread) & seen
     gestures = []
@@ -112,11 +126,17 @@ def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig())
             continue
         if end - start + 1 < config.min_frames:
             continue
-        top = filled[start:end + 1].max()
-        reach = top - config.peak_tolerance * (top - floor)
-        peak = start + int(np.argmax(filled[start:end + 1] >= reach))
-        gestures.append(Gesture(int(start), int(peak), int(end)))
+        peak = _first_near_top(filled[start:end + 1], floor, config.peak_tolerance)
+        if broad is not None:
+            peak = max(peak, _first_near_top(broad[start:end + 1], broad_floor, config.peak_tolerance))
+        gestures.append(Gesture(int(start), int(start + peak), int(end)))
     return gestures
+
+
+def _first_near_top(values: np.ndarray, floor: float, tolerance: float) -> int:
+    """Index of the first of ``values`` (n,) within ``tolerance`` of their rise above ``floor`` of their maximum."""
+    top = values.max()
+    return int(np.argmax(values >= top - tolerance * (top - floor)))
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
