@@ -131,6 +131,21 @@ def test_a_held_region_s_stale_state_counts_only_where_no_region_that_sees_repor
     values, held = analyser.contractions((replace(stale, held=False), still))
     assert abs(values[1] - 0.3) < 1e-9 and not held.any()
 
+
+def test_regions_reporting_one_muscle_combine_by_their_weighted_median():
+    """Two regions that see most of muscle "b" read it at 0.9; a third, seeing a fifth of it, at rest (a
+    partial view): "b" is 0.9, where their weighted mean would say 0.72."""
+    from dataclasses import replace
+
+    region, _, _ = _toy_region()
+    regions = tuple(replace(region, name=f"r{i}", weights=np.array([1.0, w])) for i, w in enumerate((0.5, 0.3, 0.2)))
+    model = _toy_model(region)
+    analyser = Analyser(MarkerlessModel(model.muscle_names, regions, model.normalisation, model.neutral_image,
+                                        model.gestures))
+    states = (RegionState("r0", 1, 0.9, 0.9), RegionState("r1", 1, 0.9, 0.9), RegionState("r2", -1, 0.0, 0.9))
+    values, held = analyser.contractions(states)
+    assert abs(values[1] - 0.9) < 1e-9 and values[0] == 0.0 and not held.any()
+
 def test_analyser_holds_lost_and_unrecognised_frames_and_stays_finite():
     region, neutral, directions = _toy_region()
     analyser = Analyser(_toy_model(region), min_confidence=0.3)

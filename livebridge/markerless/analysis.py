@@ -15,9 +15,10 @@ Beyond the paper:
   lost, holds its last state (flagged ``held``);
 - contractions come from the regions: a (pseudo-)muscle active at level ``l`` gives ``l`` times its
   actuation vector to the basis muscles the region reports; a muscle reported by several regions takes their
-  mean weighted by the share of its region of influence in each (a region that sees little of a muscle
-  says little about it), over the regions that see the face now: a held region's stale state counts only
-  where every region reporting the muscle is held; the result is finite and in [0, 1] whatever the input.
+  weighted median, weighted by the share of its region of influence in each (a region that sees little of a
+  muscle says little about it; one region misreading it, a leak from a neighbour's gesture or a partial view,
+  does not move it), over the regions that see the face now: a held region's stale state counts only where
+  every region reporting the muscle is held; the result is finite and in [0, 1] whatever the input.
 """
 
 from __future__ import annotations
@@ -206,19 +207,39 @@ class Analyser:
 
     def contractions(self, states: tuple[RegionState, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Basis contractions (n_muscles,) in [0, 1] and held flags (n_muscles,) from region states."""
-        n = self.model.n_muscles
-        total, weight = np.zeros((2, n)), np.zeros((2, n))  # row 0: regions that see, row 1: held ones
-        for tables, region_state in zip(self.tables, states):
-            row = int(region_state.held)
-            weight[row] += tables.weights
+        n, k = self.model.n_muscles, len(self.tables)
+        readings, weights = np.zeros((k, n)), np.zeros((k, n))
+        held = np.array([state.held for state in states], dtype=bool)
+        for r, (tables, region_state) in enumerate(zip(self.tables, states)):
+            weights[r] = tables.weights
             if region_state.muscle >= 0:
                 level = min(max(region_state.level, 0.0), 1.0)
-                total[row] += tables.weights * (level * tables.actuations[region_state.muscle])
+                readings[r] = level * tables.actuations[region_state.muscle]
         # a region held for long (one the head's turn took out of view) would otherwise keep adding its last
         # state: in `livebridge bench markerless` one held a cheek at 0.25 through every later gesture
-        seen = weight[0] > 0
-        row = np.where(seen, 0, 1)
-        chosen_total, chosen_weight = total[row, np.arange(n)], weight[row, np.arange(n)]
-        values = np.divide(chosen_total, chosen_weight, out=np.zeros(n), where=chosen_weight > 0)
-        np.clip(np.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0, out=values)
-        return values, ~seen & (weight[1] > 0)
+        seen = (weights[~held] > 0).any(axis=0)
+        weights = np.where(held[:, None] == ~seen[None, :], weights, 0.0)
+        values = _weighted_median(np.nan_to_num(readings, nan=0.0, posinf=0.0, neginf=0.0), weights)
+        return np.clip(values, 0.0, 1.0), ~seen & (weights > 0).any(axis=0)
+
+
+def _weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Per column of ``values`` (k, n), the value where the cumulative ``weights`` (k, n; >= 0) of the sorted
+    values first reach half their total (midway to the next value where they reach exactly half, as two
+    regions of equal weight do), shape (n,); 0 for a column without weight.
+
+    In `livebridge bench markerless` (held-out takes) it took the isolated gestures' MAE from 0.0047 (the
+    weighted mean) to 0.0035: the lip press, read 0.62-1.00 by its four regions, no longer came out at 0.83;
+    the everyday expressions' went from 0.0189 to 0.0197."""
+    order = np.argsort(values, axis=0)
+    cumulative = np.cumsum(np.take_along_axis(weights, order, axis=0), axis=0)
+    total = cumulative[-1]
+    half = 0.5 * total
+    first = np.argmax(cumulative >= half - 1e-12 * total, axis=0)
+    sorted_values = np.take_along_axis(values, order, axis=0)
+    columns = np.arange(values.shape[1])
+    median = sorted_values[first, columns]
+    following = sorted_values[np.minimum(first + 1, len(values) - 1), columns]
+    exactly = np.abs(cumulative[first, columns] - half) <= 1e-12 * total
+    median = np.where(exactly, 0.5 * (median + following), median)
+    return np.where(total > 0, median, 0.0)
