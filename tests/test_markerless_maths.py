@@ -64,6 +64,14 @@ def test_ica_keeps_every_source_of_a_region_with_many_samples_of_few_pixels():
     projected = principal @ np.linalg.lstsq(principal, basis, rcond=None)[0]
     np.testing.assert_allclose(projected, basis, atol=1e-6 * np.abs(basis).max())
 
+
+@pytest.mark.parametrize("method", ["ica", "pca"])
+def test_a_region_whose_samples_are_all_alike_has_a_zero_basis_and_no_signature(method):
+    samples = np.full((50, 6), 3.0)  # a region no gesture changed (or one saturated white)
+    basis = signature_basis(samples, n_components=24, method=method)
+    assert basis.shape == (50, 1) and np.isfinite(basis).all() and not basis.any()
+    assert not signatures(back_substitution(basis), samples).any()
+
 def test_signatures_are_unit_and_scale_invariant():
     rng = np.random.default_rng(2)
     basis = rng.normal(size=(300, 6))

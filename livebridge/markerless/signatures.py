@@ -58,7 +58,7 @@ def signature_basis(samples: np.ndarray, n_components: int, method: str = "ica",
     rank = int(np.sum(singular > _RELATIVE_RANK_TOL * max(singular[0], 1e-300))) if len(singular) else 0
     k = max(1, min(int(n_components), rank))
     principal = centred @ vectors[:, order[:k]]  # (n_pixels, k): u * s, principal images times their singular values
-    if method == "pca":
+    if method == "pca" or rank == 0:  # samples all alike (a region no gesture changed): nothing to unmix
         return principal
     fast_ica = require_sklearn()
     # pixels are the observations: the columns of B (images) are the independent, non-Gaussian sources. They
