@@ -101,17 +101,13 @@ def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig(),
     seen = np.isfinite(activity)
     if seen.sum() < 4:
         return []
-    filled = np.where(seen, activity, np.nanmin(activity))
+    filled = _filled(activity, seen)
     _, spread = neutral_floor(filled[seen])
-    if config.smooth > 1:
-        filled = median_filter(filled, size=config.smooth, mode="nearest")
+    filled = _smoothed(filled, config.smooth)
     floor, _ = neutral_floor(filled[seen])
     broad = broad_floor = None
     if breadth is not None:
-        broad = np.where(seen, np.asarray(breadth, dtype=np.float64), np.nan)
-        broad = np.where(np.isfinite(broad), broad, np.nanmin(broad))
-        if config.smooth > 1:
-            broad = median_filter(broad, size=config.smooth, mode="nearest")
+        broad = _smoothed(_filled(breadth, seen), config.smooth)
         broad_floor, _ = neutral_floor(broad[seen])
     active = (filled > floor + config.detect_k * spread) & seen
     moving = (filled > floor + config.noise_k * spread) & seen
@@ -131,6 +127,18 @@ def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig(),
             peak = max(peak, _first_near_top(broad[start:end + 1], broad_floor, config.peak_tolerance))
         gestures.append(Gesture(int(start), int(start + peak), int(end)))
     return gestures
+
+
+def _filled(curve: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """``curve`` (n,) as float64 with its frames not ``seen`` (n,) bool, or not finite, at its lowest seen value."""
+    curve = np.asarray(curve, dtype=np.float64)
+    known = seen & np.isfinite(curve)
+    return np.where(known, curve, np.min(curve[known]) if known.any() else np.nan)
+
+
+def _smoothed(curve: np.ndarray, width: int) -> np.ndarray:
+    """``curve`` (n,) median-filtered over ``width`` frames (as it is when ``width`` <= 1)."""
+    return median_filter(curve, size=width, mode="nearest") if width > 1 else curve
 
 
 def _first_near_top(values: np.ndarray, floor: float, tolerance: float) -> int:
