@@ -137,12 +137,11 @@ def canonical_frames(images: Iterable[np.ndarray], norm: Normalisation, face_mes
     return norm, np.array(frames), np.array(lost)
 
 
-def activity_curve(frames: np.ndarray, lost: np.ndarray, tops: tuple = (ACTIVITY_TOP, BREADTH_TOP)
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """(activities (n, len(tops)), neutral reference (h, w) float32): per frame and fraction ``top``, the mean of
-    the largest ``top`` of the blurred differences to the first frames. The few most changed pixels
-    (:data:`ACTIVITY_TOP`) find a weak muscle's gesture, which a mean over the whole image would drown in
-    noise; they saturate before a large gesture is full, whose peak the broader :data:`BREADTH_TOP` finds."""
+def activity_curve(frames: np.ndarray, lost: np.ndarray, tops: tuple = (ACTIVITY_TOP, BREADTH_TOP)) -> np.ndarray:
+    """Activities (n, len(tops)): per frame and fraction ``top``, the mean of the largest ``top`` of the blurred
+    differences to the first frames. The few most changed pixels (:data:`ACTIVITY_TOP`) find a weak muscle's
+    gesture, which a mean over the whole image would drown in noise; they saturate before a large gesture is
+    full, whose peak the broader :data:`BREADTH_TOP` finds."""
     seen = np.flatnonzero(~lost)
     if len(seen) == 0:
         raise InputError("the head rig's LEDs were never found in the take")
@@ -154,7 +153,7 @@ def activity_curve(frames: np.ndarray, lost: np.ndarray, tops: tuple = (ACTIVITY
         change = np.abs(cv2.GaussianBlur(frames[i].astype(np.float32), (0, 0), ACTIVITY_SIGMA) - reference).ravel()
         change = np.partition(change, [change.size - count for count in counts])
         activity[i] = [change[-count:].mean() for count in counts]
-    return activity, reference
+    return activity
 
 
 def _neutral_frames(n_frames: int, gestures: list[Gesture], lost: np.ndarray) -> np.ndarray:
@@ -228,7 +227,7 @@ def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[G
         if unknown:
             raise InputError(f"gesture {prompt.name!r} names muscles {unknown} not in the basis")
     norm, frames, lost = canonical_frames(images, norm, face_mesh)
-    activities, reference = activity_curve(frames, lost)
+    activities = activity_curve(frames, lost)
     activity = activities[:, 0]
     gestures = find_gestures(activity, config.gestures, breadth=activities[:, 1])
     if len(gestures) != len(prompts):
