@@ -48,7 +48,6 @@ def test_signature_basis_spans_the_samples_and_ica_unmixes_independent_sources(m
         assert (correlation.max(axis=0) > 0.99).all()
 
 
-
 def test_ica_keeps_every_source_of_a_region_with_many_samples_of_few_pixels():
     """A region of 585 pixels and 61 gesture frames, its principal images over two orders of magnitude: the
     ICA basis keeps all 24 directions, independent and spanning the samples' principal subspace. FastICA's own
@@ -71,6 +70,7 @@ def test_a_region_whose_samples_are_all_alike_has_a_zero_basis_and_no_signature(
     basis = signature_basis(samples, n_components=24, method=method)
     assert basis.shape == (50, 1) and np.isfinite(basis).all() and not basis.any()
     assert not signatures(back_substitution(basis), samples).any()
+
 
 def test_signatures_are_unit_and_scale_invariant():
     rng = np.random.default_rng(2)
@@ -122,15 +122,18 @@ def _toy_model(region):
                            {"a": (crops, (0, 0, 20, 20)), "b": (crops + 7, (0, 0, 20, 20))})
 
 
+def _analyser_of(*regions):
+    """An analyser of the toy model with these regions in place of its one."""
+    model = _toy_model(regions[0])
+    return Analyser(MarkerlessModel(model.muscle_names, regions, model.normalisation, model.neutral_image,
+                                    model.gestures))
+
 
 def test_a_held_region_s_stale_state_counts_only_where_no_region_that_sees_reports_the_muscle():
     from dataclasses import replace
 
     region, _, _ = _toy_region()
-    model = _toy_model(region)
-    model = MarkerlessModel(model.muscle_names, (region, replace(region, name="r2")), model.normalisation,
-                            model.neutral_image, model.gestures)
-    analyser = Analyser(model)
+    analyser = _analyser_of(region, replace(region, name="r2"))
     stale, still = RegionState("r", 1, 0.6, 0.1, held=True), RegionState("r2", -1, 0.0, 0.9)
     values, held = analyser.contractions((stale, still))
     assert values[1] == 0.0 and not held.any()  # the region that sees says: at rest
@@ -146,13 +149,12 @@ def test_regions_reporting_one_muscle_combine_by_their_weighted_median():
     from dataclasses import replace
 
     region, _, _ = _toy_region()
-    regions = tuple(replace(region, name=f"r{i}", weights=np.array([1.0, w])) for i, w in enumerate((0.5, 0.3, 0.2)))
-    model = _toy_model(region)
-    analyser = Analyser(MarkerlessModel(model.muscle_names, regions, model.normalisation, model.neutral_image,
-                                        model.gestures))
+    analyser = _analyser_of(*(replace(region, name=f"r{i}", weights=np.array([1.0, w]))
+                              for i, w in enumerate((0.5, 0.3, 0.2))))
     states = (RegionState("r0", 1, 0.9, 0.9), RegionState("r1", 1, 0.9, 0.9), RegionState("r2", -1, 0.0, 0.9))
     values, held = analyser.contractions(states)
     assert abs(values[1] - 0.9) < 1e-9 and values[0] == 0.0 and not held.any()
+
 
 def test_analyser_holds_lost_and_unrecognised_frames_and_stays_finite():
     region, neutral, directions = _toy_region()
@@ -234,7 +236,6 @@ def test_bounded_gestures_run_from_first_motion_to_first_maximum():
         assert g.start < g.peak < g.end < (k + 1) * block
 
 
-
 def test_a_saturating_activity_s_gesture_peaks_where_the_broader_activity_does():
     """The few most changed pixels stop changing before a large gesture is full (a jaw's at 0.8 of its
     opening here): the bounded gesture then ends where a broader activity, still growing, peaks."""
@@ -249,6 +250,7 @@ def test_a_saturating_activity_s_gesture_peaks_where_the_broader_activity_does()
         assert truth[e.peak] < 0.85 * truth[peak]
         assert peak - 6 <= g.peak <= peak and truth[g.peak] >= 0.95 * truth[peak]
         assert (g.start, g.end) == (e.start, e.end)
+
 
 def test_gestures_with_lost_frames_and_none_at_all():
     _, activity, block = _raised_cosine_take(n_gestures=3)
