@@ -326,7 +326,7 @@ def test_a_closing_lid_s_plateau_and_fall_keep_their_edge_through_the_lid_s_mono
     import cv2
 
     from livebridge.retarget.eyelids import LidColumn
-    from livebridge.retarget.skin_flow import WIDTHS, _adaptive_smooth, _monotone_lids, _twiced, _weighted_blur
+    from livebridge.retarget.skin_smoothing import WIDTHS, adaptive_smooth, monotone_lids, twiced, weighted_blur
 
     step, sigma = 0.5, 4.0  # pixels of 0.5 mm, the base width 2 mm
     rows, cols = np.indices((140, 100))
@@ -341,13 +341,13 @@ def test_a_closing_lid_s_plateau_and_fall_keep_their_edge_through_the_lid_s_mono
     weight = np.where((rows > lower) & (rows < upper), 0.0, 1.0)
 
     def blur_at(width):
-        return lambda channels, channel_weight: [_weighted_blur(c, channel_weight, width) for c in channels]
+        return lambda channels, channel_weight: [weighted_blur(c, channel_weight, width) for c in channels]
 
     means = [np.dstack(blur_at(sigma * f)([xy[..., 0], xy[..., 1]], weight)) for f in WIDTHS]
-    sharp = np.dstack(_twiced(blur_at(sigma), [xy[..., 0], xy[..., 1]], weight))
-    smooth = _adaptive_smooth(means, weight, sigma, sharp)
+    sharp = np.dstack(twiced(blur_at(sigma), [xy[..., 0], xy[..., 1]], weight))
+    smooth = adaptive_smooth(means, weight, sigma, sharp)
     columns = {col: LidColumn(upper, lower, -8.0, 0.0) for col in range(20, 80)}
-    fitted = _monotone_lids(smooth, xy, weight, [(columns, 10.0)], sigma, step)
+    fitted = monotone_lids(smooth, xy, weight, [(columns, 10.0)], sigma, step)
     lid = (above >= 0) & (above < 15.0) & (cols >= 30) & (cols < 70)
 
     def error(field):

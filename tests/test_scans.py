@@ -509,7 +509,7 @@ def test_noise_shrinkage_keeps_still_skin_still_and_moving_skin_moving(rng):
     slide (much larger than the noise) nearly whole."""
     from scipy.ndimage import gaussian_filter
 
-    from livebridge.retarget.skin_flow import shrink_noise
+    from livebridge.retarget.skin_smoothing import shrink_noise
 
     x, y = square_axes(40.0, (81, 81))
     grid = resample(np.column_stack([rng.uniform(-41, 41, (20_000, 2)), np.zeros(20_000)]), x, y)
@@ -536,7 +536,7 @@ def test_noise_level_is_read_from_the_still_skin_however_much_of_the_face_moves(
     (Gaussian, 0.12 mm per axis): the noise level comes back within 15 % (0.92-1.12 times it over 20 draws),
     also where moved skin reaches below the :data:`STILL_FRACTION` quantile (read as the noise's own, that
     quantile gave 1.3 times the level with 30 % moved, 2.4-2.9 times with 60 %)."""
-    from livebridge.retarget.skin_flow import still_noise_variance
+    from livebridge.retarget.skin_smoothing import still_noise_variance
 
     n = 6000
     noise = rng.normal(0.0, 0.12, (n, 2))
@@ -555,7 +555,7 @@ def test_noise_shrinkage_keeps_a_slide_over_most_of_the_face(rng):
     (moving skin among them) shrank the slide away: 3.2-3.4 times the noise's error on the moving skin."""
     from scipy.ndimage import gaussian_filter
 
-    from livebridge.retarget.skin_flow import shrink_noise
+    from livebridge.retarget.skin_smoothing import shrink_noise
 
     x, y = square_axes(40.0, (81, 81))
     grid = resample(np.column_stack([rng.uniform(-41, 41, (20_000, 2)), np.zeros(20_000)]), x, y)
@@ -587,7 +587,7 @@ def test_noise_shrinkage_on_steep_skin_takes_the_flow_noise_lifted_onto_the_slop
     from scipy.ndimage import gaussian_filter
 
     from livebridge.face.meshio import vertex_normals
-    from livebridge.retarget.skin_flow import shrink_noise
+    from livebridge.retarget.skin_smoothing import shrink_noise
 
     def rms(values, where):
         return float(np.sqrt(np.mean(np.sum(values[where] ** 2, axis=1))))
@@ -625,7 +625,7 @@ def test_noise_shrinkage_lifts_the_noise_by_the_chart_view_not_by_z():
 
     from livebridge.face.meshio import vertex_normals
     from livebridge.retarget.chart import SkinChart
-    from livebridge.retarget.skin_flow import shrink_noise
+    from livebridge.retarget.skin_smoothing import shrink_noise
 
     def rms(values, where):
         return float(np.sqrt(np.mean(np.sum(values[where] ** 2, axis=1))))
@@ -662,7 +662,7 @@ def test_adaptive_smoothing_averages_noise_away_on_flat_motion_and_keeps_a_sharp
     the still skin keeps noise that twice the width would halve, and at twice the width the bump loses much
     of its height. The adaptive smoothing, with the noise level read from the data, does both: less noise
     on the still skin than the base width, no more bias on the bump."""
-    from livebridge.retarget.skin_flow import WIDTHS, _adaptive_smooth, _weighted_blur
+    from livebridge.retarget.skin_smoothing import WIDTHS, adaptive_smooth, weighted_blur
 
     rows, cols = np.indices((160, 160))
     bump = 2.0 * np.exp(-((rows - 80) ** 2 + (cols - 80) ** 2) / (2 * 4.0 ** 2))
@@ -671,9 +671,9 @@ def test_adaptive_smoothing_averages_noise_away_on_flat_motion_and_keeps_a_sharp
     weight = np.ones(bump.shape)
 
     def smoothed(width):
-        return np.dstack([_weighted_blur(values[..., k], weight, width) for k in (0, 1)])
+        return np.dstack([weighted_blur(values[..., k], weight, width) for k in (0, 1)])
 
-    adaptive = _adaptive_smooth([smoothed(4.0 * factor) for factor in WIDTHS], weight, 4.0)
+    adaptive = adaptive_smooth([smoothed(4.0 * factor) for factor in WIDTHS], weight, 4.0)
     distance = np.hypot(rows - 80, cols - 80)
     inner = (rows > 20) & (rows < 140) & (cols > 20) & (cols < 140)
     still, on_bump = inner & (distance > 30), distance < 6
@@ -806,7 +806,7 @@ def test_adaptive_smoothing_follows_a_steep_ramp_of_motion_with_the_twiced_candi
     alone keeps the base width's bias there. With the twiced base width as a candidate it keeps about half
     that (measured 0.32 / 0.63 px RMS at noise 0.3, 0.35-0.46 / 0.63-0.68 at noise 1) and the still skin's
     smoothing is the same as without (the candidate is not taken where only noise tells it apart)."""
-    from livebridge.retarget.skin_flow import WIDTHS, _adaptive_smooth, _twiced, _weighted_blur
+    from livebridge.retarget.skin_smoothing import WIDTHS, adaptive_smooth, twiced, weighted_blur
 
     rows, cols = np.indices((160, 160))
     ramp = 9.0 / (1.0 + np.exp((rows - 80) / 2.0))
@@ -818,15 +818,15 @@ def test_adaptive_smoothing_follows_a_steep_ramp_of_motion_with_the_twiced_candi
         return float(np.sqrt(np.mean(np.sum((field - truth)[where] ** 2, axis=1))))
 
     def blur_at(width):
-        return lambda images, weight: [_weighted_blur(image, weight, width) for image in images]
+        return lambda images, weight: [weighted_blur(image, weight, width) for image in images]
 
     for noise in (0.3, 1.0):
         values = truth + rng.normal(0.0, noise, truth.shape)
         weight = np.ones(ramp.shape)
         channels = [values[..., 0], values[..., 1]]
         means = [np.dstack(blur_at(4.0 * factor)(channels, weight)) for factor in WIDTHS]
-        plain = _adaptive_smooth(means, weight, 4.0)
-        sharp = _adaptive_smooth(means, weight, 4.0, np.dstack(_twiced(blur_at(4.0), channels, weight)))
+        plain = adaptive_smooth(means, weight, 4.0)
+        sharp = adaptive_smooth(means, weight, 4.0, np.dstack(twiced(blur_at(4.0), channels, weight)))
         assert rms(sharp, on_ramp) < 0.75 * rms(plain, on_ramp), noise
         assert rms(sharp, still) < 1.02 * rms(plain, still), noise
 

@@ -109,7 +109,7 @@ class SkinChart:
         direction a skin image made in this chart looks at the skin from (``+z`` for the planar chart, away
         from the axis, level, for the cylinder, away from the centre for the sphere). Skin turned away from
         it is compressed in the skin image (see
-        :func:`~livebridge.retarget.skin_flow.shrink_noise`)."""
+        :func:`~livebridge.retarget.skin_smoothing.shrink_noise`)."""
         points = np.asarray(points, dtype=np.float64)
         if self.planar:
             return np.tile([0.0, 0.0, 1.0], (len(points), 1))

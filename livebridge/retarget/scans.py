@@ -106,17 +106,8 @@ from livebridge.retarget.normalise import (
 from livebridge.retarget.same_face import surface_gap
 from livebridge.retarget.scan import Scan
 from livebridge.retarget.seams import LipSeam
-from livebridge.retarget.skin_flow import (
-    SMOOTH_SPACINGS,
-    fine_axes,
-    in_front,
-    outline_share,
-    pixels_of,
-    ramp,
-    shrink_noise,
-    skin_motion,
-    still_skin_correction,
-)
+from livebridge.retarget.skin_flow import fine_axes, in_front, outline_share, pixels_of, ramp, skin_motion
+from livebridge.retarget.skin_smoothing import SMOOTH_SPACINGS, shrink_noise, still_skin_correction
 from livebridge.retarget.skin_template import skin_templates
 from livebridge.retarget.surface_fit import fitted_heights, noise_level
 from livebridge.retarget.tps import Kernel, fit_tps
