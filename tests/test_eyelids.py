@@ -10,8 +10,8 @@ from livebridge.retarget.eyelids import (
     lid_columns_from_landmarks,
     moving_lids,
 )
+from livebridge.retarget.face_scan import skin_gap_mm
 from livebridge.retarget.grid import FaceGrid, resample
-from livebridge.retarget.scans import skin_gap_mm
 from livebridge.retarget.skin_flow import pixels_of
 
 HALF_WIDTH = 12.0  # the eye's corners at x = -12 and +12 mm, the opening an ellipse between them
@@ -129,8 +129,8 @@ def test_retarget_scans_takes_lid_landmarks_beside_the_22(tmp_path, ict):
     basis = Basis.load(tmp_path / "b.npz")
     element = basis.elements[0]
     # the ICT element on the same grid (the CLI's grid is the neutral's: rebuild its frame the same way)
+    from livebridge.retarget.face_scan import prepare_neutral
     from livebridge.retarget.scan import read_scan
-    from livebridge.retarget.scans import prepare_neutral
 
     face = prepare_neutral(read_scan(tmp_path / "neutral.ply"), neutral.landmarks, _builtin_reference(),
                            shape=(100, 100))
@@ -177,8 +177,8 @@ def _seen(points: np.ndarray) -> tuple[FaceGrid, float]:
     expression (:func:`~livebridge.retarget.scans._seen_openings`), and that mask's gap."""
     from dataclasses import replace
 
+    from livebridge.retarget.face_scan import opening_gap_mm
     from livebridge.retarget.grid import holes, point_spacing
-    from livebridge.retarget.scans import opening_gap_mm
 
     gap = opening_gap_mm(point_spacing(points[:, :2]), COARSE_STEP)
     skin = resample(points, FINE, FINE, skin_gap_mm(COARSE_STEP))
@@ -225,8 +225,8 @@ def _lid_scans(rng, upper_after: float, lower_after: float, rim_mm: float = 0.0)
     import cv2
     from scipy.interpolate import RegularGridInterpolator
 
+    from livebridge.retarget.face_scan import FaceScan, opening_gap_mm
     from livebridge.retarget.grid import holes, point_spacing, square_axes
-    from livebridge.retarget.scans import FaceScan, opening_gap_mm
     from livebridge.retarget.skin_flow import fine_axes
 
     texel, reach = 0.25, 12.0

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from livebridge.face.builtin import builtin_basis
+from livebridge.retarget.face_scan import prepare_expression, prepare_neutral
 from livebridge.retarget.landmarks import load_landmark_set
 from livebridge.retarget.mesh_samples import surface_samples
 from livebridge.retarget.scan import Scan, read_scan
-from livebridge.retarget.scans import prepare_expression, prepare_neutral
 
 GRID = (60, 60)
 
@@ -171,7 +171,7 @@ def test_flying_points_are_cut_before_the_resampling(face, monkeypatch):
     """1 % of a scan's points thrown 2-20 mm off the face along the view (a depth camera's flying pixels): the
     grid is the clean scan's; without the cut, a point in front of the skin takes over its cell."""
     from livebridge.bench.scans import scan_surface
-    from livebridge.retarget import scans
+    from livebridge.retarget import face_scan
 
     basis, landmarks = face
     rng = np.random.default_rng(3)
@@ -188,6 +188,6 @@ def test_flying_points_are_cut_before_the_resampling(face, monkeypatch):
     assert both.sum() > 0.99 * clean.valid.sum()
     off = np.abs(cut.heights - clean.heights)[both]
     assert np.percentile(off, 99) < 0.2 and off.max() < 2.0, (np.percentile(off, 99), off.max())
-    monkeypatch.setattr(scans, "spikes", lambda p: np.zeros(len(p), dtype=bool))
+    monkeypatch.setattr(face_scan, "spikes", lambda p: np.zeros(len(p), dtype=bool))
     uncut = grid(thrown)
     assert np.abs(uncut.heights - clean.heights)[both].max() > 2.0  # what the cut is for

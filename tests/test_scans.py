@@ -267,7 +267,7 @@ def test_crop_sphere(rng):
 # ------------------------------------------------------------------------------------------------ skin tracking
 def _skin_axes() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The grid lines (x, y) of a 41x41 grid over 60 mm and the skin image's finer lines (fine x, fine y)
-    reaching 4 cells beyond it, as :func:`~livebridge.retarget.scans.prepare_neutral` lays them out."""
+    reaching 4 cells beyond it, as :func:`~livebridge.retarget.face_scan.prepare_neutral` lays them out."""
     from livebridge.retarget.skin_flow import fine_axes
 
     x, y = square_axes(30.0, (41, 41))
@@ -747,7 +747,8 @@ def test_second_tracking_trusts_no_skin_the_first_could_not_track():
     tracking was not trusted, the second is not either: the patch takes the motion carried from the tracked
     skin around it (measured 0.14 mm; the opened jaw's chin from underneath, retarget/scans._within)."""
 
-    from livebridge.retarget.scans import FaceScan, tracked_motion
+    from livebridge.retarget.face_scan import FaceScan
+    from livebridge.retarget.scans import tracked_motion
     from livebridge.retarget.skin_flow import fine_axes
 
     rng = np.random.default_rng(3)
@@ -1259,7 +1260,7 @@ def test_something_between_the_scanner_and_the_face_is_left_out_and_said(tmp_pat
     one the scan with the hole alone gives, and the build says what it left out."""
     import shutil
 
-    import livebridge.retarget.scans as scans_module
+    import livebridge.retarget.face_scan as face_scan_module
     from livebridge.cli import main
     from livebridge.face.basis import Basis
     from livebridge.retarget.point_files import read_points_csv
@@ -1284,7 +1285,7 @@ def test_something_between_the_scanner_and_the_face_is_left_out_and_said(tmp_pat
     assert "jaw (jaw.ply)" in said and "left out" in said and "a hand" in said
     size = np.sqrt(np.mean(np.sum(reference ** 2, axis=1)))
     assert np.sqrt(np.mean(np.sum((element - reference) ** 2, axis=1))) < 0.02 * size  # 0.005 measured
-    monkeypatch.setattr(scans_module, "OFF_FACE_MM", np.inf)  # the hand kept: the element is not the jaw's
+    monkeypatch.setattr(face_scan_module, "OFF_FACE_MM", np.inf)  # the hand kept: the element is not the jaw's
     spoiled, _ = build(with_hand, "kept.npz")
     assert np.sqrt(np.mean(np.sum((spoiled - reference) ** 2, axis=1))) > 0.15 * size  # 0.23 measured
 
@@ -1319,8 +1320,9 @@ def test_the_build_tells_of_each_element_in_both_passes():
     """Coloured scans are tracked twice (against the neutral, then against the template of all the scans' skin):
     each pass names each element as it starts, so a build of minutes shows where it is."""
     from livebridge.face.builtin import builtin_basis
+    from livebridge.retarget.face_scan import prepare_expression, prepare_neutral
     from livebridge.retarget.landmarks import load_landmark_set
-    from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
+    from livebridge.retarget.scans import basis_from_scans
 
     neutral_scan, scans = synthetic_scans(builtin_basis(), load_landmark_set("builtin-22"), np.random.default_rng(6),
                                           n_points=8000, hole_muscle=None, muscles=("jaw", "zygomatic_major_L"))

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from livebridge.retarget.scans import FaceScan
+    from livebridge.retarget.face_scan import FaceScan
 
 SCAN_POINTS = 60_000
 DENSE_SCAN_POINTS = 150_000
@@ -218,9 +218,9 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
 
 def truth_on_grid(basis, neutral_scan: SyntheticScan, face, names) -> np.ndarray:
     """The basis's elements at the points of its neutral surface closest to the built neutral mesh's vertices
-    (:attr:`~livebridge.retarget.scans.FaceScan.mesh_vertices`), in the face frame.
+    (:attr:`~livebridge.retarget.face_scan.FaceScan.mesh_vertices`), in the face frame.
 
-    ``face`` is the prepared neutral (:class:`~livebridge.retarget.scans.FaceScan`); returns (k, n_vertices, 3).
+    ``face`` is the prepared neutral (:class:`~livebridge.retarget.face_scan.FaceScan`); returns (k, n_vertices, 3).
     """
     from livebridge.geometry.transforms import apply
     from livebridge.retarget.landmarks import closest_surface_points
@@ -285,10 +285,11 @@ def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[in
     68-point set); the basis built from them with skin tracking and from shape alone (the same prepared scans,
     colour ignored); each against the ICT elements and the true expressive surfaces."""
     from livebridge.retarget.basis import relative_errors
+    from livebridge.retarget.face_scan import prepare_expression, prepare_neutral
     from livebridge.retarget.grid import GRID_SHAPE
     from livebridge.retarget.landmarks import thesis_points_from_68
     from livebridge.retarget.same_face import gap_limit
-    from livebridge.retarget.scans import basis_from_scans, prepare_expression, prepare_neutral
+    from livebridge.retarget.scans import basis_from_scans
 
     neutral_scan, expression_scans = synthetic_scans(basis, landmarks, rng, **scan_options)
     # a 68-point set's own face as the reference too, named as the thesis's 22 (as the scans' landmarks are)

@@ -107,10 +107,11 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
     import numpy as np
 
     from livebridge.face.muscle_place import misplaced
+    from livebridge.retarget.face_scan import OFF_FACE_MM, prepare_neutral
     from livebridge.retarget.point_files import picked_points_file, read_points
     from livebridge.retarget.same_face import another_face, neutral_off_expressions, off_expressions
     from livebridge.retarget.scan import read_scan
-    from livebridge.retarget.scans import OFF_FACE_MM, basis_from_scans, in_scan_frame, prepare_neutral
+    from livebridge.retarget.scans import basis_from_scans, in_scan_frame
 
     outputs = [(option, path) for option, path in (("--out", out), ("--grid-obj", grid_obj),
                                                     ("--landmarks-out", landmarks_out)) if path is not None]
@@ -189,7 +190,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
 
 OFF_FACE_NOTE = 0.001
 """The build says so when at least this share of an expression scan's points were left out as off the face
-(:data:`~livebridge.retarget.scans.OFF_FACE_MM`); fewer are stray points."""
+(:data:`~livebridge.retarget.face_scan.OFF_FACE_MM`); fewer are stray points."""
 POOL_MIN_BYTES = 8_000_000
 """Expression scans smaller than this in all are prepared in this process: a worker takes about 2 s to start
 (its imports and the neutral face), a 60k-point scan (0.9 MB) about as long to prepare."""
@@ -280,9 +281,9 @@ def _prepare_kept(*job):
 
 def _prepare_file(neutral, scan_path: Path, landmark_path: Path, scale: float, mesh_spacing: float | None):
     """One expression scan read and prepared on ``neutral`` (errors name the scan and the landmark file)."""
+    from livebridge.retarget.face_scan import prepare_expression
     from livebridge.retarget.point_files import read_points
     from livebridge.retarget.scan import read_scan
-    from livebridge.retarget.scans import prepare_expression
 
     return prepare_expression(read_scan(scan_path, scale), read_points(landmark_path, scale), neutral, scan_path,
                               landmark_path, mesh_spacing)

@@ -113,8 +113,8 @@ def on_neutral_pose(neutral_mesh, neutral_landmarks: LandmarkSet, vertices: np.n
     surface (:func:`~livebridge.retarget.normalise.register_rigid`, as for expression scans)."""
     from livebridge.face.meshio import vertex_normals
     from livebridge.geometry.transforms import apply
+    from livebridge.retarget.face_scan import crop_radius
     from livebridge.retarget.normalise import register_rigid
-    from livebridge.retarget.scans import crop_radius
 
     neutral_vertices, neutral_triangles = (np.asarray(a) for a in neutral_mesh)
     marks = neutral_landmarks.as_dict(neutral_vertices, neutral_triangles)

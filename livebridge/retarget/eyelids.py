@@ -21,7 +21,7 @@ lies within the resampling's gap distance (:data:`~livebridge.retarget.grid.GAP_
 a hole moves that far in; the margins are put back by it. The skin images' gap (2.2 mm on the bench's grid)
 fills a squint's slit up to twice that tall, which then reads as a closed eye (a synthetic squint's 2.5 mm
 margin motion taken for 8 mm); the expression's opening is therefore read from its holes at the scan's own
-point spacing (:func:`~livebridge.retarget.scans.opening_gap_mm`: 1.4 mm at 60k points a scan), keeping only
+point spacing (:func:`~livebridge.retarget.face_scan.opening_gap_mm`: 1.4 mm at 60k points a scan), keeping only
 holes long along the eye (:data:`MIN_OPENING_EYE_WIDTHS`: a stray gap between scan points is none).
 
 When the neutral shows no opening (a scanner that fills holes, a mesh closed over the eye) and the landmark

@@ -7,7 +7,7 @@ decimation put them densely where the face curves (the eyes, the nostrils, the l
 cheeks and forehead, so the median spacing is the dense parts' and the sparse parts came out full of holes.
 ICT-FaceKit's full head read as a scan by its vertices (its eyes, lashes and mouth dense) kept 6846 of the 9646
 grid vertices its face region alone gives; sampled (and what the face's front hides cut:
-:data:`~livebridge.retarget.scans.HIDDEN_DEPTH_MM`), 9734, its neutral within 0.05 mm of the true surface at
+:data:`~livebridge.retarget.face_scan.HIDDEN_DEPTH_MM`), 9734, its neutral within 0.05 mm of the true surface at
 the 90th percentile (0.58 mm from the face region's vertices). Vertices no triangle uses (a mesh's leftovers)
 are no surface, and are not sampled.
 """
