@@ -269,6 +269,44 @@ def test_place_refuses_a_vertex_in_zero_area_triangles_only(tmp_path, face):
     assert_cli_refused(result, "ids.toml", "chin", f"vertex {n + 1}", "no area")
 
 
+def test_place_at_points_passes_over_slivers_onto_the_surface(tmp_path, face):
+    """A face written with a repeated corner and a zero-area triangle along a real edge, both through the landmark
+    (as exporters and scanners leave them): the landmark lands on a triangle with area, where it was, and the
+    transfer through it runs (it refuses a landmark on a sliver as off the surface)."""
+    truth = load_landmark_set("builtin-22")
+    on_surface = truth.positions(face.neutral, face.triangles)
+    k = THESIS_22_NAMES.index("nose_tip")
+    a, b, _ = face.triangles[truth.triangles[k]]
+    n = len(face.neutral)
+    # three new vertices on the line through the landmark along its triangle's edge ab: no area, at the landmark
+    along = face.neutral[b] - face.neutral[a]
+    line = on_surface[k] + np.outer([-1.0, 0.0, 1.0], along)
+    vertices = np.vstack([face.neutral, line])
+    triangles = np.vstack([[[n, n + 1, n + 2], [n + 1, n + 1, n]], face.triangles])
+    save_obj(tmp_path / "slivers.obj", vertices, triangles)
+    rows = "".join(f"{name},{x!r},{y!r},{z!r}\n" for name, (x, y, z) in zip(truth.names, on_surface.tolist()))
+    (tmp_path / "p.csv").write_text(rows)
+    _run("landmarks", "place", tmp_path / "slivers.obj", "--points", tmp_path / "p.csv", "--out", tmp_path / "lm.toml")
+    placed = load_landmark_set(tmp_path / "lm.toml")
+    assert (placed.triangles >= 2).all()  # never one of the two slivers
+    assert np.abs(placed.positions(vertices, triangles) - on_surface).max() < 1e-5  # the OBJ's digits
+    _run("retarget", "basis", "--source", "builtin", "--source-landmarks", "builtin-22", "--target",
+         tmp_path / "slivers.obj", "--target-landmarks", tmp_path / "lm.toml", "--out", tmp_path / "out.npz")
+
+
+def test_a_vertex_thrown_far_off_the_mesh_is_refused_naming_it(tmp_path, face):
+    """One vertex at 1e30 mm (a corrupt file) is named, not taken for face: before, the landmark on its triangle
+    was called off the surface (the mean triangle area it was judged by was astronomical) or a triangulation
+    failed inside the transfer."""
+    vertices = face.neutral.copy()
+    vertices[7] = [1e30, 0.0, 0.0]
+    save_obj(tmp_path / "far.obj", vertices, face.triangles)
+    result = CliRunner().invoke(main, ["retarget", "basis", "--source", "builtin", "--source-landmarks",
+                                       "builtin-22", "--target", str(tmp_path / "far.obj"), "--target-landmarks",
+                                       "builtin-22", "--out", str(tmp_path / "out.npz")])
+    assert_cli_refused(result, "far.obj", "vertex 7 lies 1e+30", "corrupt")
+
+
 @pytest.mark.parametrize("row,words", [
     (",0,-80,89.94\n", ("p.csv", "line 1", "no name")),
     ("nose_tip,1e300,0,0\n", ("p.csv", "nose_tip", "1e+300 mm from the mesh surface")),

@@ -5,13 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from livebridge.errors import InputError
-from livebridge.retarget.landmarks import LandmarkSet
+from livebridge.retarget.landmarks import LandmarkSet, surface_triangles
 
 OPENING_LANDMARKS = ("lip_", "mouth_", "eye_", "lm_")
 """Landmarks that may sit on the rim of an opening (the mouth, the eyes; iBUG ``lm_NN`` points include the lids
 and the inner lips)."""
-DEGENERATE_AREA = 1e-12
-"""A triangle with less area than this fraction of the mesh's mean triangle area has no surface."""
+FAR_VERTEX = 1000.0
+"""A vertex this many times farther from the mesh's middle than its typical vertex is thrown off the surface (a
+corrupt file: a head's farthest vertex lies about twice as far as its typical one)."""
 
 
 def non_manifold_edges(triangles: np.ndarray) -> np.ndarray:
@@ -38,15 +39,16 @@ mouth +0.58; flipped, as much below)."""
 
 
 def check_mesh(vertices: np.ndarray, triangles: np.ndarray, source=None) -> None:
-    """Raise an :class:`InputError` naming ``source`` (the mesh file) for faults of the whole mesh: unwelded
-    triangles, edges shared by more than two triangles (non-manifold), triangles wound every which way or all
-    facing into the head (the transfer matches surfaces by the way they face). Triangles that repeat a vertex
-    (no surface) are left out."""
+    """Raise an :class:`InputError` naming ``source`` (the mesh file) for faults of the whole mesh: a vertex thrown
+    far off the rest, unwelded triangles, edges shared by more than two triangles (non-manifold), triangles wound
+    every which way or all facing into the head (the transfer matches surfaces by the way they face). Triangles
+    that repeat a vertex (no surface) are left out."""
     from livebridge.face.meshio import edge_counts
 
     triangles = _proper(np.asarray(triangles, dtype=np.int64))
     if not len(triangles):
         return
+    _check_no_far_vertex(np.asarray(vertices, dtype=np.float64), triangles, source)
     edges, counts = edge_counts(triangles)
     rim_share = float(np.mean(counts == 1))
     if rim_share > UNWELDED_RIM_SHARE:
@@ -61,6 +63,21 @@ def check_mesh(vertices: np.ndarray, triangles: np.ndarray, source=None) -> None
                          "> Remove Duplicate Faces, Repair non Manifold Edges) and place the landmarks again", source,
                          "triangles")
     _check_winding(vertices, triangles, int(np.sum(counts == 2)), source)
+
+
+def _check_no_far_vertex(vertices: np.ndarray, triangles: np.ndarray, source) -> None:
+    """Raise an :class:`InputError` naming ``source`` when a vertex of the ``triangles`` lies :data:`FAR_VERTEX`
+    times farther from the mesh's middle (its vertices' median) than the median vertex does: every later step
+    (closest points, bounding boxes, triangulations) would take it for part of the face."""
+    used = np.unique(triangles)
+    points = vertices[used]
+    distance = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+    typical = float(np.median(distance))
+    k = int(np.argmax(distance))
+    if typical > 0 and distance[k] > FAR_VERTEX * typical:
+        raise InputError(f"vertex {int(used[k])} lies {distance[k]:.3g} from the middle of the mesh, "
+                         f"{distance[k] / typical:.3g} times as far as its typical vertex: a corrupt vertex (fix or "
+                         "remove it)", source, "vertices")
 
 
 def _check_winding(vertices: np.ndarray, triangles: np.ndarray, interior: int, source) -> None:
@@ -108,12 +125,9 @@ def check_landmarks_on(landmarks: LandmarkSet, vertices: np.ndarray, triangles: 
     for name, corner in zip(landmarks.names, corners):
         if not np.isfinite(corner).all():
             raise InputError("a vertex of this landmark's triangle is not finite", source, name)
-    all_corners = vertices[triangles]
-    areas = 0.5 * np.linalg.norm(np.cross(all_corners[:, 1] - all_corners[:, 0],
-                                          all_corners[:, 2] - all_corners[:, 0]), axis=1)
-    mean_area = float(np.nanmean(areas)) if len(areas) else 0.0
+    surface = surface_triangles(vertices, triangles)
     for name, triangle in zip(landmarks.names, landmarks.triangles):
-        if not areas[triangle] > DEGENERATE_AREA * mean_area:
+        if not surface[triangle]:
             raise InputError(f"off the surface: its triangle {int(triangle)} has no area (its corners coincide or "
                              "lie on a line)", source, name)
     from livebridge.face.meshio import edge_counts
@@ -137,3 +151,4 @@ def check_landmarks_on(landmarks: LandmarkSet, vertices: np.ndarray, triangles: 
                          f"than two triangles (the first between vertices {int(bad[0][0])} and {int(bad[0][1])}, "
                          f"{np.linalg.norm(positions - middle, axis=1).min():.1f} mm from this landmark); "
                          "repair the mesh (e.g. split the fan) and place the landmarks again", source, nearest)
+

@@ -320,11 +320,7 @@ def place_at_vertices(vertex_ids: dict[str, int], n_vertices: int, triangles: np
         scanner's or an exporter's sliver) is no surface, and a landmark on it is refused by every transfer.
     """
     triangles = np.asarray(triangles, dtype=np.int64)
-    areas = None
-    if vertices is not None:
-        corners_xyz = np.asarray(vertices, dtype=np.float64)[triangles]
-        areas = np.linalg.norm(np.cross(corners_xyz[:, 1] - corners_xyz[:, 0], corners_xyz[:, 2] - corners_xyz[:, 0]),
-                               axis=1)
+    areas = None if vertices is None else triangle_areas(vertices, triangles)
     chosen, bary = [], []
     for name, vertex in vertex_ids.items():
         rows, corners = np.nonzero(triangles == vertex)
@@ -347,6 +343,24 @@ def place_at_vertices(vertex_ids: dict[str, int], n_vertices: int, triangles: np
 FAR_MESH_SIZES = 1000.0
 """A point this many mesh sizes outside the mesh's bounds is refused by that gap alone (see
 :func:`place_at_points`)."""
+DEGENERATE_AREA = 1e-12
+"""A triangle with less area than this fraction of the mesh's median triangle area has no surface (a scanner's or
+an exporter's sliver, a face written with a repeated corner)."""
+
+
+def triangle_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Each triangle's area, shape (n_triangles,); NaN where a corner is not finite."""
+    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(triangles, dtype=np.int64)]
+    return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+
+
+def surface_triangles(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Mask (n_triangles,) of the triangles that are surface: finite, with more than :data:`DEGENERATE_AREA` of the
+    median triangle's area (the median, not the mean: one vertex thrown 1e30 mm away makes the mean any size)."""
+    areas = triangle_areas(vertices, triangles)
+    finite = np.isfinite(areas)
+    typical = float(np.median(areas[finite])) if finite.any() else 0.0
+    return finite & (areas > DEGENERATE_AREA * typical)
 
 
 def place_at_points(points: dict[str, np.ndarray], vertices: np.ndarray, triangles: np.ndarray,
@@ -367,7 +381,12 @@ def place_at_points(points: dict[str, np.ndarray], vertices: np.ndarray, triangl
         raise InputError(f"more than {outside[k]:.3g} {units} from the mesh surface (at most {max_distance:g} "
                          f"{units}): outside the mesh's bounds (same coordinates and units as the mesh?)",
                          source, names[k])
-    triangle, barycentric, distance = closest_surface_points(xyz, vertices, triangles)
+    # a sliver lies on its neighbours' edges, as near as they are: a landmark placed on it would be refused
+    surface = np.flatnonzero(surface_triangles(vertices, triangles))
+    if not len(surface):
+        raise InputError("the mesh has no triangle with area: no surface to place landmarks on", source)
+    triangle, barycentric, distance = closest_surface_points(xyz, vertices, np.asarray(triangles)[surface])
+    triangle = surface[triangle]
     far = np.flatnonzero(distance > max_distance)
     if far.size:
         k = int(far[np.argmax(distance[far])])
