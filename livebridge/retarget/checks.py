@@ -151,4 +151,3 @@ def check_landmarks_on(landmarks: LandmarkSet, vertices: np.ndarray, triangles: 
                          f"than two triangles (the first between vertices {int(bad[0][0])} and {int(bad[0][1])}, "
                          f"{np.linalg.norm(positions - middle, axis=1).min():.1f} mm from this landmark); "
                          "repair the mesh (e.g. split the fan) and place the landmarks again", source, nearest)
-
