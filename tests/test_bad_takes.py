@@ -172,6 +172,20 @@ def _truncate(name: str, keep: float = 0.5) -> Callable[[Path], None]:
     return damage
 
 
+def _c3d_byte(offset, value: int) -> Callable[[Path], None]:
+    """Set one byte of good.c3d: at ``offset``, or where ``offset(data)`` says."""
+    def damage(folder: Path) -> None:
+        data = bytearray((folder / "good.c3d").read_bytes())
+        data[offset(data) if callable(offset) else offset] = value
+        (folder / "good.c3d").write_bytes(bytes(data))
+    return damage
+
+
+def _processor_byte(data: bytearray) -> int:
+    """Where a C3D file's processor type is: the 4th byte of its parameter section (header byte 0: its block)."""
+    return (data[0] - 1) * 512 + 3
+
+
 def _nothing(folder: Path) -> None:
     pass
 
@@ -542,6 +556,9 @@ _MARKER_FILE_CASES = [
     Case("c3d-truncated", _truncate("good.c3d", 0.8), _SHOW_C3D, ("good.c3d", "truncated", "frame")),
     Case("c3d-not-a-c3d", _write("good.c3d", b"PK\x03\x04" * 300), _SHOW_C3D, ("good.c3d", "not a C3D")),
     Case("c3d-empty", _write("good.c3d", b""), _SHOW_C3D, ("good.c3d", "not a C3D")),
+    Case("c3d-unknown-processor", _c3d_byte(_processor_byte, 0), _SHOW_C3D,
+         ("good.c3d", "not a C3D", "processor type")),
+    Case("c3d-parameters-at-block-0", _c3d_byte(0, 0), _SHOW_C3D, ("good.c3d", "not a C3D")),
     Case("c3d-unknown-unit", _c3d_in("in"), _SHOW_C3D, ("good.c3d", "POINT:UNITS", "unknown unit 'in'")),
     Case("c3d-repeated-label", _c3d_labels(["a", "a "]), _SHOW_C3D, ("good.c3d", "POINT:LABELS", "'a' repeats")),
     Case("unknown-suffix", _write("good.xyz", "1,2,3\n"), ("take", "show", "{dir}/good.xyz"),

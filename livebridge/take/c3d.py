@@ -194,8 +194,11 @@ def export_closed_take(path: str | Path, fps: float | None) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ reading
-_NOT_C3D = (AssertionError, struct.error, ValueError, KeyError, TypeError, IndexError, UnicodeDecodeError)
-"""What py-c3d raises on bytes that are not a C3D file (it asserts the header's magic byte, among others)."""
+_NOT_C3D = (AssertionError, struct.error, ValueError, KeyError, TypeError, IndexError, UnicodeDecodeError,
+            OverflowError, UnboundLocalError, OSError)
+"""What py-c3d raises on bytes that are not a C3D file (it asserts the header's magic byte, among others; a count
+too large for an index overflows; an unknown processor type leaves its float reader unbound; a section pointer of
+0 seeks before the file's start)."""
 
 
 def read_c3d(path: str | Path, units_mm: float | None = None) -> Trajectories:
@@ -224,8 +227,9 @@ def read_c3d(path: str | Path, units_mm: float | None = None) -> Trajectories:
         except InputError:
             raise  # a ValueError too, but already says what is wrong
         except _NOT_C3D as error:
-            raise InputError(f"not a C3D file, or a damaged one ({str(error).strip() or type(error).__name__})",
-                             path) from None
+            detail = ("its processor type is none of Intel, DEC, MIPS" if isinstance(error, UnboundLocalError)
+                      else str(error).strip() or type(error).__name__)
+            raise InputError(f"not a C3D file, or a damaged one ({detail})", path) from None
     scale, unit = file_units(stated, units_mm, path, "POINT:UNITS")
     if not (math.isfinite(rate) and 0 < rate <= MAX_RATE):
         raise InputError(f"the header's frame rate is {rate:g} Hz", path, "header")
