@@ -32,6 +32,23 @@ def test_ply_round_trip(tmp_path, rng, encoding, with_faces):
         np.testing.assert_array_equal(scan.triangles, triangles)
 
 
+def test_a_binary_ply_s_signalling_nan_is_refused_without_a_warning(tmp_path, rng):
+    """A float32 signalling NaN (a damaged binary file) warned "invalid value encountered in cast" on the way to the
+    error; the error alone names the file and the point."""
+    import warnings
+
+    write_ply(tmp_path / "s.ply", rng.normal(0, 50, (20, 3)), None, "binary_little_endian")
+    data = bytearray((tmp_path / "s.ply").read_bytes())
+    start = data.index(b"end_header\n") + len(b"end_header\n")
+    data[start + 5 * 12:start + 5 * 12 + 4] = (0x7FA00000).to_bytes(4, "little")  # point 5's x
+    (tmp_path / "s.ply").write_bytes(bytes(data))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match="vertex 5 is not finite") as caught:
+            read_scan(tmp_path / "s.ply")
+    assert "s.ply" in str(caught.value)
+
+
 def test_ply_with_quads_colours_and_extra_elements(tmp_path):
     header = ("ply\nformat binary_big_endian 1.0\ncomment made by a scanner\nelement vertex 5\nproperty double x\n"
               "property double y\nproperty double z\nproperty uchar red\nelement face 2\n"

@@ -306,7 +306,8 @@ def _read_ply(data: bytes, path: Path):
     else:
         tables = _ply_binary(body, elements, order, path)
     table = tables["vertex"]
-    points = np.stack([np.asarray(table[axis], dtype=np.float64) for axis in "xyz"], axis=1)
+    with np.errstate(invalid="ignore"):  # a signalling NaN warns as it widens; it is refused just below
+        points = np.stack([np.asarray(table[axis], dtype=np.float64) for axis in "xyz"], axis=1)
     bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
     if len(bad):
         raise InputError(f"vertex {bad[0]} is not finite ({points[bad[0]].tolist()}; {len(bad)} such)", path,
