@@ -25,6 +25,7 @@ import numpy as np
 from livebridge.arkit.names import ARKIT_INDEX, ARKIT_NAMES
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
+from livebridge.npzio import read_npz
 from livebridge.output.blendshapes import BlendshapeMap
 
 UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
@@ -115,15 +116,11 @@ def load_arkit_shapes(path: str | Path, units: str = "cm") -> ArkitShapes:
     """ARKit shapes from an ``.npz`` holding ``names (n,)`` and ``deltas (n, n_vertices, 3)`` (the layout of the
     ICT-FaceKit ``face_region.npz``, whose units are centimetres)."""
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            missing = [key for key in ("names", "deltas") if key not in data.files]
-            if missing:
-                raise InputError(f"missing array {missing[0]!r}", path, missing[0])
-            names, deltas = data["names"], data["deltas"]
-    except (OSError, ValueError) as error:
-        raise InputError(f"not a readable .npz of named shapes ({error})", path) from None
-    return arkit_shapes_from_deltas(names, deltas, units, str(path))
+    arrays = read_npz(path, "named shapes", ("names", "deltas"))
+    missing = [key for key in ("names", "deltas") if key not in arrays]
+    if missing:
+        raise InputError(f"missing array {missing[0]!r}", path, missing[0])
+    return arkit_shapes_from_deltas(arrays["names"], arrays["deltas"], units, str(path))
 
 
 def arkit_shapes_from_muscles(basis: Basis, blend_map: BlendshapeMap | None = None) -> ArkitShapes:

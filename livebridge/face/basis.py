@@ -9,14 +9,13 @@ and stored as one versioned ``.npz`` file with an embedded JSON manifest.
 from __future__ import annotations
 
 import json
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from livebridge.errors import InputError, file_error
+from livebridge.errors import InputError
+from livebridge.npzio import read_npz
 
 BASIS_FORMAT = "livebridge-basis"
 BASIS_VERSION = 1
@@ -192,27 +191,11 @@ class Basis:
 
 def _read_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
     """The arrays ``keys`` of a ``.npz`` file; an unreadable, damaged or incomplete file raises InputError."""
-    try:
-        data = np.load(path, allow_pickle=False)
-    except OSError as error:
-        raise file_error(error, path) from None
-    except (ValueError, EOFError, zipfile.BadZipFile) as error:
-        # numpy takes any file that is not a zip or .npy for a pickle, and says so: say what the file is not
-        what = error if zipfile.is_zipfile(path) else "not a zip archive, which a .npz is"
-        raise InputError(f"not a livebridge basis .npz file ({what})", path) from None
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise InputError("a single .npy array, not a livebridge basis .npz file", path)
-    with data:
-        missing = [key for key in keys if key not in data.files]
-        if missing:
-            raise InputError(f"missing array {missing[0]!r}", path, missing[0])
-        arrays = {}
-        for key in keys:
-            try:
-                arrays[key] = data[key]
-            except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error) as error:
-                raise InputError(f"damaged or not a plain array ({error})", path, key) from None
-        return arrays
+    arrays = read_npz(path, "livebridge basis", keys)
+    missing = [key for key in keys if key not in arrays]
+    if missing:
+        raise InputError(f"missing array {missing[0]!r}", path, missing[0])
+    return arrays
 
 
 def _read_manifest(array: np.ndarray, path: Path) -> tuple[Muscle, ...]:

@@ -8,7 +8,6 @@ per-(gesture, state) canonical frames are stored as 8-bit crops around the regio
 from __future__ import annotations
 
 import json
-import zipfile
 from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
@@ -17,6 +16,7 @@ import numpy as np
 
 from livebridge.errors import InputError
 from livebridge.markerless.normalise import HeadRig, Normalisation
+from livebridge.npzio import read_npz
 
 FORMAT = "livebridge-markerless"
 VERSION = 1
@@ -170,19 +170,8 @@ def _to_arrays(model: MarkerlessModel) -> tuple[dict[str, np.ndarray], dict]:
 
 
 def _from_arrays(path: str | Path) -> MarkerlessModel:
-    from livebridge.errors import file_error
-
     path = Path(path)
-    try:
-        data = np.load(path, allow_pickle=False)
-        if not hasattr(data, "files"):  # a bare .npy array
-            raise InputError("not a markerless model (.npz): a single array", path)
-        with data:
-            arrays = {key: data[key] for key in data.files}
-    except OSError as error:
-        raise file_error(error, path) from None
-    except (ValueError, EOFError, zipfile.BadZipFile) as error:
-        raise InputError(f"not a markerless model (.npz): {error}", path) from None
+    arrays = read_npz(path, "markerless model")
     reader = _Reader(path, arrays)
     manifest = reader.manifest()
     settings = manifest["normalisation"]

@@ -17,14 +17,13 @@ from __future__ import annotations
 
 import json
 import math
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from livebridge.errors import InputError
+from livebridge.npzio import read_npz
 
 TAKE_FORMAT = "livebridge-take"
 TAKE_VERSION = 1
@@ -111,7 +110,6 @@ class Take:
             raise InputError(error.message, path, error.field) from None
 
 
-_ZIP_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
 _MANIFEST_KEYS = {"format", "version", "marker_names", "muscle_names", "fps"}
 
 
@@ -121,21 +119,7 @@ def _read_arrays(path: Path) -> dict[str, np.ndarray]:
         raise InputError("is a directory, not a take file (.npz)", path)
     if not path.is_file():
         raise InputError("take file not found", path)
-    try:
-        data = np.load(path, allow_pickle=False)
-    except _ZIP_ERRORS as error:
-        raise InputError(f"not a livebridge take .npz: truncated, damaged or another kind of file ({error!s:.60})",
-                         path) from None
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise InputError("a single .npy array, not a livebridge take .npz", path)
-    arrays = {}
-    with data:
-        for key in data.files:
-            try:
-                arrays[key] = data[key]
-            except _ZIP_ERRORS as error:  # a damaged member, or an object array (pickles are never loaded)
-                raise InputError(f"cannot read the array: damaged or not plain numbers ({error!s:.60})", path,
-                                 key) from None
+    arrays = read_npz(path, "livebridge take")
     missing = [name for name in ("manifest", "t") if name not in arrays]
     if missing:
         raise InputError(f"missing array(s) {', '.join(missing)}", path, missing[0])

@@ -1,0 +1,62 @@
+"""Every .npz a user gives (basis, take, markerless model, ARKit shapes) is read by one reader: a damaged file is
+one error naming it, and the file is closed whatever happens."""
+
+from __future__ import annotations
+
+import gc
+import io
+import warnings
+
+import numpy as np
+import pytest
+
+from livebridge.arkit.shapes import load_arkit_shapes
+from livebridge.errors import InputError
+from livebridge.face.basis import Basis
+from livebridge.markerless.model import MarkerlessModel
+from livebridge.take.npz import Take
+
+LOADERS = [(Basis.load, "livebridge basis", "manifest"), (Take.load, "livebridge take", "manifest"),
+           (MarkerlessModel.load, "markerless model", "manifest"), (load_arkit_shapes, "named shapes", "names")]
+"""Each reader, what it says a bad file is not, and an array it reads."""
+
+
+def _flagged(flag: int, member: str = "manifest") -> bytes:
+    """A .npz of a few arrays whose ``member`` has the general-purpose ``flag`` set in its central-directory
+    entry (what zipfile reads the member's flags from)."""
+    buffer = io.BytesIO()
+    np.savez(buffer, manifest=np.array("{}"), names=np.array(["a"]), deltas=np.zeros((1, 2, 3)))
+    data = bytearray(buffer.getvalue())
+    entry = data.index(b"PK\x01\x02")
+    name_end = entry + 46 + int.from_bytes(data[entry + 28:entry + 30], "little")
+    while data[entry + 46:name_end] != f"{member}.npy".encode():
+        entry = data.index(b"PK\x01\x02", entry + 4)
+        name_end = entry + 46 + int.from_bytes(data[entry + 28:entry + 30], "little")
+    data[entry + 8:entry + 10] = (int.from_bytes(data[entry + 8:entry + 10], "little") | flag).to_bytes(2, "little")
+    return bytes(data)
+
+
+@pytest.mark.parametrize("load,what,member", LOADERS)
+@pytest.mark.parametrize("flag,why", [(0x40, "strong encryption"), (0x01, "password")])
+def test_a_member_flagged_encrypted_is_refused_naming_the_file_and_array(tmp_path, load, what, member, flag, why):
+    """zipfile refuses such a member with NotImplementedError or RuntimeError, which were internal errors."""
+    path = tmp_path / "flagged.npz"
+    path.write_bytes(_flagged(flag, member))
+    with pytest.raises(InputError, match=why) as caught:
+        load(path)
+    assert "flagged.npz" in str(caught.value) and member in str(caught.value)
+
+
+@pytest.mark.parametrize("load,what,member", LOADERS)
+def test_a_damaged_npz_is_refused_and_closed(tmp_path, load, what, member):
+    """A zip whose central directory is cut off: numpy opened the file, failed and left it open (a
+    ResourceWarning when collected)."""
+    path = tmp_path / "cut.npz"
+    path.write_bytes(_flagged(0)[:-30])
+    with warnings.catch_warnings(record=True) as caught_warnings:
+        warnings.simplefilter("always")
+        with pytest.raises(InputError, match=f"not a {what} .npz") as caught:
+            load(path)
+        gc.collect()
+    assert "cut.npz" in str(caught.value)
+    assert not [w for w in caught_warnings if issubclass(w.category, ResourceWarning)]
