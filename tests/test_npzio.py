@@ -13,11 +13,18 @@ import pytest
 from livebridge.arkit.shapes import load_arkit_shapes
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
+from livebridge.face.basis_import import import_basis
 from livebridge.markerless.model import MarkerlessModel
 from livebridge.take.npz import Take
 
+
+def _import_archive(path):
+    return import_basis("choe-ko-ict", path)
+
+
 LOADERS = [(Basis.load, "livebridge basis", "manifest"), (Take.load, "livebridge take", "manifest"),
-           (MarkerlessModel.load, "markerless model", "manifest"), (load_arkit_shapes, "named shapes", "names")]
+           (MarkerlessModel.load, "markerless model", "manifest"), (load_arkit_shapes, "named shapes", "names"),
+           (_import_archive, "shape archive", "names")]
 """Each reader, what it says a bad file is not, and an array it reads."""
 
 
@@ -60,3 +67,18 @@ def test_a_damaged_npz_is_refused_and_closed(tmp_path, load, what, member):
         gc.collect()
     assert "cut.npz" in str(caught.value)
     assert not [w for w in caught_warnings if issubclass(w.category, ResourceWarning)]
+
+
+@pytest.mark.parametrize("change,words", [
+    (lambda arrays: {**arrays, "deltas": np.array(["x", "y"])}, ("deltas", "expected numbers")),
+    (lambda arrays: {k: v for k, v in arrays.items() if k != "neutral"}, ("neutral", "missing array")),
+])
+def test_a_shape_archive_with_text_or_a_missing_array_is_refused_naming_it(tmp_path, change, words):
+    """`basis import` from an archive of named deltas (ICT-FaceKit's face_region.npz layout): text where numbers
+    belong was converted inside the reader's catch-all, and is now named."""
+    arrays = {"names": np.array(["a"]), "deltas": np.zeros((1, 3, 3)), "neutral": np.zeros((3, 3)),
+              "triangles": np.array([[0, 1, 2]])}
+    np.savez(tmp_path / "shapes.npz", **change(arrays))
+    with pytest.raises(InputError) as caught:
+        _import_archive(tmp_path / "shapes.npz")
+    assert all(word in str(caught.value) for word in ("shapes.npz", *words)), str(caught.value)

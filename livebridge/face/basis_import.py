@@ -35,6 +35,7 @@ import numpy as np
 from livebridge.errors import InputError
 from livebridge.face.basis import CHOE_KO_BY_NAME, Basis, Muscle
 from livebridge.face.meshio import read_obj
+from livebridge.npzio import read_npz
 from livebridge.tomlio import load_toml, require
 
 UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
@@ -160,22 +161,28 @@ class _ArchiveShapes:
     """Shapes from an ``.npz`` holding ``names``, ``deltas``, ``neutral`` and ``triangles``."""
 
     def __init__(self, archive: Path):
-        try:
-            with np.load(archive, allow_pickle=False) as data:
-                self.names = [str(n) for n in data["names"]]
-                self.deltas = data["deltas"].astype(np.float64)
-                self.neutral = data["neutral"].astype(np.float64)
-                self.triangles = data["triangles"].astype(np.int64)
-        except KeyError as error:
-            raise InputError(f"missing array {error}", archive) from None
-        except (OSError, ValueError) as error:
-            raise InputError(f"not a readable .npz ({error})", archive) from None
+        keys = ("names", "deltas", "neutral", "triangles")
+        arrays = read_npz(archive, "shape archive", keys)
+        missing = [key for key in keys if key not in arrays]
+        if missing:
+            raise InputError(f"missing array {missing[0]!r}", archive, missing[0])
+        self.names = [str(n) for n in np.atleast_1d(arrays["names"])]
+        self.deltas, self.neutral, self.triangles = (_numbers(arrays, key, dtype, archive) for key, dtype in
+                                                     (("deltas", np.float64), ("neutral", np.float64),
+                                                      ("triangles", np.int64)))
         self.archive = archive
 
     def delta(self, name: str) -> np.ndarray:
         if name not in self.names:
             raise InputError(f"shape {name!r} not in the archive", self.archive)
         return self.deltas[self.names.index(name)]
+
+
+def _numbers(arrays: dict[str, np.ndarray], key: str, dtype, archive: Path) -> np.ndarray:
+    """``arrays[key]`` as ``dtype``; an array of text or other things raises InputError naming it."""
+    if arrays[key].dtype.kind not in "biuf":
+        raise InputError(f"expected numbers, got dtype {arrays[key].dtype}", archive, key)
+    return arrays[key].astype(dtype)
 
 
 def _shape_source(shapes: Path, manifest: dict, manifest_path: Path):
