@@ -798,6 +798,9 @@ MARKERLESS_MODEL_CASES = _common_cases() + (
     Case("manifest not JSON", _markerless_npz(manifest=np.array("{")), ("manifest", "not JSON")),
     Case("another format", _markerless_npz(manifest=np.array('{"format": "livebridge-basis"}')),
          ("manifest.format", "livebridge-markerless")),
+    Case("no regions", _markerless_npz(manifest=np.array(json.dumps(
+        {"format": "livebridge-markerless", "version": 1, "muscle_names": ["jaw"], "regions": [], "gestures": [],
+         "normalisation": {}, "method": "ica"}))), ("manifest.regions", "no regions")),
 )
 GESTURE_LIST_CASES = _toml_cases() + (
     Case("no gestures", _text("x = 1\n"), ("gesture", "[[gesture]]")),

@@ -156,6 +156,14 @@ def test_regions_reporting_one_muscle_combine_by_their_weighted_median():
     assert abs(values[1] - 0.9) < 1e-9 and values[0] == 0.0 and not held.any()
 
 
+def test_no_region_reading_a_muscle_gives_it_zero_not_an_error():
+    """The weighted median over no regions at all (a model whose regions list was emptied loaded, then
+    indexed an empty cumulative sum): every muscle 0, as for a muscle no region weighs."""
+    from livebridge.markerless.analysis import _weighted_median
+
+    np.testing.assert_array_equal(_weighted_median(np.zeros((0, 3)), np.zeros((0, 3))), np.zeros(3))
+
+
 def test_analyser_holds_lost_and_unrecognised_frames_and_stays_finite():
     region, neutral, directions = _toy_region()
     analyser = Analyser(_toy_model(region), min_confidence=0.3)

@@ -234,6 +234,9 @@ class _Reader:
                           ("normalisation", dict), ("method", str)):
             if not isinstance(manifest.get(key), kind):
                 raise InputError(f"expected {kind.__name__}", self.path, f"manifest.{key}")
+        if not manifest["regions"]:
+            raise InputError("no regions: a model without them reads nothing from a face", self.path,
+                             "manifest.regions")
         return manifest
 
     def array(self, key: str, shape: tuple | None) -> np.ndarray:
