@@ -19,11 +19,12 @@ zipfile refuses a member flagged as strongly encrypted (NotImplementedError) or 
 
 
 def read_npz(path: str | Path, what: str, keys: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
-    """The arrays of the ``.npz`` at ``path`` (those of ``keys`` that it has, default all), read into memory.
+    """The arrays ``keys`` of the ``.npz`` at ``path`` (default: all it has), read into memory.
 
-    A missing, unreadable, foreign or damaged file raises :class:`InputError` naming the file (and the array
-    that cannot be read), and saying it is not a ``what`` (``"livebridge take"``). numpy leaves the file open
-    when its zip is damaged; it is opened here and closed whatever happens.
+    A missing, unreadable, foreign or damaged file, or one without an array of ``keys``, raises
+    :class:`InputError` naming the file (and the array missing or unreadable), and saying it is not a ``what``
+    (``"livebridge take"``). numpy leaves the file open when its zip is damaged; it is opened here and closed
+    whatever happens.
     """
     path = Path(path)
     if path.is_dir():
@@ -49,4 +50,7 @@ def read_npz(path: str | Path, what: str, keys: tuple[str, ...] | None = None) -
                 except NPZ_ERRORS as error:  # a damaged member, or an object array (pickles are never loaded)
                     raise InputError(f"cannot read the array: damaged or not plain numbers ({error!s:.60})", path,
                                      key) from None
+    missing = [key for key in keys or () if key not in arrays]
+    if missing:
+        raise InputError(f"missing array {missing[0]!r}", path, missing[0])
     return arrays

@@ -177,7 +177,7 @@ class Basis:
     def load(cls, path: str | Path) -> Basis:
         """Read a basis written by :meth:`save`; anything wrong raises :class:`InputError` naming the field."""
         path = Path(path)
-        arrays = _read_npz(path, ("manifest", "neutral", "triangles", "elements"))
+        arrays = read_npz(path, "livebridge basis", ("manifest", "neutral", "triangles", "elements"))
         muscles = _read_manifest(arrays["manifest"], path)
         for key, kinds, what in (("neutral", "fiu", "numbers"), ("elements", "fiu", "numbers"),
                                  ("triangles", "iu", "whole numbers")):
@@ -187,15 +187,6 @@ class Basis:
             return cls(arrays["neutral"], arrays["triangles"], arrays["elements"], muscles)
         except InputError as error:
             raise InputError(error.message, path, error.field) from None
-
-
-def _read_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """The arrays ``keys`` of a ``.npz`` file; an unreadable, damaged or incomplete file raises InputError."""
-    arrays = read_npz(path, "livebridge basis", keys)
-    missing = [key for key in keys if key not in arrays]
-    if missing:
-        raise InputError(f"missing array {missing[0]!r}", path, missing[0])
-    return arrays
 
 
 def _read_manifest(array: np.ndarray, path: Path) -> tuple[Muscle, ...]:

@@ -161,11 +161,7 @@ class _ArchiveShapes:
     """Shapes from an ``.npz`` holding ``names``, ``deltas``, ``neutral`` and ``triangles``."""
 
     def __init__(self, archive: Path):
-        keys = ("names", "deltas", "neutral", "triangles")
-        arrays = read_npz(archive, "shape archive", keys)
-        missing = [key for key in keys if key not in arrays]
-        if missing:
-            raise InputError(f"missing array {missing[0]!r}", archive, missing[0])
+        arrays = read_npz(archive, "shape archive", ("names", "deltas", "neutral", "triangles"))
         self.names = [str(n) for n in np.atleast_1d(arrays["names"])]
         self.deltas, self.neutral, self.triangles = (_numbers(arrays, key, dtype, archive) for key, dtype in
                                                      (("deltas", np.float64), ("neutral", np.float64),

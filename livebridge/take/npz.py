@@ -115,10 +115,6 @@ _MANIFEST_KEYS = {"format", "version", "marker_names", "muscle_names", "fps"}
 
 def _read_arrays(path: Path) -> dict[str, np.ndarray]:
     """Every array of the ``.npz`` at ``path`` (no pickles); a missing, truncated or foreign file raises."""
-    if path.is_dir():
-        raise InputError("is a directory, not a take file (.npz)", path)
-    if not path.is_file():
-        raise InputError("take file not found", path)
     arrays = read_npz(path, "livebridge take")
     missing = [name for name in ("manifest", "t") if name not in arrays]
     if missing:
