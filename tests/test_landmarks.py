@@ -269,6 +269,19 @@ def test_place_refuses_a_vertex_in_zero_area_triangles_only(tmp_path, face):
     assert_cli_refused(result, "ids.toml", "chin", f"vertex {n + 1}", "no area")
 
 
+def test_place_refuses_a_vertex_in_slivers_only_as_the_transfers_would(tmp_path, face):
+    """A triangle of 1e-13 the median area (its sides 1e-6 mm, the OBJ's last digit) is no surface to the
+    transfers (``surface_triangles``): placing a landmark on a vertex in such triangles only is refused at once,
+    not by every transfer later."""
+    vertices = np.vstack([face.neutral, [[0.0, 0.0, 0.0], [1e-6, 0.0, 0.0], [0.0, 1e-6, 0.0]]])
+    n = len(face.neutral)
+    save_obj(tmp_path / "tiny.obj", vertices, np.vstack([face.triangles, [[n, n + 1, n + 2]]]))
+    (tmp_path / "ids.toml").write_text(f"chin = {n + 1}\n")
+    result = CliRunner().invoke(main, ["landmarks", "place", str(tmp_path / "tiny.obj"), "--vertices",
+                                       str(tmp_path / "ids.toml"), "--out", str(tmp_path / "lm.toml")])
+    assert_cli_refused(result, "ids.toml", "chin", f"vertex {n + 1}", "no area")
+
+
 def test_place_at_points_passes_over_slivers_onto_the_surface(tmp_path, face):
     """A face written with a repeated corner and a zero-area triangle along a real edge, both through the landmark
     (as exporters and scanners leave them): the landmark lands on a triangle with area, where it was, and the

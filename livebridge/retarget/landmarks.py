@@ -316,11 +316,14 @@ def place_at_vertices(vertex_ids: dict[str, int], n_vertices: int, triangles: np
     source : str or Path, optional
         The file the ids came from, named in errors.
     vertices : ndarray, shape (n_vertices, 3), optional
-        When given, each landmark takes the largest of its vertex's triangles: a zero-area triangle there (a
-        scanner's or an exporter's sliver) is no surface, and a landmark on it is refused by every transfer.
+        When given, each landmark takes the largest of its vertex's triangles: a sliver there (a scanner's or an
+        exporter's, :func:`surface_triangles` says which) is no surface, and a landmark on it is refused by every
+        transfer.
     """
     triangles = np.asarray(triangles, dtype=np.int64)
-    areas = None if vertices is None else triangle_areas(vertices, triangles)
+    areas = None
+    if vertices is not None:
+        areas = np.where(surface_triangles(vertices, triangles), triangle_areas(vertices, triangles), -1.0)
     chosen, bary = [], []
     for name, vertex in vertex_ids.items():
         rows, corners = np.nonzero(triangles == vertex)
@@ -331,8 +334,9 @@ def place_at_vertices(vertex_ids: dict[str, int], n_vertices: int, triangles: np
         if areas is not None:
             best = int(np.argmax(areas[rows]))
             if not areas[rows[best]] > 0:
-                raise InputError(f"vertex {vertex} is only in triangles with no area (their corners coincide or lie "
-                                 "on a line): no surface there", source, name)
+                raise InputError(f"vertex {vertex} is only in triangles with no area, or too little to be surface "
+                                 "(their corners coincide or lie on a line, or all but): no surface there", source,
+                                 name)
         chosen.append(int(rows[best]))
         bary.append(np.eye(3)[corners[best]])
     names = tuple(vertex_ids)
