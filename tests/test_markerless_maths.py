@@ -260,6 +260,44 @@ def test_a_saturating_activity_s_gesture_peaks_where_the_broader_activity_does()
         assert (g.start, g.end) == (e.start, e.end)
 
 
+def _motion(truth: np.ndarray, noise: float, seed: int) -> np.ndarray:
+    """A motion curve of ``truth``: its central difference's size plus noise, NaN at the ends."""
+    motion = np.full(len(truth), np.nan)
+    motion[1:-1] = np.abs(truth[2:] - truth[:-2])
+    return motion + noise * np.abs(np.random.default_rng(seed).normal(size=len(truth)))
+
+
+def test_a_gesture_whose_activities_both_saturate_peaks_where_the_face_stops_moving():
+    """15 fps, both activities within 3 % of their tops two frames before the maximum (an opening jaw's
+    broader activity, 0.92 of its opening): the motion between frames places the peak."""
+    truth, _, block = _raised_cosine_take(fps=15)
+    strength = np.array([truth[k * block:(k + 1) * block].max() for k in range(5)]).repeat(block)
+    rng = np.random.default_rng(8)
+    noisy = [np.minimum(truth, c * strength) + 0.002 * np.abs(rng.normal(size=len(truth))) for c in (0.8, 0.92)]
+    without = find_gestures(noisy[0], breadth=noisy[1])
+    found = find_gestures(noisy[0], breadth=noisy[1], motion=_motion(truth, 0.003, 9))
+    assert len(without) == len(found) == 5
+    for k, (w, g) in enumerate(zip(without, found)):
+        peak = k * block + int(np.argmax(truth[k * block:(k + 1) * block]))
+        assert w.peak <= peak - 2  # the activities alone end it early
+        assert abs(g.peak - peak) <= 1 and truth[g.peak] >= 0.95 * truth[peak]
+        assert (g.start, g.end) == (w.start, w.end)
+
+
+def test_a_held_expression_peaks_at_the_hold_s_first_frames():
+    """A hold at full actuation: the peak is where the face stopped, not any of the still frames after it."""
+    rise = 0.5 - 0.5 * np.cos(np.pi * np.linspace(0, 1, 20))
+    gesture = np.concatenate([np.zeros(20), rise, np.ones(40), rise[::-1], np.zeros(20)])
+    truth = np.tile(gesture, 3)
+    rng = np.random.default_rng(3)
+    activity = truth + 0.005 * np.abs(rng.normal(size=len(truth)))
+    found = find_gestures(activity, motion=_motion(truth, 0.01, 4))
+    assert len(found) == 3
+    for k, g in enumerate(found):
+        hold = k * len(gesture) + 39  # the rise's last frame, at full actuation
+        assert hold - 1 <= g.peak <= hold + 2, (g.peak, hold)
+
+
 def test_gestures_with_lost_frames_and_none_at_all():
     _, activity, block = _raised_cosine_take(n_gestures=3)
     activity = activity.copy()

@@ -7,7 +7,10 @@ non-neutral frame to the first frame of maximum actuation, where the activity fi
 tolerance of the run's peak. An activity that finds weak gestures (the few most changed pixels) saturates
 before a large one is full (an opening jaw's strongest changes stop growing at 0.8 of its opening), so the
 peak may be read from a second, broader activity too: the first frame where both have come within the
-tolerance of their maxima.
+tolerance of their maxima. Even the broader one is within that tolerance two frames (15 fps) before an opening
+jaw's maximum, at 0.92 of its opening; so where the frame-to-frame *motion* is known too, the peak is the first
+frame of those near the top where the face has stopped moving: its motion within a few of the motion's noise
+deviations of the take's still frames (a held expression: the hold's first frames; a sweep: its turning point).
 """
 
 from __future__ import annotations
@@ -54,7 +57,12 @@ class GestureConfig:
     noise_k : float
         A frame is non-neutral once its activity exceeds the floor by this many noise deviations.
     peak_tolerance : float
-        The peak frame is the first within this fraction (of the run's rise) of the run's maximum.
+        The peak frame is the first within this fraction (of the run's rise) of the run's maximum (and, with a
+        motion curve, the first of those frames that is still).
+    still_k : float
+        With a motion curve, a frame near the top is still when its motion exceeds that of the take's still
+        frames (the motion's floor, :func:`neutral_floor`; or the least near the top, if more) by at most this
+        many of the motion's noise deviations.
     min_frames : int
         Shorter runs are noise, not gestures.
     smooth : int
@@ -64,6 +72,7 @@ class GestureConfig:
     detect_k: float = 6.0
     noise_k: float = 3.0
     peak_tolerance: float = 0.03
+    still_k: float = 3.0
     min_frames: int = 4
     smooth: int = 3
 
@@ -80,7 +89,7 @@ def neutral_floor(activity: np.ndarray) -> tuple[float, float]:
 
 
 def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig(),
-                  breadth: np.ndarray | None = None) -> list[Gesture]:
+                  breadth: np.ndarray | None = None, motion: np.ndarray | None = None) -> list[Gesture]:
     """Bounded gestures in an activity curve.
 
     Parameters
@@ -92,6 +101,10 @@ def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig(),
     breadth : ndarray, shape (n_frames,), optional
         A broader activity that keeps growing where ``activity`` saturates: a gesture's peak is not before
         its first frame within the tolerance of its maximum over the gesture.
+    motion : ndarray, shape (n_frames,), optional
+        How much each frame differs from its neighbours (NaN: not known), e.g.
+        :func:`~livebridge.markerless.train.motion_curve`: the peak is the first frame near the top that is
+        still (see ``GestureConfig.still_k``).
 
     Returns
     -------
@@ -109,6 +122,10 @@ def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig(),
     if breadth is not None:
         broad = _smoothed(_filled(breadth, seen), config.smooth)
         broad_floor, _ = neutral_floor(broad[seen])
+    if motion is not None:
+        motion = np.asarray(motion, dtype=np.float64)
+        known = np.isfinite(motion)
+        motion_floor, motion_spread = neutral_floor(motion[known]) if known.sum() >= 4 else (np.inf, 0.0)
     active = (filled > floor + config.detect_k * spread) & seen
     moving = (filled > floor + config.noise_k * spread) & seen
     gestures = []
@@ -123,8 +140,12 @@ def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig(),
         if end - start + 1 < config.min_frames:
             continue
         peak = _first_near_top(filled[start:end + 1], floor, config.peak_tolerance)
+        near = _near_top(filled[start:end + 1], floor, config.peak_tolerance)
         if broad is not None:
             peak = max(peak, _first_near_top(broad[start:end + 1], broad_floor, config.peak_tolerance))
+            near &= _near_top(broad[start:end + 1], broad_floor, config.peak_tolerance)
+        if motion is not None:
+            peak = _first_still(motion[start:end + 1], near, peak, motion_floor, config.still_k * motion_spread)
         gestures.append(Gesture(int(start), int(start + peak), int(end)))
     return gestures
 
@@ -141,10 +162,30 @@ def _smoothed(curve: np.ndarray, width: int) -> np.ndarray:
     return median_filter(curve, size=width, mode="nearest") if width > 1 else curve
 
 
+def _near_top(values: np.ndarray, floor: float, tolerance: float) -> np.ndarray:
+    """Mask (n,) of ``values`` (n,) within ``tolerance`` of their rise above ``floor`` of their maximum."""
+    top = values.max()
+    return values >= top - tolerance * (top - floor)
+
+
 def _first_near_top(values: np.ndarray, floor: float, tolerance: float) -> int:
     """Index of the first of ``values`` (n,) within ``tolerance`` of their rise above ``floor`` of their maximum."""
-    top = values.max()
-    return int(np.argmax(values >= top - tolerance * (top - floor)))
+    return int(np.argmax(_near_top(values, floor, tolerance)))
+
+
+def _first_still(motion: np.ndarray, near: np.ndarray, peak: int, floor: float, margin: float) -> int:
+    """The first index from ``peak`` on, in the run of ``near`` (n,) bool that holds it, whose ``motion`` (n,) is
+    within ``margin`` of ``floor`` (a still frame's motion) or of the least motion there, whichever is more;
+    ``peak`` when no motion is known there."""
+    last = peak
+    while last + 1 < len(near) and near[last + 1]:
+        last += 1
+    window = motion[peak:last + 1]
+    known = np.isfinite(window)
+    if not known.any():
+        return peak
+    still = known & (window <= max(floor, window[known].min()) + margin)
+    return peak + int(np.argmax(still))
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

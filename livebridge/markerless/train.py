@@ -5,7 +5,8 @@ entry is a basis muscle (an isolated gesture) or a combination of muscles at giv
 the paper's answer to co-articulation). Training:
 
 1. normalises every frame (pose warp, crop); the canonical pose is the first frame's;
-2. finds the bounded gestures from each frame's distance to neutral (:mod:`gestures`), one per list entry;
+2. finds the bounded gestures from each frame's distance to neutral and, for where each ends, how much
+   the face still moves there (:mod:`gestures`), one per list entry;
 3. takes each gesture's region of influence from its peak frame (:mod:`regions`) and builds the CRs from
    the isolated gestures' ROIs; a pseudo-muscle joins every CR holding two or more of its muscles;
 4. measures each bounded gesture frame's actuation level as the dense optical flow from neutral projected
@@ -156,6 +157,26 @@ def activity_curve(frames: np.ndarray, lost: np.ndarray, tops: tuple = (ACTIVITY
     return activity
 
 
+def motion_curve(frames: np.ndarray, lost: np.ndarray, top: float = BREADTH_TOP) -> np.ndarray:
+    """Motion (n,): per frame, the mean of the largest ``top`` of the blurred differences between the frames
+    before and after it (NaN at the take's ends and next to a lost frame). At a gesture's turning point or in
+    a hold it falls to the frames' noise, where the activity's distance from neutral may have stopped growing
+    frames earlier (see :mod:`~livebridge.markerless.gestures`)."""
+    count = max(1, int(top * frames[0].size))
+    motion = np.full(len(frames), np.nan)
+    blurred = {}
+    for t in range(1, len(frames) - 1):
+        if lost[t - 1] or lost[t + 1]:
+            continue
+        for i in (t - 1, t + 1):
+            if i not in blurred:
+                blurred[i] = cv2.GaussianBlur(frames[i].astype(np.float32), (0, 0), ACTIVITY_SIGMA)
+        change = np.abs(blurred[t + 1] - blurred[t - 1]).ravel()
+        motion[t] = np.partition(change, change.size - count)[-count:].mean()
+        blurred.pop(t - 2, None)
+    return motion
+
+
 def _neutral_frames(n_frames: int, gestures: list[Gesture], lost: np.ndarray) -> np.ndarray:
     neutral = ~lost.copy()
     for g in gestures:
@@ -229,7 +250,7 @@ def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[G
     norm, frames, lost = canonical_frames(images, norm, face_mesh)
     activities = activity_curve(frames, lost)
     activity = activities[:, 0]
-    gestures = find_gestures(activity, config.gestures, breadth=activities[:, 1])
+    gestures = find_gestures(activity, config.gestures, breadth=activities[:, 1], motion=motion_curve(frames, lost))
     if len(gestures) != len(prompts):
         raise InputError(f"found {len(gestures)} gestures in the take, the gesture list has {len(prompts)} "
                          "(each gesture must start and end at neutral)")
