@@ -44,9 +44,10 @@ from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.geometry.transforms import look_at
 from livebridge.simulators import raster, skin
+from livebridge.simulators.drawing import NoiseTiles, render_discs
 from livebridge.simulators.head_rig import LED_DIAMETER_MM, HeadRig, default_head_rig, frame_polyline, load_head_rig
 from livebridge.simulators.performer import FACE_SCRIPTS, HeadMotion, contraction_script, head_pivot
-from livebridge.simulators.rig import _NoiseTiles, check_range, render_discs
+from livebridge.simulators.rig import check_range
 
 HEAD_RIGS = ("leds", "none")
 SIZE_RANGE = ((32, 4096), (32, 4096))
@@ -253,7 +254,7 @@ class FaceVideo:
         self._counts = np.zeros(n_vertices)
         self._gbuffer = raster.GBuffer(config.size, len(self._triangles))
         self._shaded = np.zeros((config.height, config.width), dtype=np.float32)
-        self._noise = _NoiseTiles(config.size, config.noise, config.seed) if config.noise > 0 else None
+        self._noise = NoiseTiles(config.size, config.noise, config.seed) if config.noise > 0 else None
         self.script = contraction_script(basis.names, config.script, config.seed)
         self._head = (HeadMotion(head_pivot(basis), config.seed, HEAD_SHIFT_MM_PER_DEG * config.head_turn_deg,
                                  config.head_turn_deg) if config.head_turn_deg > 0 else None)

@@ -15,7 +15,8 @@ from livebridge.devices.registry import open_camera, open_cameras
 from livebridge.errors import InputError
 from livebridge.geometry.transforms import apply
 from livebridge.geometry.visibility import depth_cell_mm
-from livebridge.simulators.rig import RigConfig, SimRig, generate_cameras, generate_markers, render_discs
+from livebridge.simulators.drawing import render_discs
+from livebridge.simulators.rig import RigConfig, SimRig, generate_cameras, generate_markers
 
 
 @pytest.fixture(scope="module")
