@@ -15,7 +15,7 @@ def open_url(url: DeviceURL) -> list:
 
         return open_face(url)
     if url.netloc == "rig":
-        from livebridge.simulators.rig import open_url as open_rig
+        from livebridge.simulators.rig_url import open_url as open_rig
 
         return open_rig(url)
     raise InputError(f"unknown simulator {url.netloc!r}; known: {', '.join(SIMULATORS)}", url.url)

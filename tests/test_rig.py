@@ -471,7 +471,7 @@ def test_occlusion_rate_is_validated(rate):
 
 
 def test_sim_url_takes_the_occlusion_rate():
-    from livebridge.simulators.rig import rig_from_url
+    from livebridge.simulators.rig_url import rig_from_url
 
     assert rig_from_url("sim://rig?cameras=1&size=64x40&occlusion_rate=0.25").config.occlusion_rate == 0.25
     with pytest.raises(InputError, match="occlusion_rate") as error:
@@ -498,12 +498,12 @@ _BAD_RIG_URLS = [  # (query, the parameter the error names, a piece of the range
 
 @pytest.mark.parametrize("query, field, allowed", _BAD_RIG_URLS)
 def test_sim_url_values_are_bounded_before_anything_is_built(monkeypatch, query, field, allowed):
-    import livebridge.simulators.rig as rig
+    import livebridge.simulators.rig_url as rig_url
 
     def built(*args, **kwargs):
         raise AssertionError("the rig was built before its URL was checked")
 
-    monkeypatch.setattr(rig, "default_face", built)
+    monkeypatch.setattr(rig_url, "default_face", built)
     with pytest.raises(InputError) as error:
         open_cameras(f"sim://rig?{query}&realtime=0")
     assert error.value.field == field and allowed in error.value.message and field in error.value.message

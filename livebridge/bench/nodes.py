@@ -84,7 +84,7 @@ class _NodeProcess:
 def _detection_latencies(source, rig_url: str, camera, seconds: float) -> np.ndarray:
     """Seconds from each frame's end of exposure to its detection, read through ``DetectingSource``."""
     from livebridge.reconstruct.detect import DetectingSource
-    from livebridge.simulators.rig import rig_from_url
+    from livebridge.simulators.rig_url import rig_from_url
 
     rig = rig_from_url(rig_url)
     t0 = float(rig_url.rpartition("t0=")[2].split("&")[0])
@@ -190,7 +190,7 @@ def _framesets_over_nodes(rig: str, seconds: float, prerendered: bool) -> dict:
 def _render_detect_ms(url: str) -> float:
     """Milliseconds of CPU to render one simulated camera frame and detect its markers (median of 20)."""
     from livebridge.reconstruct.detect import detect_blobs
-    from livebridge.simulators.rig import rig_from_url
+    from livebridge.simulators.rig_url import rig_from_url
 
     rig = rig_from_url(url.partition("&t0=")[0])
     rig.start()
@@ -238,7 +238,7 @@ class PrerenderedSource(SourceBase):
 
     def __init__(self, url: str, n_frames: int = PRERENDERED_FRAMES):
         from livebridge.devices.url import DeviceURL
-        from livebridge.simulators.rig import rig_from_url
+        from livebridge.simulators.rig_url import rig_from_url
 
         parsed = DeviceURL.parse(url)
         camera, self.t0 = int(parsed.query["camera"]), float(parsed.query["t0"])

@@ -230,7 +230,7 @@ def run_once(frames: int, rig_process: bool, log, split: tuple[set[int], set[int
     from livebridge.runtime.demo import build_demo
     from livebridge.runtime.markers_front import MarkerFront
     from livebridge.runtime.pipeline import Pipeline, run_until_stopped
-    from livebridge.simulators.rig import rig_from_url
+    from livebridge.simulators.rig_url import rig_from_url
 
     parts = build_demo(realtime=False, port=0, log=lambda message: None)
     rig, process = rig_from_url(parts.session.camera_urls[0]), None  # the demo's rig (a deterministic one)
