@@ -143,6 +143,8 @@ status_interval = 0.2
     result = CliRunner().invoke(main, ["run", str(session)])
     assert result.exit_code == 0, result.output
     assert "frame sets solved" in result.output and "latency" in result.output
+    # no render client, so no render latency: said so, not printed as "nan ms"
+    assert "render message sent: p50 none, p99 none" in result.output and "nan" not in result.output
     takes = list((tmp_path / "takes").iterdir())
     assert len(takes) == 1 and load_take_dir(takes[0]).n_frames >= 30
     assert (takes[0] / "session.toml").read_text() == session.read_text()

@@ -38,14 +38,16 @@ def _announce_outputs(pipeline) -> None:
 
 def _print_summary(summary, score=None, pipeline=None) -> None:
     """The end-of-run summary; ``score`` (a simulator's ground-truth score) describes its own line."""
+    from livebridge.runtime.pipeline import milliseconds
+
     if pipeline is not None and pipeline.front.kind == "livelink":
         _print_livelink_summary(summary, score, pipeline)
         return
     click.echo(f"frame sets solved: {summary.solved} ({summary.framesets} reconstructed), "
                f"{summary.fps:.1f} per second, {summary.drops} dropped")
-    click.echo(f"latency (frame set complete -> servo bytes written): p50 {summary.latency_p50_ms:.2f} ms, "
-               f"p99 {summary.latency_p99_ms:.2f} ms; render message sent: p50 "
-               f"{summary.render_latency_p50_ms:.2f} ms, p99 {summary.render_latency_p99_ms:.2f} ms")
+    click.echo(f"latency (frame set complete -> servo bytes written): p50 {milliseconds(summary.latency_p50_ms)}, "
+               f"p99 {milliseconds(summary.latency_p99_ms)}; render message sent: p50 "
+               f"{milliseconds(summary.render_latency_p50_ms)}, p99 {milliseconds(summary.render_latency_p99_ms)}")
     if summary.labelled_fraction == summary.labelled_fraction:  # a marker front (NaN elsewhere)
         click.echo(f"labelled markers {100 * summary.labelled_fraction:.2f}%, marker error upper "
                    f"{summary.error_upper_mm:.3f} mm, lower {summary.error_lower_mm:.3f} mm; "
@@ -63,14 +65,16 @@ def _print_summary(summary, score=None, pipeline=None) -> None:
 
 def _print_livelink_summary(summary, score, pipeline) -> None:
     """The summary of a Live Link Face run: packets instead of frame sets and markers."""
+    from livebridge.runtime.pipeline import milliseconds
+
     front = pipeline.front
     receiver = front.receiver
     click.echo(f"packets solved: {summary.solved}, {summary.fps:.1f} per second; superseded by a newer one "
                f"{receiver.superseded}")
     what = "servo bytes written" if pipeline.servo is not None else "solved"
-    click.echo(f"latency (packet arrival -> {what}): p50 {summary.latency_p50_ms:.2f} ms, p99 "
-               f"{summary.latency_p99_ms:.2f} ms; render message sent: p50 {summary.render_latency_p50_ms:.2f} ms, "
-               f"p99 {summary.render_latency_p99_ms:.2f} ms")
+    click.echo(f"latency (packet arrival -> {what}): p50 {milliseconds(summary.latency_p50_ms)}, p99 "
+               f"{milliseconds(summary.latency_p99_ms)}; render message sent: p50 "
+               f"{milliseconds(summary.render_latency_p50_ms)}, p99 {milliseconds(summary.render_latency_p99_ms)}")
     click.echo(f"phone: {receiver.received} datagrams, {receiver.lost} lost, refused {front.refused_text()}")
     if score is not None:
         click.echo(score.describe())

@@ -218,6 +218,11 @@ def _percentile(values, q) -> float:
     return float(np.percentile(values, q)) if values.size else math.nan
 
 
+def milliseconds(value: float) -> str:
+    """A latency for people: ``1.23 ms``, or ``none`` when nothing was timed (NaN: no render client, say)."""
+    return f"{value:.2f} ms" if math.isfinite(value) else "none"
+
+
 @dataclass
 class PipelineStats:
     """Counters and recent figures of a running pipeline (read by the status line and the summary)."""
@@ -495,7 +500,7 @@ class Pipeline:
             return waiting
         s = self.recent_summary()
         return (f"fps {s.fps:5.1f} | drops {s.drops} | latency servo p50 {s.latency_p50_ms:.2f} "
-                f"p99 {s.latency_p99_ms:.2f} ms, render p99 {s.render_latency_p99_ms:.2f} ms | "
+                f"p99 {milliseconds(s.latency_p99_ms)}, render p99 {milliseconds(s.render_latency_p99_ms)} | "
                 + self.front.status(s))
 
     def summary(self) -> PipelineSummary:
