@@ -259,25 +259,18 @@ def test_place_at_a_vertex_takes_a_triangle_with_area(tmp_path, face):
     assert np.allclose(placed.positions(face.neutral, triangles), face.neutral[vertex])
 
 
-def test_place_refuses_a_vertex_in_zero_area_triangles_only(tmp_path, face):
-    vertices = np.vstack([face.neutral, [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]])
+@pytest.mark.parametrize("corners", [
+    [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]],  # on a line: no area
+    [[0.0, 0.0, 0.0], [1e-6, 0.0, 0.0], [0.0, 1e-6, 0.0]],  # 1e-13 of the median area (the OBJ's last digit)
+], ids=["line", "sliver"])
+def test_place_refuses_a_vertex_in_triangles_without_surface_only(tmp_path, face, corners):
+    """Either is no surface to the transfers (``surface_triangles``): a landmark on a vertex in such triangles
+    only is refused at once, not by every transfer later."""
     n = len(face.neutral)
-    save_obj(tmp_path / "line.obj", vertices, np.vstack([face.triangles, [[n, n + 1, n + 2]]]))
+    triangles = np.vstack([face.triangles, [[n, n + 1, n + 2]]])
+    save_obj(tmp_path / "mesh.obj", np.vstack([face.neutral, corners]), triangles)
     (tmp_path / "ids.toml").write_text(f"chin = {n + 1}\n")
-    result = CliRunner().invoke(main, ["landmarks", "place", str(tmp_path / "line.obj"), "--vertices",
-                                       str(tmp_path / "ids.toml"), "--out", str(tmp_path / "lm.toml")])
-    assert_cli_refused(result, "ids.toml", "chin", f"vertex {n + 1}", "no area")
-
-
-def test_place_refuses_a_vertex_in_slivers_only_as_the_transfers_would(tmp_path, face):
-    """A triangle of 1e-13 the median area (its sides 1e-6 mm, the OBJ's last digit) is no surface to the
-    transfers (``surface_triangles``): placing a landmark on a vertex in such triangles only is refused at once,
-    not by every transfer later."""
-    vertices = np.vstack([face.neutral, [[0.0, 0.0, 0.0], [1e-6, 0.0, 0.0], [0.0, 1e-6, 0.0]]])
-    n = len(face.neutral)
-    save_obj(tmp_path / "tiny.obj", vertices, np.vstack([face.triangles, [[n, n + 1, n + 2]]]))
-    (tmp_path / "ids.toml").write_text(f"chin = {n + 1}\n")
-    result = CliRunner().invoke(main, ["landmarks", "place", str(tmp_path / "tiny.obj"), "--vertices",
+    result = CliRunner().invoke(main, ["landmarks", "place", str(tmp_path / "mesh.obj"), "--vertices",
                                        str(tmp_path / "ids.toml"), "--out", str(tmp_path / "lm.toml")])
     assert_cli_refused(result, "ids.toml", "chin", f"vertex {n + 1}", "no area")
 
