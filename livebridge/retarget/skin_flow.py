@@ -39,7 +39,13 @@ of 4, 6 or 12 mm 0.206 / 0.225, 0.212 / 0.218, 0.234 / 0.313 (6 mm, the only one
 corners and the lid's height change hold most of what is left. The true x-y motion in place of the flow's (the
 pipeline as it is since, heights read from the scans) gives 0.127 / 0.123: the true motion there changes by up to 1 mm
 per mm of skin (the inner corner, the margin), which any smoothing, and the 0.2-0.3 mm a resampled vertex lies off
-the skin, turn into tenths of a mm.
+the skin, turn into tenths of a mm. Taken unsmoothed (no monotone fit), and the closing eye's fill band left its
+own, the true x-y motion gives 0.106 / 0.107, most of what is left in the heights (0.67 / 0.75 of the 1.13 /
+1.15 hundredths of the element's squared motion that make it). Of that, 0.31 / 0.35 is 25 lid vertices per eye
+that move over 1 mm and land BEHIND the closed eye's scanned front surface (median 0.8-2 mm: folded under the
+lid, or into the inner corner's pocket), where no frontal scan sees them; without the 40 / 44 vertices that land
+over 0.5 mm behind it, 0.098 / 0.099. So the lids' 10 % would need both a tangential motion as exact as the truth
+and a model of the skin the closed lid hides.
 """
 
 from __future__ import annotations
