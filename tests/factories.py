@@ -38,7 +38,7 @@ def write_builtin_scans(folder, seed: int, stems: dict[str, str], basis=None, co
     from livebridge.bench.scans import synthetic_scans
     from livebridge.face.builtin import builtin_basis
     from livebridge.retarget.landmarks import load_landmark_set
-    from livebridge.retarget.scan import write_ply
+    from livebridge.retarget.ply_file import write_ply
 
     muscles = tuple(name for name in stems if name != "neutral")
     neutral, expressions = synthetic_scans(basis or builtin_basis(), load_landmark_set(landmarks),

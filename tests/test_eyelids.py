@@ -111,7 +111,7 @@ def test_retarget_scans_takes_lid_landmarks_beside_the_22(tmp_path, ict):
     from livebridge.face.basis import Basis
     from livebridge.retarget.eyelids import LID_LANDMARK_NAMES
     from livebridge.retarget.landmarks import load_landmark_set
-    from livebridge.retarget.scan import write_ply
+    from livebridge.retarget.ply_file import write_ply
 
     lids = list(LID_LANDMARK_NAMES)
     landmarks = with_landmarks(load_landmark_set("ict-22"), load_landmark_set("ict-68"), lids)

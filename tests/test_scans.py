@@ -15,7 +15,8 @@ from livebridge.errors import InputError
 from livebridge.geometry.transforms import apply
 from livebridge.retarget.grid import crop_sphere, resample, square_axes
 from livebridge.retarget.normalise import NORMALISATION_LANDMARKS, normalisation, register_rigid
-from livebridge.retarget.scan import read_scan, write_ply
+from livebridge.retarget.ply_file import write_ply
+from livebridge.retarget.scan import read_scan
 
 
 # ------------------------------------------------------------------------------------------------ reading
@@ -1361,7 +1362,8 @@ def test_retarget_scans_in_other_units_are_refused_naming_the_landmarks_and_unit
     error asked about the nose tip and the crop radius; now the size of the neutral's landmarks against the
     reference face's says which unit, before any work, and with ``--units`` the same files build."""
     from livebridge.cli import main
-    from livebridge.retarget.scan import read_scan, write_ply
+    from livebridge.retarget.ply_file import write_ply
+    from livebridge.retarget.scan import read_scan
 
     write_builtin_scans(tmp_path, 6, {"neutral": "mm", "jaw": "jaw_mm"})
     for stem in ("mm", "jaw_mm"):
@@ -1435,7 +1437,8 @@ def test_scans_of_one_colour_everywhere_are_built_from_their_shape_and_say_so(tm
     the build is the shape-only one, and the CLI says there is no colour."""
     from livebridge.cli import main
     from livebridge.face.basis import Basis
-    from livebridge.retarget.scan import read_scan, write_ply
+    from livebridge.retarget.ply_file import write_ply
+    from livebridge.retarget.scan import read_scan
 
     write_builtin_scans(tmp_path, 6, {"neutral": "neutral", "jaw": "jaw"})
     for stem in ("neutral", "jaw"):

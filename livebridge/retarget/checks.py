@@ -151,3 +151,14 @@ def check_landmarks_on(landmarks: LandmarkSet, vertices: np.ndarray, triangles: 
                          f"than two triangles (the first between vertices {int(bad[0][0])} and {int(bad[0][1])}, "
                          f"{np.linalg.norm(positions - middle, axis=1).min():.1f} mm from this landmark); "
                          "repair the mesh (e.g. split the fan) and place the landmarks again", source, nearest)
+
+
+def check_faces(triangles: np.ndarray, n_points: int, path) -> None:
+    """A mesh file's triangles (m, 3) index its ``n_points`` vertices: else an error naming ``path`` and the first
+    vertex index that does not exist."""
+    if not len(triangles):
+        return
+    bad = np.flatnonzero((triangles < 0).any(axis=1) | (triangles >= n_points).any(axis=1))
+    if len(bad):
+        raise InputError(f"a face refers to vertex {int(triangles[bad[0]].max())}, which does not exist "
+                         f"(vertices 0..{n_points - 1}; {len(bad)} such triangles)", path, "face")
