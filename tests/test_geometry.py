@@ -96,8 +96,9 @@ def test_behind_surface_matches_the_numpy_depth_splat(ict, rng):
 
 def test_the_rig_and_the_layout_designer_see_the_same_markers(ict):
     """At the neutral pose a simulated camera draws exactly the markers the layout designer counts as seen."""
-    from livebridge.face.layout import RigVisibility, design_markers
+    from livebridge.face.layout import design_markers
     from livebridge.face.meshio import triangle_normals
+    from livebridge.face.rig_visibility import RigVisibility
     from livebridge.simulators.performer import Performer
     from livebridge.simulators.rig import RigConfig, SimRig, generate_cameras
 

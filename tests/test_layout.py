@@ -9,18 +9,17 @@ from livebridge.cli import main
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis, Muscle
 from livebridge.face.layout import (
-    RigVisibility,
     condition_number,
     default_spacing,
     design_markers,
     face_candidates,
-    facing_pose,
     farthest_point_markers,
     layout_report,
     region_boundary,
 )
 from livebridge.face.markers import MarkerSet
 from livebridge.face.meshio import triangle_normals
+from livebridge.face.rig_visibility import RigVisibility, facing_pose
 from livebridge.geometry.transforms import look_at
 
 

@@ -43,7 +43,8 @@ def face_and_markers(count: int = 64, n_head: int = 5):
     neutral pose, with the layout's margin for head motion), as a face-capture rig's layout is.
     """
     from livebridge.bench.data import ict_basis
-    from livebridge.face.layout import RigVisibility, design_markers
+    from livebridge.face.layout import design_markers
+    from livebridge.face.rig_visibility import RigVisibility
 
     basis = ict_basis()
     if basis is None:

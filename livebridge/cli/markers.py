@@ -8,7 +8,7 @@ import click
 import numpy as np
 
 from livebridge.cli._options import FiniteFloat, InputPath, OutputFile, force_option, parse_correspond
-from livebridge.face.layout import MAX_VIEW_DEG, VIEW_MARGIN_DEG
+from livebridge.face.rig_visibility import MAX_VIEW_DEG, VIEW_MARGIN_DEG
 
 BASIS_HELP = "Basis file (.npz, from `livebridge basis import`) or 'builtin' (the procedural face)."
 BASIS_TYPE = InputPath(builtins=("builtin",))
@@ -73,7 +73,7 @@ def rig_options(command):
 
 
 def load_rig(calibration: Path | None, min_views: int, max_view_deg: float, view_margin: float):
-    """The :class:`~livebridge.face.layout.RigVisibility` the rig options ask for (None without ``--cameras``).
+    """The :class:`~livebridge.face.rig_visibility.RigVisibility` the rig options ask for (None without ``--cameras``).
 
     Raises
     ------
@@ -83,7 +83,7 @@ def load_rig(calibration: Path | None, min_views: int, max_view_deg: float, view
         Naming the file and what is wrong.
     """
     from livebridge.calibration.calibfile import load_calibration
-    from livebridge.face.layout import RigVisibility
+    from livebridge.face.rig_visibility import RigVisibility
 
     if calibration is None:
         context = click.get_current_context()
@@ -97,7 +97,7 @@ def load_rig(calibration: Path | None, min_views: int, max_view_deg: float, view
 
 def describe_rig(rig) -> str:
     """Where the face is assumed to be in the rig, and what counts as a view, for the terminal."""
-    from livebridge.face.layout import optical_axes_meet
+    from livebridge.face.rig_visibility import optical_axes_meet
 
     centre = optical_axes_meet(rig.cameras)
     distances = ", ".join(f"{camera.name} {np.linalg.norm(camera.center - centre):.0f}"
