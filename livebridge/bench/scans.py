@@ -89,11 +89,11 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     """
     from scipy.ndimage import map_coordinates
 
-    from livebridge.face.meshio import triangle_normals
+    from livebridge.face.meshio import triangle_areas, triangle_normals
     from livebridge.retarget.grid import front_surface
 
     corners = vertices[triangles]
-    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    area = triangle_areas(vertices, triangles)
     facing = triangle_normals(vertices, triangles)[:, 2] > 0.05
     weight = np.where(facing, area, 0.0)
     chosen = rng.choice(len(triangles), n_points, p=weight / weight.sum())

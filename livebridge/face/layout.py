@@ -40,7 +40,7 @@ import numpy as np
 from livebridge.errors import InputError
 from livebridge.face.basis import REGIONS, Basis
 from livebridge.face.markers import MarkerSet
-from livebridge.face.meshio import triangle_normals
+from livebridge.face.meshio import triangle_areas, triangle_normals
 from livebridge.face.rig_visibility import RigVisibility
 
 OBSERVE_FRACTION = 0.2  # a marker observes a muscle that moves it by >= this share of the muscle's peak ...
@@ -122,8 +122,7 @@ def face_candidates(basis: Basis, rig: RigVisibility | None = None) -> tuple[np.
 def default_spacing(basis: Basis, count: int, rig: RigVisibility | None = None) -> float:
     """A minimum spacing (mm) that lets ``count`` markers spread over the candidate area (the one ``rig`` sees)."""
     triangles, _, _ = face_candidates(basis, rig)
-    corners = basis.neutral[basis.triangles[triangles]]
-    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
+    area = triangle_areas(basis.neutral, basis.triangles[triangles]).sum()
     return float(0.55 * np.sqrt(area / max(count, 1)))
 
 

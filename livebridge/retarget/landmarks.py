@@ -20,6 +20,7 @@ import numpy as np
 
 from livebridge.errors import InputError
 from livebridge.face.markers import LANDMARKS_68_UPPER, MarkerSet, landmark_name
+from livebridge.face.meshio import triangle_areas
 from livebridge.retarget.point_files import POINT_FILE_SUFFIXES
 from livebridge.tomlio import load_toml
 
@@ -350,12 +351,6 @@ FAR_MESH_SIZES = 1000.0
 DEGENERATE_AREA = 1e-12
 """A triangle with less area than this fraction of the mesh's median triangle area has no surface (a scanner's or
 an exporter's sliver, a face written with a repeated corner)."""
-
-
-def triangle_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Each triangle's area, shape (n_triangles,); NaN where a corner is not finite."""
-    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(triangles, dtype=np.int64)]
-    return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
 
 
 def surface_triangles(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:

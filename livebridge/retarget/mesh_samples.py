@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from livebridge.face.meshio import triangle_areas
+
 SAMPLE_SPACING_MM = 0.5
 """Default distance between the points sampled on a mesh: the skin images' pixel
 (:data:`~livebridge.retarget.skin_flow.FINE_MM`); a finer texture is blurred to it
@@ -27,12 +29,6 @@ on 0.25 mm texels 0.034 / 0.027 / 0.059 and eyelids 0.151 / 0.170 from 0.3 mm, 0
 MAX_SPLITS = 256
 """A triangle is split into at most this many parts along an edge (a scan's few very large triangles, off the
 face, do not cost millions of points)."""
-
-
-def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """The area (m,) of each triangle (m, 3) of ``points`` (n, 3)."""
-    corners = points[triangles]
-    return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
 
 
 def surface_samples(points: np.ndarray, triangles: np.ndarray, spacing: float | None = None,

@@ -21,7 +21,8 @@ from pathlib import Path, PureWindowsPath
 import numpy as np
 
 from livebridge.errors import InputError
-from livebridge.retarget.mesh_samples import SAMPLE_SPACING_MM, surface_samples, triangle_areas
+from livebridge.face.meshio import triangle_areas
+from livebridge.retarget.mesh_samples import SAMPLE_SPACING_MM, surface_samples
 
 ANTI_ALIAS_TEXELS = 2.0
 """The texture is blurred before it is sampled where a sample spacing spans more than this many texels."""
