@@ -18,8 +18,10 @@ zipfile refuses a member flagged as strongly encrypted (NotImplementedError) or 
 (RuntimeError)."""
 
 
-def read_npz(path: str | Path, what: str, keys: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
-    """The arrays ``keys`` of the ``.npz`` at ``path`` (default: all it has), read into memory.
+def read_npz(path: str | Path, what: str, keys: tuple[str, ...] | None = None,
+             others: bool = False) -> dict[str, np.ndarray]:
+    """The arrays ``keys`` of the ``.npz`` at ``path`` (default: all it has; with ``others``, every other one it
+    has too), read into memory.
 
     A missing, unreadable, foreign or damaged file, or one without an array of ``keys``, raises
     :class:`InputError` naming the file (and the array missing or unreadable), and saying it is not a ``what``
@@ -44,7 +46,7 @@ def read_npz(path: str | Path, what: str, keys: tuple[str, ...] | None = None) -
             raise InputError(f"not a {what} .npz: a single array (.npy)", path)
         arrays = {}
         with data:
-            for key in data.files if keys is None else [key for key in keys if key in data.files]:
+            for key in data.files if keys is None or others else [key for key in keys if key in data.files]:
                 try:
                     arrays[key] = data[key]
                 except NPZ_ERRORS as error:  # a damaged member, or an object array (pickles are never loaded)

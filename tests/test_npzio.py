@@ -83,3 +83,14 @@ def test_a_shape_archive_with_text_or_a_missing_array_is_refused_naming_it(tmp_p
     with pytest.raises(InputError) as caught:
         _import_archive(tmp_path / "shapes.npz")
     assert all(word in str(caught.value) for word in ("shapes.npz", *words)), str(caught.value)
+
+
+def test_the_arrays_asked_for_and_with_others_every_other_one_too(tmp_path):
+    from livebridge.npzio import read_npz
+
+    np.savez(tmp_path / "a.npz", manifest=np.array("{}"), t=np.zeros(3), extra=np.ones(2))
+    assert set(read_npz(tmp_path / "a.npz", "test", ("manifest", "t"))) == {"manifest", "t"}
+    assert set(read_npz(tmp_path / "a.npz", "test", ("manifest", "t"), others=True)) == {"manifest", "t", "extra"}
+    with pytest.raises(InputError, match="missing array 'missing'") as error:
+        read_npz(tmp_path / "a.npz", "test", ("manifest", "missing"), others=True)
+    assert error.value.field == "missing"

@@ -114,11 +114,9 @@ _MANIFEST_KEYS = {"format", "version", "marker_names", "muscle_names", "fps"}
 
 
 def _read_arrays(path: Path) -> dict[str, np.ndarray]:
-    """Every array of the ``.npz`` at ``path`` (no pickles); a missing, truncated or foreign file raises."""
-    arrays = read_npz(path, "livebridge take")
-    missing = [name for name in ("manifest", "t") if name not in arrays]
-    if missing:
-        raise InputError(f"missing array(s) {', '.join(missing)}", path, missing[0])
+    """Every array of the ``.npz`` at ``path`` (no pickles); a missing, truncated or foreign file, or one without
+    ``manifest`` or ``t``, raises."""
+    arrays = read_npz(path, "livebridge take", ("manifest", "t"), others=True)
     unknown = sorted(set(arrays) - {"manifest", "t", *_ARRAYS})
     if unknown:
         raise InputError(f"unknown array(s) {', '.join(unknown)}; known: manifest, t, {', '.join(_ARRAYS)}",
