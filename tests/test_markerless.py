@@ -110,7 +110,7 @@ def _isolated_figures(trained, held_out) -> tuple[float, float, np.ndarray]:
 
 def test_bounded_gestures_end_within_one_frame_of_the_maximum(trained):
     """The jaw's too: its broader activity is within 3 % of its maximum two frames early (0.92 of its opening),
-    where the face is still moving (``motion_curve``)."""
+    where the face is still moving (``change_curves``)."""
     basis, prompts, truth, _, result, _ = trained
     block = len(truth) // len(prompts)
     for k, gesture in enumerate(result.gestures):

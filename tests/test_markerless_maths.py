@@ -13,7 +13,7 @@ from livebridge.markerless.model import MarkerlessModel, RegionModel
 from livebridge.markerless.normalise import Normalisation, NormalisedFrame, lighting_normalise
 from livebridge.markerless.regions import RegionConfig, co_articulation_regions
 from livebridge.markerless.signatures import back_substitution, signature_basis, signatures
-from livebridge.markerless.train import motion_curve
+from livebridge.markerless.train import change_curves
 
 pytest.importorskip("sklearn")
 
@@ -299,7 +299,7 @@ def test_a_held_expression_peaks_at_the_hold_s_first_frames():
         assert hold - 1 <= g.peak <= hold + 2, (g.peak, hold)
 
 
-def test_motion_curve_is_the_change_between_a_frame_s_neighbours_and_unknown_beside_a_lost_frame():
+def test_motion_is_the_change_between_a_frame_s_neighbours_and_unknown_beside_a_lost_frame():
     """A bright square moving 2 px a frame, then holding: the motion falls to nothing where it stops; NaN at the
     take's ends and next to a frame whose LEDs were lost."""
     frames = np.zeros((12, 40, 60), np.uint8)
@@ -308,7 +308,7 @@ def test_motion_curve_is_the_change_between_a_frame_s_neighbours_and_unknown_bes
         frames[t, 15:25, x:x + 10] = 200
     lost = np.zeros(12, bool)
     lost[9] = True
-    motion = motion_curve(frames, lost, top=0.05)
+    motion = change_curves(frames, lost, motion_top=0.05)[1]
     assert np.isnan(motion[[0, 8, 10, 11]]).all() and np.isfinite(motion[1:8]).all()
     assert (motion[1:6] > 10).all()  # moving: the square's edges changed
     assert motion[7] == 0.0  # frames 6 and 8 are the same: the hold

@@ -103,7 +103,7 @@ def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig(),
         its first frame within the tolerance of its maximum over the gesture.
     motion : ndarray, shape (n_frames,), optional
         How much each frame differs from its neighbours (NaN: not known), e.g.
-        :func:`~livebridge.markerless.train.motion_curve`: the peak is the first frame near the top that is
+        :func:`~livebridge.markerless.train.change_curves`: the peak is the first frame near the top that is
         still (see ``GestureConfig.still_k``).
 
     Returns

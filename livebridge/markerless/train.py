@@ -138,43 +138,50 @@ def canonical_frames(images: Iterable[np.ndarray], norm: Normalisation, face_mes
     return norm, np.array(frames), np.array(lost)
 
 
-def activity_curve(frames: np.ndarray, lost: np.ndarray, tops: tuple = (ACTIVITY_TOP, BREADTH_TOP)) -> np.ndarray:
-    """Activities (n, len(tops)): per frame and fraction ``top``, the mean of the largest ``top`` of the blurred
-    differences to the first frames. The few most changed pixels (:data:`ACTIVITY_TOP`) find a weak muscle's
-    gesture, which a mean over the whole image would drown in noise; they saturate before a large gesture is
-    full, whose peak the broader :data:`BREADTH_TOP` finds."""
+def change_curves(frames: np.ndarray, lost: np.ndarray, tops: tuple = (ACTIVITY_TOP, BREADTH_TOP),
+                  motion_top: float = BREADTH_TOP) -> tuple[np.ndarray, np.ndarray]:
+    """How each frame differs from neutral and from its neighbours, each frame blurred once.
+
+    Returns
+    -------
+    activities : ndarray, shape (n, len(tops))
+        Per frame and fraction ``top``, the mean of the largest ``top`` of the blurred differences to the first
+        frames. The few most changed pixels (:data:`ACTIVITY_TOP`) find a weak muscle's gesture, which a mean
+        over the whole image would drown in noise; they saturate before a large gesture is full, whose peak the
+        broader :data:`BREADTH_TOP` finds. NaN for a lost frame.
+    motion : ndarray, shape (n,)
+        Per frame, the mean of the largest ``motion_top`` of the blurred differences between the frames before
+        and after it (NaN at the take's ends and next to a lost frame). At a gesture's turning point or in a
+        hold it falls to the frames' noise, where the activity's distance from neutral may have stopped growing
+        frames earlier (see :mod:`~livebridge.markerless.gestures`).
+    """
     seen = np.flatnonzero(~lost)
     if len(seen) == 0:
         raise InputError("the head rig's LEDs were never found in the take")
-    reference = np.median([cv2.GaussianBlur(frames[i].astype(np.float32), (0, 0), ACTIVITY_SIGMA)
-                           for i in seen[:5]], axis=0)
+    reference = np.median([_blurred(frames[i]) for i in seen[:5]], axis=0)
     counts = [max(1, int(top * reference.size)) for top in tops]
-    activity = np.full((len(frames), len(tops)), np.nan)
-    for i in seen:
-        change = np.abs(cv2.GaussianBlur(frames[i].astype(np.float32), (0, 0), ACTIVITY_SIGMA) - reference).ravel()
-        change = np.partition(change, [change.size - count for count in counts])
-        activity[i] = [change[-count:].mean() for count in counts]
-    return activity
-
-
-def motion_curve(frames: np.ndarray, lost: np.ndarray, top: float = BREADTH_TOP) -> np.ndarray:
-    """Motion (n,): per frame, the mean of the largest ``top`` of the blurred differences between the frames
-    before and after it (NaN at the take's ends and next to a lost frame). At a gesture's turning point or in
-    a hold it falls to the frames' noise, where the activity's distance from neutral may have stopped growing
-    frames earlier (see :mod:`~livebridge.markerless.gestures`)."""
-    count = max(1, int(top * frames[0].size))
+    motion_count = max(1, int(motion_top * reference.size))
+    activities = np.full((len(frames), len(tops)), np.nan)
     motion = np.full(len(frames), np.nan)
-    blurred = {}
-    for t in range(1, len(frames) - 1):
-        if lost[t - 1] or lost[t + 1]:
-            continue
-        for i in (t - 1, t + 1):
-            if i not in blurred:
-                blurred[i] = cv2.GaussianBlur(frames[i].astype(np.float32), (0, 0), ACTIVITY_SIGMA)
-        change = np.abs(blurred[t + 1] - blurred[t - 1]).ravel()
-        motion[t] = np.partition(change, change.size - count)[-count:].mean()
-        blurred.pop(t - 2, None)
-    return motion
+    before = [None, None]  # the two frames before this one, blurred (None: lost)
+    for i, frame in enumerate(frames):
+        now = None if lost[i] else _blurred(frame)
+        if now is not None:
+            activities[i] = _top_means(np.abs(now - reference), counts)
+            if before[0] is not None:
+                motion[i - 1] = _top_means(np.abs(now - before[0]), [motion_count])[0]
+        before = [before[1], now]
+    return activities, motion
+
+
+def _blurred(frame: np.ndarray) -> np.ndarray:
+    return cv2.GaussianBlur(frame.astype(np.float32), (0, 0), ACTIVITY_SIGMA)
+
+
+def _top_means(change: np.ndarray, counts: list[int]) -> list[float]:
+    """The mean of the largest ``count`` values of ``change`` (any shape), for each of ``counts``."""
+    change = np.partition(change.ravel(), [change.size - count for count in counts])
+    return [change[-count:].mean() for count in counts]
 
 
 def _neutral_frames(n_frames: int, gestures: list[Gesture], lost: np.ndarray) -> np.ndarray:
@@ -248,9 +255,8 @@ def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[G
         if unknown:
             raise InputError(f"gesture {prompt.name!r} names muscles {unknown} not in the basis")
     norm, frames, lost = canonical_frames(images, norm, face_mesh)
-    activities = activity_curve(frames, lost)
-    activity = activities[:, 0]
-    gestures = find_gestures(activity, config.gestures, breadth=activities[:, 1], motion=motion_curve(frames, lost))
+    activities, motion = change_curves(frames, lost)
+    gestures = find_gestures(activities[:, 0], config.gestures, breadth=activities[:, 1], motion=motion)
     if len(gestures) != len(prompts):
         raise InputError(f"found {len(gestures)} gestures in the take, the gesture list has {len(prompts)} "
                          "(each gesture must start and end at neutral)")
@@ -288,7 +294,7 @@ def train(images: Iterable[np.ndarray], norm: Normalisation, prompts: Sequence[G
         members.append(chosen)
     gesture_frames = _gesture_crops(prompts, states, frames, crs, members)
     model = MarkerlessModel(muscle_names, regions, norm, neutral, gesture_frames, config.method)
-    return TrainResult(model, gestures, activity, rois, {prompts[p].name: states[p] for p in states})
+    return TrainResult(model, gestures, activities[:, 0], rois, {prompts[p].name: states[p] for p in states})
 
 
 def _region(name, mask, chosen, prompts, states, frames, neutral_filtered, norm, muscle_names, weights,
