@@ -139,11 +139,12 @@ def find_gestures(activity: np.ndarray, config: GestureConfig = GestureConfig(),
             continue
         if end - start + 1 < config.min_frames:
             continue
-        peak = _first_near_top(filled[start:end + 1], floor, config.peak_tolerance)
         near = _near_top(filled[start:end + 1], floor, config.peak_tolerance)
+        peak = int(np.argmax(near))
         if broad is not None:
-            peak = max(peak, _first_near_top(broad[start:end + 1], broad_floor, config.peak_tolerance))
-            near &= _near_top(broad[start:end + 1], broad_floor, config.peak_tolerance)
+            near_broad = _near_top(broad[start:end + 1], broad_floor, config.peak_tolerance)
+            peak = max(peak, int(np.argmax(near_broad)))
+            near &= near_broad
         if motion is not None:
             peak = _first_still(motion[start:end + 1], near, peak, motion_floor, config.still_k * motion_spread)
         gestures.append(Gesture(int(start), int(start + peak), int(end)))
@@ -166,11 +167,6 @@ def _near_top(values: np.ndarray, floor: float, tolerance: float) -> np.ndarray:
     """Mask (n,) of ``values`` (n,) within ``tolerance`` of their rise above ``floor`` of their maximum."""
     top = values.max()
     return values >= top - tolerance * (top - floor)
-
-
-def _first_near_top(values: np.ndarray, floor: float, tolerance: float) -> int:
-    """Index of the first of ``values`` (n,) within ``tolerance`` of their rise above ``floor`` of their maximum."""
-    return int(np.argmax(_near_top(values, floor, tolerance)))
 
 
 def _first_still(motion: np.ndarray, near: np.ndarray, peak: int, floor: float, margin: float) -> int:
