@@ -499,7 +499,7 @@ class Pipeline:
         if waiting:
             return waiting
         s = self.recent_summary()
-        return (f"fps {s.fps:5.1f} | drops {s.drops} | latency servo p50 {s.latency_p50_ms:.2f} "
+        return (f"fps {s.fps:5.1f} | drops {s.drops} | latency servo p50 {milliseconds(s.latency_p50_ms)} "
                 f"p99 {milliseconds(s.latency_p99_ms)}, render p99 {milliseconds(s.render_latency_p99_ms)} | "
                 + self.front.status(s))
 
