@@ -679,6 +679,33 @@ MESH_OBJ_CASES = _common_cases() + (
     Case("a vertex numbered 0", _text(_TRIANGLE + "f 0 1 2\n"), ("line 4", "from 1")),
     Case("a face of two corners", _text(_TRIANGLE + "f 1 2\n"), ("line 4", "3 or more")),
 )
+
+
+def _stl_binary(corners: np.ndarray, count: int | None = None, header: bytes = b"binary") -> Callable[[Path], None]:
+    """A binary STL of triangles ``corners`` (m, 3, 3), its count field ``count`` (default m)."""
+    records = np.zeros(len(corners), [("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
+    records["corners"] = corners
+    count = len(corners) if count is None else count
+    return _bytes(header.ljust(80, b" ") + np.uint32(count).tobytes() + records.tobytes())
+
+
+_STL_TRIANGLE = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]], np.float32)
+_STL_FACET = "facet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nvertex 0 1 0\nendloop\nendfacet\n"
+STL_CASES = _common_cases() + (
+    Case("empty file", _text(""), ("empty file",)),
+    Case("binary truncated", _stl_binary(np.repeat(_STL_TRIANGLE, 2, axis=0), count=3),
+         ("binary STL of 3 triangles", "truncated")),
+    Case("binary truncated, header 'solid'", _stl_binary(np.repeat(_STL_TRIANGLE, 2, axis=0), count=3,
+                                                         header=b"solid \xff"), ("neither a binary STL",)),
+    Case("binary NaN corner", _stl_binary(np.concatenate([_STL_TRIANGLE, _STL_TRIANGLE * np.nan])),
+         ("triangle 1", "not finite")),
+    Case("no triangles", _text("solid face\nendsolid face\n"), ("no triangles",)),
+    Case("a facet of two corners", _text("solid f\n" + _STL_FACET.replace("vertex 0 1 0\n", "")),
+         ("line 2", "2 corners")),
+    Case("a corner not a number", _text("solid f\n" + _STL_FACET.replace("vertex 1 0 0", "vertex 1 zero 0")),
+         ("line 5", "vertex x y z")),
+    Case("a truncated facet", _text("solid f\n" + _STL_FACET.split("vertex 0 1 0")[0]), ("line 2", "endfacet")),
+)
 XYZ_CASES = _common_cases() + (
     Case("empty file", _text(""), ("empty file",)),
     Case("blank lines only", _text("\n  \n"), ("empty file",)),
@@ -847,6 +874,11 @@ FORMATS = (
                                                              str(folder / "lm.toml")],
            MESH_OBJ_CASES, setup=lambda folder: (folder / "points.csv").write_text("chin,0,0,0\n")),
     Format("scan ply", "neutral.ply", _scans, PLY_CASES, setup=_write_scan_landmarks),
+    Format("scan stl", "neutral.stl", _scans, STL_CASES, setup=_write_scan_landmarks),
+    Format("landmark mesh stl", "mesh.stl", lambda path, folder: ["retarget", "basis", "--source", "builtin",
+                                                                 "--source-landmarks", "builtin-22", "--target",
+                                                                 str(path), "--target-landmarks", "builtin-22",
+                                                                 "--out", str(folder / "out.npz")], STL_CASES),
     Format("scan xyz", "neutral.xyz", _scans, XYZ_CASES, setup=_write_scan_landmarks),
     Format("phone take arkit", "take/arkit.csv", lambda path, folder: ["run", str(folder / "replay.toml")],
            PHONE_ARKIT_CASES, setup=_phone_take),

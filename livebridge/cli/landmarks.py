@@ -13,11 +13,15 @@ from livebridge.retarget.landmarks import SHIPPED_LANDMARK_SETS
 
 UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 MESH_TYPE = InputPath(builtins=("builtin",))
-MESH_HELP = "MESH: a basis (.npz, its neutral face), an OBJ mesh, or 'builtin' (the procedural face)."
+MESH_SUFFIXES = (".obj", ".ply", ".stl")
+"""Mesh files :func:`load_mesh` reads (in a command's ``--units``)."""
+MESH_HELP = ("MESH: a basis (.npz, its neutral face), a mesh (.obj, .ply, .stl), or 'builtin' (the procedural "
+             "face).")
 
 
 def load_mesh(spec, units: str = "mm") -> tuple[np.ndarray, np.ndarray]:
-    """(vertices (n, 3) in mm, triangles (m, 3)) of a basis .npz (mm), an OBJ (in ``units``) or ``builtin``."""
+    """(vertices (n, 3) in mm, triangles (m, 3)) of a basis .npz (mm), a mesh file (.obj, .ply, .stl; in
+    ``units``) or ``builtin``."""
     from livebridge.errors import InputError
 
     if spec == "builtin":
@@ -35,10 +39,18 @@ def load_mesh(spec, units: str = "mm") -> tuple[np.ndarray, np.ndarray]:
         from livebridge.face.meshio import read_obj
 
         mesh = read_obj(spec)
-        if not len(mesh.triangles):
-            raise InputError("no faces ('f' lines): landmarks need a surface", spec)
-        return mesh.vertices * UNITS_TO_MM[units], mesh.triangles
-    raise InputError(f"unknown mesh type {suffix or '(no suffix)'!r}: give a basis .npz, an .obj or 'builtin'", spec)
+        vertices, triangles = mesh.vertices, mesh.triangles
+    elif suffix in MESH_SUFFIXES:
+        from livebridge.retarget.scan import read_scan
+
+        scan = read_scan(spec)
+        vertices, triangles = scan.points, scan.triangles
+    else:
+        raise InputError(f"unknown mesh type {suffix or '(no suffix)'!r}: give a basis .npz, a mesh (.obj, .ply, "
+                         ".stl) or 'builtin'", spec)
+    if not len(triangles):
+        raise InputError("no faces: landmarks need a surface, not a point cloud", spec)
+    return vertices * UNITS_TO_MM[units], triangles
 
 
 @click.group("landmarks")
@@ -56,7 +68,7 @@ def landmarks() -> None:
 @click.option("--out", required=True, type=OutputFile(), help="Landmark file to write (.toml).")
 @force_option
 @click.option("--units", type=click.Choice(sorted(UNITS_TO_MM)), default="mm", show_default=True,
-              help="Units of an OBJ mesh and of --points (a basis is in mm).")
+              help="Units of a mesh file and of --points (a basis is in mm).")
 @click.option("--max-distance", type=FiniteFloat(0, 1e4, low_open=True), default=3.0, show_default=True,
               help="Farthest a --points point may be from the surface, mm.")
 @click.option("--require-22", is_flag=True, help="Refuse unless all 22 thesis landmarks are given.")
@@ -64,7 +76,7 @@ def place(mesh, vertices_file: Path | None, points_file: Path | None, out: Path,
           max_distance: float, require_22: bool) -> None:
     """Place landmarks on MESH from vertex ids or 3D points and write them as a landmark (marker-set) file.
 
-    MESH: a basis (.npz), an OBJ mesh or 'builtin'. Names are free; the thesis's 22 are brow_outer_L ...
+    MESH: a basis (.npz), a mesh (.obj, .ply, .stl) or 'builtin'. Names are free; the thesis's 22 are brow_outer_L ...
     chin (see the README).
     """
     from livebridge.retarget.landmarks import place_at_points, place_at_vertices, read_vertex_ids
@@ -118,7 +130,7 @@ def template(out: Path, force: bool, lids: bool) -> None:
 @click.option("--out", required=True, type=ImageFile(), help="Image file (.png).")
 @force_option
 @click.option("--units", type=click.Choice(sorted(UNITS_TO_MM)), default="mm", show_default=True,
-              help="Units of an OBJ mesh (a basis is in mm).")
+              help="Units of a mesh file (a basis is in mm).")
 @click.option("--yaw", type=FiniteFloat(-90, 90), default=35.0, show_default=True,
               help="View angle of the second panel about the vertical axis, degrees (the first is frontal).")
 @click.option("--dpi", default=110, show_default=True, type=click.IntRange(30, 600))

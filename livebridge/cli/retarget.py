@@ -10,7 +10,7 @@ import numpy as np
 from livebridge.cli._attach import attach
 from livebridge.cli._options import FiniteFloat, ImageFile, InputPath, OutputFile, force_option
 from livebridge.cli.basis_show import _draw_mesh, _view
-from livebridge.cli.landmarks import MESH_TYPE, UNITS_TO_MM, load_mesh
+from livebridge.cli.landmarks import MESH_SUFFIXES, MESH_TYPE, UNITS_TO_MM, load_mesh
 from livebridge.cli.markers import load_basis
 from livebridge.errors import InputError
 from livebridge.retarget.checks import check_mesh
@@ -33,7 +33,7 @@ def retarget() -> None:
 @click.option("--source-landmarks", required=True, type=LANDMARKS_TYPE,
               help="Landmarks on the source: builtin-22, ict-22 or a landmark file (.toml).")
 @click.option("--target", "target_spec", required=True, type=MESH_TYPE,
-              help="Target face: a mesh (.obj), a basis (.npz, its neutral) or 'builtin'.")
+              help="Target face: a mesh (.obj, .ply, .stl), a basis (.npz, its neutral) or 'builtin'.")
 @click.option("--target-landmarks", required=True, type=LANDMARKS_TYPE,
               help="Landmarks on the target (same names as the source's): a landmark file or a shipped set.")
 @click.option("--out", required=True, type=OutputFile(), help="Retargeted basis to write (.npz).")
@@ -41,7 +41,7 @@ def retarget() -> None:
 @click.option("--kernel", type=click.Choice(["r", "r2lnr2"]), default="r", show_default=True,
               help="TPS kernel: r (3D biharmonic) or r2lnr2 (the thesis's).")
 @click.option("--units", type=click.Choice(sorted(UNITS_TO_MM)), default="mm", show_default=True,
-              help="Units of an OBJ target (a basis is in mm).")
+              help="Units of a mesh-file target (a basis is in mm).")
 def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Path, force: bool, kernel: str,
           units: str) -> None:
     """Turn every element of a source basis into an element on a target mesh of any topology."""
@@ -66,15 +66,15 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
 @retarget.command("au")
 @click.option("--source", "source_spec", required=True, type=InputPath(builtins=("builtin",)),
               help="Source face: an actuation basis (.npz) or 'builtin' (each AU's muscle recipe makes the "
-                   "expression), or with --expression its neutral mesh (.obj).")
+                   "expression), or with --expression its neutral mesh (.obj, .ply, .stl).")
 @click.option("--source-landmarks", required=True, type=LANDMARKS_TYPE, help="Landmarks on the source.")
 @click.option("--expression", "expression_spec", type=MESH_TYPE, default=None,
-              help="The source person showing the AUs (.obj, any head pose; thesis §5.5): the chosen AUs' control "
+              help="The source person showing the AUs (a mesh, any head pose; thesis §5.5): the chosen AUs' control "
                    "points move as it shows instead of by the basis's recipes.")
 @click.option("--expression-landmarks", type=LANDMARKS_TYPE, default=None,
               help="Landmarks on --expression (default: --source-landmarks, when it has the source's triangles).")
 @click.option("--target", "target_spec", required=True, type=MESH_TYPE,
-              help="Target face: a mesh (.obj), a basis (.npz, its neutral) or 'builtin'.")
+              help="Target face: a mesh (.obj, .ply, .stl), a basis (.npz, its neutral) or 'builtin'.")
 @click.option("--target-landmarks", required=True, type=LANDMARKS_TYPE, help="Landmarks on the target.")
 @click.option("--au", "aus", required=True, multiple=True,
               help="Action unit (1, 2, 4, 12, 14, 15, 17, 20) or a muscle name; repeat to combine.")
@@ -90,7 +90,7 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
 @click.option("--kernel", type=click.Choice(["r", "r2lnr2"]), default="r", show_default=True,
               help="TPS kernel: r (3D biharmonic) or r2lnr2 (the thesis's).")
 @click.option("--units", type=click.Choice(sorted(UNITS_TO_MM)), default="mm", show_default=True,
-              help="Units of the OBJ meshes (a basis is in mm).")
+              help="Units of the mesh files (a basis is in mm).")
 def au(source_spec, source_landmarks, expression_spec, expression_landmarks, target_spec, target_landmarks, aus,
        magnitude: float, side: str, control_points, out: Path, force: bool, kernel: str, units: str) -> None:
     """Write the target face showing action units carried from the source (Erdoğdu §5.5-5.6) as OBJ."""
@@ -98,7 +98,7 @@ def au(source_spec, source_landmarks, expression_spec, expression_landmarks, tar
     from livebridge.retarget.control_points import load_control_points
 
     if expression_spec is None:
-        if Path(source_spec).suffix.lower() == ".obj":
+        if Path(source_spec).suffix.lower() in MESH_SUFFIXES:
             raise InputError("a source mesh has no muscles to make the AUs with: give the source person showing "
                              "them (--expression) or a basis (.npz)", source_spec, "--expression")
         source = load_basis(source_spec)

@@ -25,7 +25,8 @@ def non_manifold_edges(triangles: np.ndarray) -> np.ndarray:
 
 UNWELDED_RIM_SHARE = 0.5
 """A mesh with more than this share of its edges on a rim is taken for unwelded (each triangle its own vertices,
-as STL files are): a face has rims only at its outline, mouth, eyes and nostrils."""
+as some exporters write them; STL files are welded as they are read): a face has rims only at its outline, mouth,
+eyes and nostrils."""
 
 
 WINDING_SLACK = 0.01
@@ -53,8 +54,9 @@ def check_mesh(vertices: np.ndarray, triangles: np.ndarray, source=None) -> None
     rim_share = float(np.mean(counts == 1))
     if rim_share > UNWELDED_RIM_SHARE:
         raise InputError(f"{rim_share:.0%} of the mesh's edges belong to one triangle only: its triangles do not "
-                         "share their vertices (unwelded, as STL files are); weld them (MeshLab: Filters > Cleaning "
-                         "and Repairing > Merge Close Vertices) and place the landmarks again", source, "triangles")
+                         "share their vertices (unwelded, as some exporters write them); weld them (MeshLab: Filters > "
+                         "Cleaning and Repairing > Merge Close Vertices) and place the landmarks again", source,
+                         "triangles")
     bad = edges[counts > 2]
     if len(bad):
         raise InputError(f"non-manifold: {len(bad)} edge{'s' if len(bad) > 1 else ''} shared by more than two "

@@ -1,5 +1,5 @@
 """Reading 3D scans: point clouds and meshes from PLY (ASCII, binary little/big endian:
-:mod:`~livebridge.retarget.ply_file`), OBJ and XYZ/CSV.
+:mod:`~livebridge.retarget.ply_file`), OBJ, STL (:mod:`~livebridge.retarget.stl_file`; no colour) and XYZ/CSV.
 
 A scan is what a scanner wrote: points, their colours when the scanner recorded them (structured light,
 photogrammetry and depth cameras with a colour camera do), and triangles when the scanner meshed them (faces
@@ -26,10 +26,11 @@ from livebridge.face.obj_file import read_obj_data
 from livebridge.retarget.checks import check_faces
 from livebridge.retarget.mesh_samples import surface_samples
 from livebridge.retarget.ply_file import read_ply
+from livebridge.retarget.stl_file import read_stl
 from livebridge.retarget.texture import Texture, sample_textured
 
-SCAN_SUFFIXES = (".ply", ".obj", ".xyz", ".csv", ".txt", ".pts", ".asc")
-"""Suffixes :func:`read_scan` knows (all but .ply and .obj are read as x y z point lists)."""
+SCAN_SUFFIXES = (".ply", ".obj", ".stl", ".xyz", ".csv", ".txt", ".pts", ".asc")
+"""Suffixes :func:`read_scan` knows (all but .ply, .obj and .stl are read as x y z point lists)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,7 +106,7 @@ def read_scan(path: str | Path, scale: float = 1.0) -> Scan:
         raise file_error(error, path) from None
     if not data.strip():
         raise InputError("empty file: no points", path)
-    reader = {".ply": read_ply, ".obj": _read_obj}.get(suffix, _read_xyz)
+    reader = {".ply": read_ply, ".obj": _read_obj, ".stl": read_stl}.get(suffix, _read_xyz)
     points, triangles, colours, *texture = reader(data, path)
     if not len(points):
         raise InputError("no points", path)
