@@ -14,7 +14,7 @@ from livebridge.face import builtin
 from livebridge.face.builtin import builtin_basis, builtin_landmarks
 from livebridge.face.markers import landmark_name
 from livebridge.face.shipped import shipped_marker_set
-from livebridge.retarget.au import save_obj
+from livebridge.retarget.au import save_mesh
 from livebridge.retarget.landmarks import (
     MIRROR_PAIRS,
     SADDLE,
@@ -250,7 +250,7 @@ def test_place_at_a_vertex_takes_a_triangle_with_area(tmp_path, face):
     would be refused as off the surface by every transfer."""
     vertex = int(face.triangles[100, 0])
     triangles = np.vstack([[[vertex, vertex, vertex]], face.triangles])
-    save_obj(tmp_path / "sliver.obj", face.neutral, triangles)
+    save_mesh(tmp_path / "sliver.obj", face.neutral, triangles)
     (tmp_path / "ids.toml").write_text(f"nose_tip = {vertex}\n")
     _run("landmarks", "place", tmp_path / "sliver.obj", "--vertices", tmp_path / "ids.toml", "--out",
          tmp_path / "lm.toml")
@@ -268,7 +268,7 @@ def test_place_refuses_a_vertex_in_triangles_without_surface_only(tmp_path, face
     only is refused at once, not by every transfer later."""
     n = len(face.neutral)
     triangles = np.vstack([face.triangles, [[n, n + 1, n + 2]]])
-    save_obj(tmp_path / "mesh.obj", np.vstack([face.neutral, corners]), triangles)
+    save_mesh(tmp_path / "mesh.obj", np.vstack([face.neutral, corners]), triangles)
     (tmp_path / "ids.toml").write_text(f"chin = {n + 1}\n")
     result = CliRunner().invoke(main, ["landmarks", "place", str(tmp_path / "mesh.obj"), "--vertices",
                                        str(tmp_path / "ids.toml"), "--out", str(tmp_path / "lm.toml")])
@@ -289,7 +289,7 @@ def test_place_at_points_passes_over_slivers_onto_the_surface(tmp_path, face):
     line = on_surface[k] + np.outer([-1.0, 0.0, 1.0], along)
     vertices = np.vstack([face.neutral, line])
     triangles = np.vstack([[[n, n + 1, n + 2], [n + 1, n + 1, n]], face.triangles])
-    save_obj(tmp_path / "slivers.obj", vertices, triangles)
+    save_mesh(tmp_path / "slivers.obj", vertices, triangles)
     rows = "".join(f"{name},{x!r},{y!r},{z!r}\n" for name, (x, y, z) in zip(truth.names, on_surface.tolist()))
     (tmp_path / "p.csv").write_text(rows)
     _run("landmarks", "place", tmp_path / "slivers.obj", "--points", tmp_path / "p.csv", "--out", tmp_path / "lm.toml")
@@ -306,7 +306,7 @@ def test_a_vertex_thrown_far_off_the_mesh_is_refused_naming_it(tmp_path, face):
     failed inside the transfer."""
     vertices = face.neutral.copy()
     vertices[7] = [1e30, 0.0, 0.0]
-    save_obj(tmp_path / "far.obj", vertices, face.triangles)
+    save_mesh(tmp_path / "far.obj", vertices, face.triangles)
     result = CliRunner().invoke(main, ["retarget", "basis", "--source", "builtin", "--source-landmarks",
                                        "builtin-22", "--target", str(tmp_path / "far.obj"), "--target-landmarks",
                                        "builtin-22", "--out", str(tmp_path / "out.npz")])
@@ -328,7 +328,7 @@ def test_place_refuses_an_unnamed_or_astronomically_far_point(tmp_path, row, wor
 def test_a_mesh_with_a_nan_vertex_is_refused_naming_the_file_and_vertex(tmp_path, face, command):
     vertices = face.neutral.copy()
     vertices[4] = np.nan
-    save_obj(tmp_path / "nan.obj", vertices, face.triangles)
+    save_mesh(tmp_path / "nan.obj", vertices, face.triangles)
     (tmp_path / "p.csv").write_text("chin,0,-80,89.94\n")
     args = (["place", str(tmp_path / "nan.obj"), "--points", str(tmp_path / "p.csv"), "--out",
              str(tmp_path / "lm.toml")] if command == "place" else
@@ -347,7 +347,7 @@ def test_landmarks_of_one_mesh_are_refused_on_another_naming_the_file(tmp_path, 
     (tmp_path / "points.csv").write_text(rows)
     _run("landmarks", "place", "builtin", "--points", tmp_path / "points.csv", "--out", tmp_path / "placed.toml")
     assert load_landmark_set(tmp_path / "placed.toml").mesh_triangles == len(face.triangles)
-    save_obj(tmp_path / "other.obj", face.neutral, face.triangles[:-1])
+    save_mesh(tmp_path / "other.obj", face.neutral, face.triangles[:-1])
     spec = str(tmp_path / "placed.toml") if landmarks == "placed" else landmarks
     result = CliRunner().invoke(main, ["landmarks", "show", str(tmp_path / "other.obj"), spec, "--out",
                                        str(tmp_path / "lm.png")])

@@ -8,7 +8,7 @@ from factories import assert_cli_refused, split_triangles
 
 from livebridge.face.basis import CHOE_KO_MUSCLES
 from livebridge.face.builtin import builtin_basis
-from livebridge.retarget.au import FaceRegions, prepare_transfer, save_obj
+from livebridge.retarget.au import FaceRegions, prepare_transfer, save_mesh
 from livebridge.retarget.control_points import THESIS_AUS, ControlPointSet, load_control_points
 from livebridge.retarget.landmarks import load_landmark_set
 
@@ -161,9 +161,9 @@ def test_cli_carries_an_expressive_obj_and_refuses_one_it_cannot_place(tmp_path,
     from livebridge.face.meshio import read_obj
 
     basis = builtin_basis()
-    save_obj(tmp_path / "neutral.obj", basis.neutral, basis.triangles)
-    save_obj(tmp_path / "smile.obj", _posed(_recipe_expression(basis, points, "au12")), basis.triangles)
-    save_obj(tmp_path / "split.obj", *split_triangles(basis.neutral, basis.triangles))
+    save_mesh(tmp_path / "neutral.obj", basis.neutral, basis.triangles)
+    save_mesh(tmp_path / "smile.obj", _posed(_recipe_expression(basis, points, "au12")), basis.triangles)
+    save_mesh(tmp_path / "split.obj", *split_triangles(basis.neutral, basis.triangles))
     common = ["retarget", "au", "--source-landmarks", "builtin-22", "--target", "builtin", "--target-landmarks",
               "builtin-22", "--au", "12"]
     runner = CliRunner()
@@ -218,7 +218,7 @@ def test_cli_refuses_a_target_in_other_units_naming_the_mesh_and_units(tmp_path,
     from livebridge.cli import main
 
     face, _ = builtin
-    save_obj(tmp_path / "metres.obj", face.neutral / 1000, face.triangles)
+    save_mesh(tmp_path / "metres.obj", face.neutral / 1000, face.triangles)
     args = ["retarget", verb, "--source", "builtin", "--source-landmarks", "builtin-22", "--target",
             str(tmp_path / "metres.obj"), "--target-landmarks", "builtin-22"]
     out = ["--au", "12", "--out", str(tmp_path / "au.obj")] if verb == "au" else ["--out", str(tmp_path / "b.npz")]

@@ -119,3 +119,35 @@ def test_a_point_cloud_is_refused_as_a_target_naming_it(tmp_path, face):
                                        "builtin-22", "--out", str(tmp_path / "out.npz")])
     assert result.exit_code != 0
     assert "cloud.ply" in result.output and "no faces" in result.output, result.output
+
+
+def test_au_meshes_of_an_stl_head_are_written_in_its_units_as_obj_ply_or_stl(tmp_path, face):
+    """AU12 on the built-in face given as STL in cm: written as STL, PLY or OBJ in cm, each the AU12 the built-in
+    face itself gets (mm), at every vertex's place; an unknown suffix is refused before any work."""
+    write_stl(tmp_path / "head.stl", face.neutral / 10.0, face.triangles)
+    marks = load_landmark_set("builtin-22").as_dict(face.neutral, face.triangles)
+    runner = CliRunner()
+    _place_and_retarget(runner, tmp_path / "head.stl", marks, tmp_path / "unused.npz")
+    common = ["retarget", "au", "--source", "builtin", "--source-landmarks", "builtin-22", "--au", "12"]
+    on_face = runner.invoke(main, common + ["--target", "builtin", "--target-landmarks", "builtin-22", "--out",
+                                            str(tmp_path / "face.obj")])
+    assert on_face.exit_code == 0, on_face.output
+    expected = read_scan(tmp_path / "face.obj")
+    welded = read_scan(tmp_path / "head.stl").triangles.reshape(-1)
+    _, first = np.unique(welded, return_index=True)
+    original = face.triangles.reshape(-1)[first]  # the built-in face's vertex at each welded vertex's place
+    for suffix in (".stl", ".ply", ".obj"):
+        out = tmp_path / f"au12{suffix}"
+        result = runner.invoke(main, common + ["--target", str(tmp_path / "head.stl"), "--target-landmarks",
+                                               str(tmp_path / "head.toml"), "--units", "cm", "--out", str(out)])
+        assert result.exit_code == 0 and "triangles, cm" in result.output, result.output
+        written = read_scan(out, 10.0)
+        assert len(written.points) == len(original)
+        moved = expected.points[original]
+        assert np.abs(moved - face.neutral[original]).max() > 5.0  # AU12 moves the mouth corners by mm
+        np.testing.assert_allclose(written.points, moved, atol=0.01)  # mm: float32 and OBJ's 6 decimals
+    refused = runner.invoke(main, common + ["--target", str(tmp_path / "head.stl"), "--target-landmarks",
+                                            str(tmp_path / "head.toml"), "--units", "cm", "--out",
+                                            str(tmp_path / "au12.txt")])
+    assert refused.exit_code != 0 and "au12.txt" in refused.output and ".stl" in refused.output
+    assert not (tmp_path / "au12.txt").exists()

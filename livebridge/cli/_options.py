@@ -217,6 +217,20 @@ class OutputFile(click.ParamType):
         return path
 
 
+class MeshFile(OutputFile):
+    """A mesh a command writes (:class:`OutputFile`): OBJ, PLY or STL, by its suffix."""
+
+    name = "mesh"
+    suffixes = (".obj", ".ply", ".stl")
+
+    def convert(self, value, param, ctx) -> Path:
+        path = super().convert(value, param, ctx)
+        if path.suffix.lower() not in self.suffixes:
+            self.fail(f"{value}: a mesh is written as {', '.join(self.suffixes)}, not "
+                      f"{path.suffix or '(no suffix)'!r}", param, ctx)
+        return path
+
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pdf", ".svg", ".tif", ".tiff", ".webp")
 """What an image option writes (matplotlib picks the format by the suffix)."""
 

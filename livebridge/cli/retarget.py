@@ -8,7 +8,7 @@ import click
 import numpy as np
 
 from livebridge.cli._attach import attach
-from livebridge.cli._options import FiniteFloat, ImageFile, InputPath, OutputFile, force_option
+from livebridge.cli._options import FiniteFloat, ImageFile, InputPath, MeshFile, OutputFile, force_option
 from livebridge.cli.basis_show import _draw_mesh, _view
 from livebridge.cli.landmarks import MESH_SUFFIXES, MESH_TYPE, UNITS_TO_MM, load_mesh
 from livebridge.cli.markers import load_basis
@@ -83,9 +83,10 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
               help="Move one side's control points only (the subject's left: +x).")
 @click.option("--control-points", default="thesis", type=InputPath(builtins=("thesis",)), show_default=True,
               help="Control point set: 'thesis' (shipped) or a control-point TOML file.")
-@click.option("--out", required=True, type=OutputFile(),
-              help="AU mesh to write (.obj): an OBJ target's own file with its vertices moved (in --units; its "
-                   "texture coordinates, polygons and materials kept), else a triangle mesh in mm.")
+@click.option("--out", required=True, type=MeshFile(),
+              help="AU mesh to write (.obj, .ply, .stl): for an OBJ target and an .obj, the target's own file with "
+                   "its vertices moved (its texture coordinates, polygons and materials kept); else triangles. In "
+                   "--units for a mesh-file target, in mm for a basis.")
 @force_option
 @click.option("--kernel", type=click.Choice(["r", "r2lnr2"]), default="r", show_default=True,
               help="TPS kernel: r (3D biharmonic) or r2lnr2 (the thesis's).")
@@ -93,8 +94,8 @@ def basis(source_spec, source_landmarks, target_spec, target_landmarks, out: Pat
               help="Units of the mesh files (a basis is in mm).")
 def au(source_spec, source_landmarks, expression_spec, expression_landmarks, target_spec, target_landmarks, aus,
        magnitude: float, side: str, control_points, out: Path, force: bool, kernel: str, units: str) -> None:
-    """Write the target face showing action units carried from the source (Erdoğdu §5.5-5.6) as OBJ."""
-    from livebridge.retarget.au import parse_aus, prepare_transfer, save_moved_obj, save_obj
+    """Write the target face showing action units carried from the source (Erdoğdu §5.5-5.6) as a mesh file."""
+    from livebridge.retarget.au import parse_aus, prepare_transfer, save_mesh, save_moved_obj
     from livebridge.retarget.control_points import load_control_points
 
     if expression_spec is None:
@@ -118,12 +119,14 @@ def au(source_spec, source_landmarks, expression_spec, expression_landmarks, tar
     transfer = prepare_transfer(points, parse_aus(aus), source, on_source, (vertices, triangles), on_target, sides,
                                 kernel, expression)
     moved = transfer.mesh(magnitude)
-    as_target = Path(target_spec).suffix.lower() == ".obj" and save_moved_obj(out, target_spec, moved,
-                                                                              UNITS_TO_MM[units])
+    from_file = Path(target_spec).suffix.lower() in MESH_SUFFIXES
+    as_target = (Path(target_spec).suffix.lower() == ".obj" and out.suffix.lower() == ".obj"
+                 and save_moved_obj(out, target_spec, moved, UNITS_TO_MM[units]))
+    written_units = units if from_file else "mm"
     if not as_target:
-        save_obj(out, moved, triangles)
+        save_mesh(out, moved, triangles, UNITS_TO_MM[written_units], written_units)
     written = (f"the target's own file moved, in {units} (its texture coordinates, polygons and materials kept, "
-               "its normals dropped)" if as_target else "triangles, mm")
+               "its normals dropped)" if as_target else f"triangles, {written_units}")
     click.echo(f"wrote {out}: {', '.join(aus)} at m = {magnitude:g} ({side}); largest move "
                f"{np.linalg.norm(moved - vertices, axis=1).max():.2f} mm; {written}")
     _say_parts(transfer.parts)

@@ -34,6 +34,8 @@ ANCHOR_CLEARANCE = 0.12
 """A landmark closer than this fraction of the face's landmark extent to a moving point is not an anchor."""
 BORDER_SPACING = 0.06
 """Spacing of the anchors along the border between the regions, as a fraction of the landmark extent."""
+MESH_OUTPUTS = {".obj": "OBJ file", ".ply": "PLY file", ".stl": "STL file"}
+"""Mesh files :func:`save_mesh` writes, by suffix."""
 
 
 @dataclass(frozen=True)
@@ -65,6 +67,7 @@ class FaceRegions:
     def upper(self, points: np.ndarray) -> np.ndarray:
         """Boolean mask (n,) of points (n, 3) in the upper face."""
         return points @ self.up > self.border
+
 
 
 def _require(landmarks: dict, names) -> None:
@@ -369,10 +372,22 @@ def save_moved_obj(path: str | Path, target: str | Path, vertices: np.ndarray, m
     return True
 
 
-def save_obj(path: str | Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
-    """A triangle mesh as Wavefront OBJ (vertices in mm), written atomically."""
+def save_mesh(path: str | Path, vertices: np.ndarray, triangles: np.ndarray, mm_per_unit: float = 1.0,
+              units: str = "mm") -> None:
+    """A triangle mesh (vertices (n, 3) in mm) written atomically in ``units`` (``mm_per_unit``) as its suffix
+    says (:data:`MESH_OUTPUTS`): Wavefront OBJ, binary PLY or binary STL."""
     from livebridge.atomic import write_bytes_atomically
     from livebridge.face.obj_file import mesh_obj
+    from livebridge.retarget.ply_file import ply_bytes
+    from livebridge.retarget.stl_file import stl_bytes
 
-    comment = f"livebridge retarget au: {len(vertices)} vertices, {len(triangles)} triangles, mm"
-    write_bytes_atomically(path, mesh_obj(vertices, triangles, comment), "OBJ file")
+    suffix = Path(path).suffix.lower()
+    scaled = np.asarray(vertices, dtype=np.float64) / mm_per_unit
+    comment = f"livebridge retarget au: {len(vertices)} vertices, {len(triangles)} triangles, {units}"
+    if suffix == ".stl":
+        data = stl_bytes(scaled, triangles, comment)
+    elif suffix == ".ply":
+        data = ply_bytes(scaled, triangles)
+    else:
+        data = mesh_obj(scaled, triangles, comment)
+    write_bytes_atomically(path, data, MESH_OUTPUTS[suffix])

@@ -428,7 +428,13 @@ def _flat(lists, dtype) -> np.ndarray:
 
 def write_ply(path: str | Path, points: np.ndarray, triangles: np.ndarray | None = None,
               encoding: str = "binary_little_endian", colours: np.ndarray | None = None) -> None:
-    """Write points (n, 3), optional triangles (m, 3) and colours (n, 3) in 0-1 as PLY (``ascii``,
+    """Write :func:`ply_bytes` of the arguments to ``path``."""
+    Path(path).write_bytes(ply_bytes(points, triangles, encoding, colours))
+
+
+def ply_bytes(points: np.ndarray, triangles: np.ndarray | None = None, encoding: str = "binary_little_endian",
+              colours: np.ndarray | None = None) -> bytes:
+    """A PLY file of points (n, 3), optional triangles (m, 3) and colours (n, 3) in 0-1 (``ascii``,
     ``binary_little_endian`` or ``binary_big_endian``): float32 x y z, uchar red green blue, faces as
     ``uchar``-counted ``int`` lists."""
     points = np.asarray(points, dtype=np.float64)
@@ -442,22 +448,22 @@ def write_ply(path: str | Path, points: np.ndarray, triangles: np.ndarray | None
     if len(triangles):
         header.append(f"element face {len(triangles)}\nproperty list uchar int vertex_indices\n")
     header.append("end_header\n")
-    with open(path, "wb") as stream:
-        stream.write("".join(header).encode("ascii"))
-        if encoding == "ascii":
-            rows = [f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in points]
-            if rgb is not None:
-                rows = [f"{row} {r} {g} {b}" for row, (r, g, b) in zip(rows, rgb)]
-            stream.write("".join(row + "\n" for row in rows).encode("ascii"))
-            stream.write("".join(f"3 {a} {b} {c}\n" for a, b, c in triangles).encode("ascii"))
-            return
-        order = _PLY_FORMATS[encoding]
-        if rgb is None:
-            stream.write(points.astype(order + "f4").tobytes())
-        else:
-            table = np.zeros(len(points), np.dtype([("p", order + "f4", (3,)), ("c", "u1", (3,))]))
-            table["p"], table["c"] = points, rgb
-            stream.write(table.tobytes())
-        faces = np.zeros(len(triangles), np.dtype([("n", "u1"), ("i", order + "i4", (3,))]))
-        faces["n"], faces["i"] = 3, triangles
-        stream.write(faces.tobytes())
+    parts = ["".join(header).encode("ascii")]
+    if encoding == "ascii":
+        rows = [f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in points]
+        if rgb is not None:
+            rows = [f"{row} {r} {g} {b}" for row, (r, g, b) in zip(rows, rgb)]
+        parts.append("".join(row + "\n" for row in rows).encode("ascii"))
+        parts.append("".join(f"3 {a} {b} {c}\n" for a, b, c in triangles).encode("ascii"))
+        return b"".join(parts)
+    order = _PLY_FORMATS[encoding]
+    if rgb is None:
+        parts.append(points.astype(order + "f4").tobytes())
+    else:
+        table = np.zeros(len(points), np.dtype([("p", order + "f4", (3,)), ("c", "u1", (3,))]))
+        table["p"], table["c"] = points, rgb
+        parts.append(table.tobytes())
+    faces = np.zeros(len(triangles), np.dtype([("n", "u1"), ("i", order + "i4", (3,))]))
+    faces["n"], faces["i"] = 3, triangles
+    parts.append(faces.tobytes())
+    return b"".join(parts)

@@ -1,4 +1,4 @@
-"""STL files (binary and ASCII): the triangle mesh a sculpting or 3D-printing tool writes of a head.
+"""STL files (binary and ASCII; binary written): the triangle mesh a sculpting or 3D-printing tool writes of a head.
 
 An animatronic head's skin is sculpted and cast from printed moulds, so its mesh often exists only as STL. STL
 gives each triangle its own three corners; corners written with the same coordinates are welded into one vertex
@@ -43,6 +43,21 @@ def weld(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
     return flat[first[order]], rank[inverse.reshape(-1)].reshape(-1, 3)
+
+
+def stl_bytes(vertices: np.ndarray, triangles: np.ndarray, header: str = "") -> bytes:
+    """A binary STL file of a triangle mesh (vertices (n, 3), triangles (m, 3)): float32 corners, unit normals
+    (zero for a triangle without area), ``header`` (ASCII, at most 80 characters; never beginning with
+    ``solid``, which readers take for ASCII)."""
+    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(triangles, dtype=np.int64)]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    records = np.zeros(len(corners), _RECORD)
+    records["normal"] = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+    records["corners"] = corners
+    text = header.encode("ascii")[:80]
+    text = b"binary " + text[:73] if text.lower().startswith(b"solid") else text
+    return text.ljust(_HEADER, b" ") + np.uint32(len(corners)).tobytes() + records.tobytes()
 
 
 def _is_binary(data: bytes) -> bool:
