@@ -76,6 +76,10 @@ def test_export_refuses_another_mesh_and_files_already_there(tmp_path, rng):
     other.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     assert_cli_refused(runner.invoke(main, [*export, "--like", str(other), "--units", "cm"]), "other.obj",
                        "not the basis's mesh")
+    stl = tmp_path / "head.stl"
+    stl.write_bytes(b"\0" * 84)
+    assert_cli_refused(runner.invoke(main, [*export, "--like", str(stl), "--units", "cm"]), "head.stl", "--like",
+                       "not an OBJ")
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
     assert runner.invoke(main, export).exit_code == 0
     before = (tmp_path / "out" / "jaw.obj").read_bytes()

@@ -51,6 +51,10 @@ def export(basis_file, folder: Path, like: Path | None, units: str, force: bool)
     from livebridge.errors import InputError
     from livebridge.face.basis_export import export_basis, export_files
 
+    if like is not None and like.suffix.lower() != ".obj":
+        raise InputError(f"not an OBJ: the layout kept is an OBJ's (texture coordinates, polygons, materials), and "
+                         f"a {like.suffix or 'suffix-less'} file has none; leave --like out to write triangles",
+                         like, "--like")
     loaded = load_basis(basis_file)
     there = [path.name for path in export_files(loaded, folder) if path.exists()]
     if there and not force:
