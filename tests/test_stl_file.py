@@ -151,3 +151,12 @@ def test_au_meshes_of_an_stl_head_are_written_in_its_units_as_obj_ply_or_stl(tmp
                                             str(tmp_path / "au12.txt")])
     assert refused.exit_code != 0 and "au12.txt" in refused.output and ".stl" in refused.output
     assert not (tmp_path / "au12.txt").exists()
+
+
+def test_corners_at_minus_zero_weld_with_those_at_zero():
+    from livebridge.retarget.stl_file import weld
+
+    corners = np.array([[[0, 0, -0.0], [1, 0, 0], [0, 1, 0]], [[0, 0, 0], [0, 1, 0], [-1, 0, 0]]], np.float32)
+    vertices, triangles = weld(corners)
+    np.testing.assert_array_equal(vertices, [[0, 0, 0], [1, 0, 0], [0, 1, 0], [-1, 0, 0]])
+    np.testing.assert_array_equal(triangles, [[0, 1, 2], [0, 2, 3]])
