@@ -14,6 +14,7 @@ from livebridge.retarget.landmarks import load_landmark_set
 from livebridge.retarget.ply_file import write_ply
 from livebridge.retarget.scan import read_scan
 
+GRID = (40, 40)
 _RECORD = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
 
 
@@ -160,3 +161,30 @@ def test_corners_at_minus_zero_weld_with_those_at_zero():
     vertices, triangles = weld(corners)
     np.testing.assert_array_equal(vertices, [[0, 0, 0], [1, 0, 0], [0, 1, 0], [-1, 0, 0]])
     np.testing.assert_array_equal(triangles, [[0, 1, 2], [0, 2, 3]])
+
+
+def test_stl_scans_build_the_basis_their_mesh_builds(tmp_path, face):
+    """A neutral and a smile scanned as STL meshes (no colour): the same grid and element as the meshes
+    themselves give (the STL's float32 corners aside)."""
+    from livebridge.retarget.face_scan import prepare_expression, prepare_neutral
+    from livebridge.retarget.scan import Scan
+    from livebridge.retarget.scans import basis_from_scans
+    from livebridge.retarget.stl_file import stl_bytes
+
+    shapes = {"neutral": face.neutral, "smile": face.neutral + face.elements[face.index("zygomatic_major_L")]}
+    marks = {name: load_landmark_set("builtin-22").as_dict(shape, face.triangles) for name, shape in shapes.items()}
+    for name, shape in shapes.items():
+        (tmp_path / f"{name}.stl").write_bytes(stl_bytes(shape, face.triangles))
+    built = []
+    for scans in ({name: Scan(shape, face.triangles) for name, shape in shapes.items()},
+                  {name: read_scan(tmp_path / f"{name}.stl") for name in shapes}):
+        neutral = prepare_neutral(scans["neutral"], marks["neutral"], marks["neutral"], shape=GRID)
+        smiling = prepare_expression(scans["smile"], marks["smile"], neutral, "zygomatic_major_L")
+        built.append((neutral, basis_from_scans(neutral, {"zygomatic_major_L": smiling})))
+    (mesh_grid, from_mesh), (stl_grid, from_stl) = built
+    np.testing.assert_array_equal(stl_grid.grid.valid, mesh_grid.grid.valid)
+    motion = np.sqrt(np.mean(np.sum(from_mesh.elements[0] ** 2, axis=1)))
+    assert motion > 0.5  # mm: the smile moves the grid
+    difference = np.sqrt(np.mean(np.sum((from_stl.elements[0] - from_mesh.elements[0]) ** 2, axis=1)))
+    print(f"STL against mesh: {difference:.2e} mm RMS of {motion:.2f}")
+    assert difference < 0.01 * motion, (difference, motion)
