@@ -448,8 +448,10 @@ def check_on_points(landmarks: dict[str, np.ndarray], points: np.ndarray, source
     if far.size:
         k = int(far[np.argmax(distance[far])])
         scan_name = Path(scan).name if scan is not None else "the scan"
-        several = f"; {far.size} landmarks this far" if far.size > 1 else ""
+        others = [names[i] for i in far if i != k]
+        several = f"; {len(others)} more this far: {', '.join(others)}" if others else ""
         raise InputError(f"{distance[k]:.3g} mm from the nearest point of {scan_name} (at most "
-                         f"{LANDMARK_MAX_DISTANCE_MM:g} mm{several}): off the scan's surface or in a hole of it "
-                         "(same coordinates and units as the scan?)",
+                         f"{LANDMARK_MAX_DISTANCE_MM:g} mm{several}): off the scan's surface, in a hole of it or on "
+                         "skin it did not see (same coordinates and units as the scan? a head turned away from the "
+                         "scanner: leave out of the file the landmarks it could not see)",
                          source, names[k])
