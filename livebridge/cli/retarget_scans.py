@@ -10,10 +10,10 @@ from livebridge.cli._options import FiniteFloat, InputPath, Named, OutputFile, S
 from livebridge.cli.landmarks import UNITS_TO_MM
 from livebridge.cli.retarget import check_size
 
-SCAN_HELP = ("Scans: PLY (ascii or binary, point cloud or mesh), OBJ, or XYZ/CSV text (x y z per line), with "
-             "colour when the scanner recorded it: per point (PLY red/green/blue, OBJ v x y z r g b, XYZ r g b "
-             "columns) or as a textured OBJ mesh (vt coordinates, mtllib with map_Kd images next to it) or PLY mesh "
-             "(comment TextureFile images next to it, face texcoord or vertex s t). "
+SCAN_HELP = ("Scans: PLY (ascii or binary, point cloud or mesh), OBJ, STL (a mesh), or XYZ/CSV text (x y z per "
+             "line), with colour when the scanner recorded it: per point (PLY red/green/blue, OBJ v x y z r g b, "
+             "XYZ r g b columns) or as a textured OBJ mesh (vt coordinates, mtllib with map_Kd images next to it) or "
+             "PLY mesh (comment TextureFile images next to it, face texcoord or vertex s t). "
              "Landmarks: "
              "a CSV of name,x,y,z rows, a TOML of name = [x, y, z] lines, or a MeshLab PickPoints file (.pp; "
              "'livebridge landmarks template' writes the names to pick), in the scan's coordinates and units; "
