@@ -16,7 +16,7 @@ import numpy as np
 
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
-from livebridge.face.meshio import edge_counts, vertex_normals
+from livebridge.face.meshio import edge_counts, triangle_normals, vertex_normals
 from livebridge.retarget.inner_parts import BoneParts, bone_parts, jaw_turners, on_bones
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points
 from livebridge.retarget.tps import Kernel, ThinPlateSpline, fit_tps
@@ -42,6 +42,10 @@ PAIR_SPACING = 0.01
 NORMAL_WEIGHT = 0.25
 """Weight of a difference of unit normals against distance when a surface pin finds its partner on the other
 surface (:class:`SurfaceMatcher`), as a fraction of the landmarks' extent."""
+PAIR_GAP, PAIR_RIM_GAP = COVERED, UNCOVERED
+"""A surface sample carried past the other surface's outline by more than the first of these fractions of the
+landmarks' extent (the second for a sample on its own surface's rim) has no partner there and pins nothing
+(:func:`surface_splines`)."""
 SLIDE_LIMIT = 0.04
 """Farthest a surface pin slides along the surface from its closest point towards its like-facing match
 (:class:`SurfaceMatcher`), as a fraction of the landmarks' extent: a different face's cheek may bend like a
@@ -187,10 +191,15 @@ def surface_splines(source_points: np.ndarray, target_points: np.ndarray, source
     onto_source_surface = SurfaceMatcher(source_mesh, NORMAL_WEIGHT * source_extent)
     onto_target_surface = SurfaceMatcher(target_mesh, NORMAL_WEIGHT * extent)
     for _ in range(rounds):
-        onto_target = onto_target_surface.carry(*source_samples, to_target)
-        onto_source = onto_source_surface.carry(*target_samples, to_source)
-        pairs_source = np.vstack([source_points, source_samples[0], onto_source])
-        pairs_target = np.vstack([target_points, onto_target, target_samples[0]])
+        onto_target, off_target = onto_target_surface.carry(*source_samples[:2], to_target)
+        onto_source, _ = onto_source_surface.carry(*target_samples[:2], to_source)
+        # a source sample carried past the target's outline (a face mask's sides onto a scan cropped tighter) has
+        # no partner there: pinned to the rim tens of mm off, it folds the splines. A target sample past the
+        # source's outline (a whole head's scalp) stays pinned to the source's rim: its correspondence is the
+        # rim's point anyway, its motion faded (uncovered_fade), and the pins keep the splines tame out there.
+        on_target = _partnered(off_target, source_samples[2], extent)
+        pairs_source = np.vstack([source_points, source_samples[0][on_target], onto_source])
+        pairs_target = np.vstack([target_points, onto_target[on_target], target_samples[0]])
         keep = spaced(pairs_source, pairs_target, spacing, first=len(source_points))
         to_target = fit_tps(pairs_source[keep], pairs_target[keep], kernel, smoothing(kernel, extent))
         to_source = fit_tps(pairs_target[keep], pairs_source[keep], kernel, smoothing(kernel, source_extent))
@@ -220,8 +229,17 @@ def covered_region(target_mesh, to_source: ThinPlateSpline, source_mesh, source_
     return np.asarray(source_region, dtype=bool)[used[nearest]]
 
 
-def spread_surface_points(mesh, n: int, region: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(points (k, 3), unit normals (k, 3)) at ``k <= n`` vertices of ``mesh`` spread by farthest-point sampling.
+def _partnered(off: np.ndarray, on_rim: np.ndarray, extent: float) -> np.ndarray:
+    """Which carried samples (k,) have a partner on the other surface: the offset ``off`` (k,) of each past the
+    other surface's outline within :data:`PAIR_GAP` of ``extent``, or within :data:`PAIR_RIM_GAP` for a sample
+    on its own surface's rim (``on_rim`` (k,) bool: two outlines of one topology meet rim to rim)."""
+    return off <= np.where(on_rim, PAIR_RIM_GAP, PAIR_GAP) * extent
+
+
+def spread_surface_points(mesh, n: int, region: np.ndarray | None = None
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points (k, 3), unit normals (k, 3), on the mesh's rim (k,) bool) at ``k <= n`` vertices of ``mesh`` spread
+    by farthest-point sampling.
 
     Only vertices of some triangle count, and of ``region`` (n_vertices,) bool when it holds at least 4 of
     them; deterministic (starts at the lowest vertex).
@@ -239,7 +257,10 @@ def spread_surface_points(mesh, n: int, region: np.ndarray | None = None) -> tup
         offsets = points - points[chosen[-1]]
         np.minimum(distance, np.einsum("nd,nd->n", offsets, offsets), out=distance)
     normals = vertex_normals(vertices, triangles)[used]
-    return points[chosen], normals[chosen]
+    edges, counts = edge_counts(triangles)
+    rim = np.zeros(len(vertices), bool)
+    rim[edges[counts == 1].ravel()] = True
+    return points[chosen], normals[chosen], rim[used][chosen]
 
 
 class SurfaceMatcher:
@@ -273,8 +294,9 @@ class SurfaceMatcher:
         self.tree = cKDTree(np.hstack([self.points, self.normal_scale * facing]), balanced_tree=False,
                             compact_nodes=False)
 
-    def carry(self, points: np.ndarray, normals: np.ndarray, spline: ThinPlateSpline) -> np.ndarray:
-        """``spline(points)`` matched onto the surface, shape (k, 3).
+    def carry(self, points: np.ndarray, normals: np.ndarray, spline: ThinPlateSpline) -> tuple[np.ndarray, np.ndarray]:
+        """(``spline(points)`` matched onto the surface (k, 3), the distance (k,) of each carried point from its
+        closest surface point facing its way).
 
         ``normals`` (k, 3) are the points' unit normals; the spline turns them by the inverse transpose of its
         Jacobian.
@@ -284,20 +306,29 @@ class SurfaceMatcher:
         carried = spline(points)
         _, index = self.tree.query(np.hstack([carried, self.normal_scale * turned]))
         matched = self.points[index]
-        if SLIDE_LIMIT <= 0:
-            return matched
         vertices, triangles = self.mesh
         triangle, barycentric, _ = closest_surface_points(carried, vertices, triangles, normals=turned)
         closest = np.einsum("nk,nkd->nd", barycentric, vertices[triangles[triangle]])
+        off = _beside(carried - closest, triangle_normals(vertices, triangles[triangle]))
+        if SLIDE_LIMIT <= 0:
+            return matched, off
         slide = matched - closest
         length = np.linalg.norm(slide, axis=1, keepdims=True)
         far = length[:, 0] > self.slide_limit
         if not far.any():
-            return matched
+            return matched, off
         capped = closest[far] + slide[far] * (self.slide_limit / length[far])
         triangle, barycentric, _ = closest_surface_points(capped, vertices, triangles, normals=turned[far])
         matched[far] = np.einsum("nk,nkd->nd", barycentric, vertices[triangles[triangle]])
-        return matched
+        return matched, off
+
+
+def _beside(offsets: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Length (k,) of each offset (k, 3) from a closest surface point along that surface (its triangle's unit
+    normal (k, 3) taken out): zero where the point lies above or below the surface, the distance past its rim
+    where it lies beyond the outline."""
+    along = offsets - np.einsum("kd,kd->k", offsets, normals)[:, None] * normals
+    return np.linalg.norm(along, axis=1)
 
 
 def spaced(source: np.ndarray, target: np.ndarray, spacing: float, first: int) -> np.ndarray:
