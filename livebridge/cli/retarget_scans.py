@@ -9,6 +9,7 @@ import click
 from livebridge.cli._options import FiniteFloat, InputPath, Named, OutputFile, Size, force_option, unique_names
 from livebridge.cli.landmarks import UNITS_TO_MM
 from livebridge.cli.retarget import check_size
+from livebridge.retarget.landmarks import SHIPPED_LANDMARK_SETS
 
 SCAN_HELP = ("Scans: PLY (ascii or binary, point cloud or mesh), OBJ, STL (a mesh), or XYZ/CSV text (x y z per "
              "line), with colour when the scanner recorded it: per point (PLY red/green/blue, OBJ v x y z r g b, "
@@ -88,13 +89,19 @@ def reference_landmarks(spec: str, scale: float) -> dict:
               help="A mesh scan is sampled into points this far apart, mm (default 0.5, the skin images' pixel; a "
                    "finer texture is blurred to it): its vertices, dense where it curves and sparse where it "
                    "does not, are no even sample of its surface.")
+@click.option("--fill-from", "template_spec", type=InputPath(builtins=("builtin",)), default=None,
+              help="Complete the basis: every muscle of this basis ('builtin' or .npz) that no --expression shows is "
+                   "retargeted onto the scanned neutral (it moves as that face's does, not as this person's).")
+@click.option("--fill-landmarks", type=InputPath(builtins=SHIPPED_LANDMARK_SETS), default=None,
+              help="Landmarks on the --fill-from face (default builtin-22 for 'builtin'); the neutral scan's "
+                   "landmarks must name them all.")
 @click.option("--workers", type=click.IntRange(1, 256), default=None,
               help="Expression scans prepared at once, each in its own process holding one scan (about 1.2 GB a "
                    "million points). Default: one per core, as many as the free memory holds, when the expression "
                    "scans are over 8 MB in all (smaller ones prepare faster than processes start).")
 def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: Path, force: bool, reference: str,
           method: str, frame: str, grid_size, crop_radius, units: str, kernel: str, grid_obj, landmarks_out,
-          mesh_spacing: float | None, workers: int | None) -> None:
+          mesh_spacing: float | None, template_spec, fill_landmarks, workers: int | None) -> None:
     """Build an actuation basis for a scanned person from a neutral scan and one scan per muscle.
 
     Each scan is normalised (nose tip at the origin, facing +z), cropped to the face and resampled on a
@@ -120,6 +127,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
         if same:  # the later file would overwrite the earlier
             raise click.BadParameter(f"{path}: {same[0]} writes there already; give each output its own file",
                                      param_hint=option)
+    template = _template(template_spec, fill_landmarks)
     if neutral_landmarks is None:  # as for an expression's SCAN without :LANDMARKS
         neutral_landmarks = split_scan_spec(str(neutral_scan))[1]
         if not neutral_landmarks.exists():
@@ -165,6 +173,14 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
         click.echo(f"warning: {neutral_scan.name}: {off_neutral}")
     click.echo("building the elements")
     basis = basis_from_scans(neutral, faces, kernel, log=click.echo)
+    filled = ()
+    if template is not None:
+        from livebridge.retarget.fill import fill_basis
+
+        click.echo(f"retargeting the muscles no scan shows from {template_spec}")
+        completed = fill_basis(basis, neutral.landmark_set(neutral_landmarks), template[0], template[1], kernel,
+                               template[2])
+        basis, filled = completed.basis, completed.filled
     saved = in_scan_frame(basis, neutral) if frame == "scan" else basis
     saved.save(out)
     if grid_obj is not None:
@@ -175,9 +191,12 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
     click.echo(f"wrote {out}: {basis.n_muscles} elements on {basis.n_vertices} grid vertices "
                f"({columns}x{rows}, normalise {method}, kernel {kernel}, {frame} frame)")
     for muscle, size in zip(basis.muscles, largest):
-        how = "shape only" if muscle.name in uncoloured else "skin tracked"
+        how = (f"retargeted from {template_spec}" if muscle.name in filled else
+               "shape only" if muscle.name in uncoloured else "skin tracked")
         click.echo(f"  {muscle.name:24s} {muscle.region:5s} largest motion {size:6.2f} mm  ({how})")
     for muscle, element in zip(basis.muscles, basis.elements):
+        if muscle.name in filled:
+            continue
         why = misplaced(muscle, element, neutral.vertices, neutral.landmarks)
         if why is not None:
             click.echo(f"warning: {muscle.name}: {why}")
@@ -186,6 +205,27 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
         click.echo(f"note: no colour in {which}: the motion along the skin (most of a brow raise or a smile) is "
                    "then known only at the landmarks (and a closing eyelid's from the eye opening); scans with "
                    "colour (per point, or a textured OBJ or PLY) let it be tracked everywhere")
+
+
+def _template(spec, landmarks_spec):
+    """(template basis, its landmarks, their spec) of ``--fill-from`` / ``--fill-landmarks``, or None; read
+    before any scan."""
+    if spec is None:
+        if landmarks_spec is not None:
+            raise click.BadParameter("it names landmarks on the --fill-from face: give --fill-from too",
+                                     param_hint="--fill-landmarks")
+        return None
+    from livebridge.cli.markers import load_basis
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    if landmarks_spec is None:
+        if spec != "builtin":
+            raise click.BadParameter(f"which landmarks on {spec}? give --fill-landmarks (e.g. ict-22, or a file "
+                                     "from `livebridge landmarks place`)", param_hint="--fill-landmarks")
+        landmarks_spec = "builtin-22"
+    template = load_basis(spec)
+    landmarks = load_landmark_set(landmarks_spec).checked_on(len(template.triangles), landmarks_spec)
+    return template, landmarks, landmarks_spec
 
 
 OFF_FACE_NOTE = 0.001
