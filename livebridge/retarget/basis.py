@@ -43,9 +43,14 @@ NORMAL_WEIGHT = 0.25
 """Weight of a difference of unit normals against distance when a surface pin finds its partner on the other
 surface (:class:`SurfaceMatcher`), as a fraction of the landmarks' extent."""
 PAIR_GAP, PAIR_RIM_GAP = COVERED, UNCOVERED
-"""A surface sample carried past the other surface's outline by more than the first of these fractions of the
-landmarks' extent (the second for a sample on its own surface's rim) has no partner there and pins nothing
-(:func:`surface_splines`)."""
+"""A source sample carried past the target's outline by more than the first of these fractions of the landmarks'
+extent (the second for a sample on the source's own rim: two outlines of one topology meet rim to rim) has no
+partner there and pins nothing (:func:`surface_splines`)."""
+TARGET_PAIR_GAP = 0.12
+"""A target sample carried past the source's outline by more than this fraction of the landmarks' extent pins
+nothing: a whole face beyond a scan's tight crop, pinned to the crop's rim, stretched a scanned person's jaw 2-4x
+onto their own face. Nearer, it stays pinned to the rim (a whole head's mouth bag onto a face's lips: without
+those pins ICT's smile on its whole head was 0.45 off instead of 0.29)."""
 SLIDE_LIMIT = 0.04
 """Farthest a surface pin slides along the surface from its closest point towards its like-facing match
 (:class:`SurfaceMatcher`), as a fraction of the landmarks' extent: a different face's cheek may bend like a
@@ -192,14 +197,14 @@ def surface_splines(source_points: np.ndarray, target_points: np.ndarray, source
     onto_target_surface = SurfaceMatcher(target_mesh, NORMAL_WEIGHT * extent)
     for _ in range(rounds):
         onto_target, off_target = onto_target_surface.carry(*source_samples[:2], to_target)
-        onto_source, _ = onto_source_surface.carry(*target_samples[:2], to_source)
-        # a source sample carried past the target's outline (a face mask's sides onto a scan cropped tighter) has
-        # no partner there: pinned to the rim tens of mm off, it folds the splines. A target sample past the
-        # source's outline (a whole head's scalp) stays pinned to the source's rim: its correspondence is the
-        # rim's point anyway, its motion faded (uncovered_fade), and the pins keep the splines tame out there.
+        onto_source, off_source = onto_source_surface.carry(*target_samples[:2], to_source)
+        # a sample carried past the other surface's outline (a face mask's sides onto a scan cropped tighter, a
+        # whole face onto a scan's crop) has no partner there: pinned to the rim tens of mm off, it folds the
+        # splines
         on_target = _partnered(off_target, source_samples[2], extent)
-        pairs_source = np.vstack([source_points, source_samples[0][on_target], onto_source])
-        pairs_target = np.vstack([target_points, onto_target[on_target], target_samples[0]])
+        on_source = off_source <= TARGET_PAIR_GAP * source_extent
+        pairs_source = np.vstack([source_points, source_samples[0][on_target], onto_source[on_source]])
+        pairs_target = np.vstack([target_points, onto_target[on_target], target_samples[0][on_source]])
         keep = spaced(pairs_source, pairs_target, spacing, first=len(source_points))
         to_target = fit_tps(pairs_source[keep], pairs_target[keep], kernel, smoothing(kernel, extent))
         to_source = fit_tps(pairs_target[keep], pairs_source[keep], kernel, smoothing(kernel, source_extent))
