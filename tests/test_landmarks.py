@@ -353,3 +353,27 @@ def test_landmarks_of_one_mesh_are_refused_on_another_naming_the_file(tmp_path, 
                                        str(tmp_path / "lm.png")])
     assert_cli_refused(result, "placed.toml" if landmarks == "placed" else "builtin-22",
                        f"made for a mesh of {len(face.triangles)} triangles")
+
+
+def test_landmarks_move_off_a_small_hole_s_rim_but_not_off_an_opening():
+    """On a flat 10 x 10 grid (1 mm) with one cell's two triangles missing, a landmark on the hole's rim moves to
+    whole surface within one edge; an opening's landmark (a mouth corner) stays where it was placed."""
+    from livebridge.retarget.checks import check_landmarks_on, moved_off_rims
+    from livebridge.retarget.landmarks import place_at_points
+
+    i, j = np.meshgrid(np.arange(11), np.arange(11), indexing="ij")
+    vertices = np.column_stack([i.ravel(), j.ravel(), np.zeros(i.size)]).astype(float)
+    index = np.arange(121).reshape(11, 11)
+    triangles = [(index[a, b], index[a + 1, b], index[a + 1, b + 1]) for a in range(10) for b in range(10)]
+    triangles += [(index[a, b], index[a + 1, b + 1], index[a, b + 1]) for a in range(10) for b in range(10)]
+    triangles = np.array([t for t in triangles if not (5 in (t[0] // 11,) and 5 == t[0] % 11)])  # cell (5, 5) out
+    assert len(triangles) == 198
+    at = {"brow_middle_L": np.array([5.5, 4.9, 0.0]), "mouth_corner_L": np.array([5.3, 6.1, 0.0])}
+    placed = place_at_points(at, vertices, triangles, 1.0)
+    with pytest.raises(InputError, match="rim of a hole"):
+        check_landmarks_on(placed, vertices, triangles, "lm.toml")
+    moved = moved_off_rims(placed, vertices, triangles)
+    positions = moved.positions(vertices, triangles)
+    assert np.linalg.norm(positions[0] - at["brow_middle_L"]) <= 1.0  # within one edge
+    np.testing.assert_array_equal(positions[1], placed.positions(vertices, triangles)[1])
+    check_landmarks_on(moved, vertices, triangles, "lm.toml")

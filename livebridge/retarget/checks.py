@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from livebridge.errors import InputError
@@ -153,6 +155,35 @@ def check_landmarks_on(landmarks: LandmarkSet, vertices: np.ndarray, triangles: 
                          f"than two triangles (the first between vertices {int(bad[0][0])} and {int(bad[0][1])}, "
                          f"{np.linalg.norm(positions - middle, axis=1).min():.1f} mm from this landmark); "
                          "repair the mesh (e.g. split the fan) and place the landmarks again", source, nearest)
+
+
+def moved_off_rims(landmarks: LandmarkSet, vertices: np.ndarray, triangles: np.ndarray) -> LandmarkSet:
+    """``landmarks`` with each one on a triangle at the rim of a hole (besides those of the openings,
+    :data:`OPENING_LANDMARKS`) moved to the nearest point of a triangle off every rim, when that lies within one
+    median edge of it: a scan's grid has small holes where its scan had none of its points (dark brows), and a
+    landmark on their rim would be refused by :func:`check_landmarks_on` in every transfer."""
+    from livebridge.face.meshio import edge_counts
+    from livebridge.retarget.landmarks import closest_surface_points
+
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    edges, counts = edge_counts(_proper(triangles))
+    on_rim = np.zeros(len(vertices), bool)
+    on_rim[edges[counts == 1].ravel()] = True
+    rim_triangles = on_rim[triangles].any(axis=1)
+    moving = [k for k, name in enumerate(landmarks.names)
+              if rim_triangles[landmarks.triangles[k]] and not name.startswith(OPENING_LANDMARKS)]
+    inner = np.flatnonzero(~rim_triangles & surface_triangles(vertices, triangles))
+    if not moving or not len(inner):
+        return landmarks
+    positions = landmarks.positions(vertices, triangles)[moving]
+    triangle, barycentric, distance = closest_surface_points(positions, vertices, triangles[inner])
+    edge = float(np.median(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)))
+    new_triangles, new_barycentric = landmarks.triangles.copy(), landmarks.barycentric.copy()
+    for k, t, b, d in zip(moving, inner[triangle], barycentric, distance):
+        if d <= edge:
+            new_triangles[k], new_barycentric[k] = t, b
+    return dataclasses.replace(landmarks, triangles=new_triangles, barycentric=new_barycentric)
 
 
 def check_faces(triangles: np.ndarray, n_points: int, path) -> None:

@@ -174,8 +174,12 @@ class FaceScan:
 
     def landmark_set(self, source=None) -> LandmarkSet:
         """The landmarks at their closest points of the grid mesh (an error names any farther than
-        :data:`LANDMARK_MAX_DISTANCE_MM`: off the crop or in a hole)."""
-        return place_at_points(self.landmarks, self.vertices, self.triangles, LANDMARK_MAX_DISTANCE_MM, source)
+        :data:`LANDMARK_MAX_DISTANCE_MM`: off the crop or in a hole), moved off the rims of the grid's small
+        holes (:func:`~livebridge.retarget.checks.moved_off_rims`), where a transfer would refuse them."""
+        from livebridge.retarget.checks import moved_off_rims
+
+        placed = place_at_points(self.landmarks, self.vertices, self.triangles, LANDMARK_MAX_DISTANCE_MM, source)
+        return moved_off_rims(placed, self.vertices, self.triangles)
 
 
 def crop_radius(landmarks: dict[str, np.ndarray]) -> float:
