@@ -186,14 +186,14 @@ def test_a_dense_target_averaged_over_cells_gets_the_elements_its_own_edges_give
 
     import livebridge.retarget.basis as basis_module
     from livebridge.bench.retarget import warped_basis
-    from livebridge.face.meshio import edge_counts
+    from livebridge.face.meshio import edge_counts, median_edge_length
     from livebridge.retarget.landmarks import load_landmark_set, place_at_points
 
     landmarks = load_landmark_set("ict-22")
     truth = warped_basis(ict, landmarks.as_dict(ict.neutral, ict.triangles))
     vertices, triangles = split_triangles(truth.neutral, truth.triangles)
     edges, _ = edge_counts(triangles)
-    assert basis_module._median_length(vertices, edges) < basis_module.DIFFUSION_CELL * 15.0  # the cells are used
+    assert median_edge_length(vertices, edges) < basis_module.DIFFUSION_CELL * 15.0  # the cells are used
     on_target = place_at_points(landmarks.as_dict(truth.neutral, truth.triangles), vertices, triangles, 1e-6)
     cells = retarget_basis(ict, landmarks, vertices, triangles, on_target).elements[:, :len(truth.neutral)]
     monkeypatch.setattr(basis_module, "DIFFUSION_CELL", 0.0)  # every step over the mesh's own edges

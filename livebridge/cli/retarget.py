@@ -119,10 +119,10 @@ def au(source_spec, source_landmarks, expression_spec, expression_landmarks, tar
     transfer = prepare_transfer(points, parse_aus(aus), source, on_source, (vertices, triangles), on_target, sides,
                                 kernel, expression)
     moved = transfer.mesh(magnitude)
-    from_file = Path(target_spec).suffix.lower() in MESH_SUFFIXES
-    as_target = (Path(target_spec).suffix.lower() == ".obj" and out.suffix.lower() == ".obj"
+    target_suffix = Path(target_spec).suffix.lower()
+    as_target = (target_suffix == ".obj" and out.suffix.lower() == ".obj"
                  and save_moved_obj(out, target_spec, moved, UNITS_TO_MM[units]))
-    written_units = units if from_file else "mm"
+    written_units = units if target_suffix in MESH_SUFFIXES else "mm"
     if not as_target:
         save_mesh(out, moved, triangles, UNITS_TO_MM[written_units], written_units)
     written = (f"the target's own file moved, in {units} (its texture coordinates, polygons and materials kept, "

@@ -178,8 +178,9 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
         from livebridge.retarget.fill import fill_basis
 
         click.echo(f"retargeting the muscles no scan shows from {template_spec}")
-        completed = fill_basis(basis, neutral.landmark_set(neutral_landmarks), template[0], template[1], kernel,
-                               template[2])
+        template_basis, template_landmarks, template_landmarks_spec = template
+        completed = fill_basis(basis, neutral.landmark_set(neutral_landmarks), template_basis, template_landmarks,
+                               kernel, template_landmarks_spec)
         basis, filled = completed.basis, completed.filled
     saved = in_scan_frame(basis, neutral) if frame == "scan" else basis
     saved.save(out)

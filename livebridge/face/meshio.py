@@ -52,6 +52,19 @@ def edge_counts(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([keys // base, keys % base], axis=1), counts
 
 
+def rim_vertices(triangles: np.ndarray) -> np.ndarray:
+    """Vertex ids (k,) on an edge only one triangle has: the rims of a mesh's outline and of its holes."""
+    edges, counts = edge_counts(triangles)
+    return np.unique(edges[counts == 1])
+
+
+def median_edge_length(vertices: np.ndarray, edges: np.ndarray) -> float:
+    """The median length of ``edges`` (k, 2) between ``vertices`` (n, 3); 0 with no edge."""
+    if not len(edges):
+        return 0.0
+    return float(np.median(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)))
+
+
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals, of one mesh or a batch of deformations of it.
 

@@ -69,7 +69,6 @@ class FaceRegions:
         return points @ self.up > self.border
 
 
-
 def _require(landmarks: dict, names) -> None:
     missing = [n for n in names if n not in landmarks]
     if missing:

@@ -16,7 +16,7 @@ import numpy as np
 
 from livebridge.errors import InputError
 from livebridge.face.basis import Basis
-from livebridge.face.meshio import edge_counts, triangle_normals, vertex_normals
+from livebridge.face.meshio import edge_counts, median_edge_length, rim_vertices, triangle_normals, vertex_normals
 from livebridge.retarget.inner_parts import BoneParts, bone_parts, jaw_turners, on_bones
 from livebridge.retarget.landmarks import LandmarkSet, closest_surface_points
 from livebridge.retarget.tps import Kernel, ThinPlateSpline, fit_tps
@@ -149,7 +149,7 @@ def inside_boundary(vertices: np.ndarray, triangles: np.ndarray, step: float = B
     from scipy.spatial import cKDTree
 
     twin_distance = cKDTree(vertices[boundary]).query(vertices[boundary], k=2)[0][:, 1]
-    edge = float(np.median(np.linalg.norm(vertices[unique[:, 0]] - vertices[unique[:, 1]], axis=1)))
+    edge = median_edge_length(vertices, unique)
     boundary = boundary[twin_distance < 0.1 * edge]
     if not len(boundary):
         return vertices
@@ -193,6 +193,7 @@ def surface_splines(source_points: np.ndarray, target_points: np.ndarray, source
                                                                          source_region)
     source_samples = spread_surface_points(source_mesh, samples, source_region)
     target_samples = spread_surface_points(target_mesh, samples, target_region)
+    source_on_rim = np.isin(source_samples[2], rim_vertices(source_mesh[1]))
     onto_source_surface = SurfaceMatcher(source_mesh, NORMAL_WEIGHT * source_extent)
     onto_target_surface = SurfaceMatcher(target_mesh, NORMAL_WEIGHT * extent)
     for _ in range(rounds):
@@ -201,7 +202,7 @@ def surface_splines(source_points: np.ndarray, target_points: np.ndarray, source
         # a sample carried past the other surface's outline (a face mask's sides onto a scan cropped tighter, a
         # whole face onto a scan's crop) has no partner there: pinned to the rim tens of mm off, it folds the
         # splines
-        on_target = _partnered(off_target, source_samples[2], extent)
+        on_target = _partnered(off_target, source_on_rim, extent)
         on_source = off_source <= TARGET_PAIR_GAP * source_extent
         pairs_source = np.vstack([source_points, source_samples[0][on_target], onto_source[on_source]])
         pairs_target = np.vstack([target_points, onto_target[on_target], target_samples[0][on_source]])
@@ -243,8 +244,8 @@ def _partnered(off: np.ndarray, on_rim: np.ndarray, extent: float) -> np.ndarray
 
 def spread_surface_points(mesh, n: int, region: np.ndarray | None = None
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(points (k, 3), unit normals (k, 3), on the mesh's rim (k,) bool) at ``k <= n`` vertices of ``mesh`` spread
-    by farthest-point sampling.
+    """(points (k, 3), unit normals (k, 3), vertex ids (k,)) at ``k <= n`` vertices of ``mesh`` spread by
+    farthest-point sampling.
 
     Only vertices of some triangle count, and of ``region`` (n_vertices,) bool when it holds at least 4 of
     them; deterministic (starts at the lowest vertex).
@@ -262,10 +263,7 @@ def spread_surface_points(mesh, n: int, region: np.ndarray | None = None
         offsets = points - points[chosen[-1]]
         np.minimum(distance, np.einsum("nd,nd->n", offsets, offsets), out=distance)
     normals = vertex_normals(vertices, triangles)[used]
-    edges, counts = edge_counts(triangles)
-    rim = np.zeros(len(vertices), bool)
-    rim[edges[counts == 1].ravel()] = True
-    return points[chosen], normals[chosen], rim[used][chosen]
+    return points[chosen], normals[chosen], used[chosen]
 
 
 class SurfaceMatcher:
@@ -300,8 +298,9 @@ class SurfaceMatcher:
                             compact_nodes=False)
 
     def carry(self, points: np.ndarray, normals: np.ndarray, spline: ThinPlateSpline) -> tuple[np.ndarray, np.ndarray]:
-        """(``spline(points)`` matched onto the surface (k, 3), the distance (k,) of each carried point from its
-        closest surface point facing its way).
+        """(``spline(points)`` matched onto the surface (k, 3), how far (k,) each carried point lies past the
+        surface's outline: its offset from its closest surface point facing its way, along the surface
+        (:func:`_beside`)).
 
         ``normals`` (k, 3) are the points' unit normals; the spline turns them by the inverse transpose of its
         Jacobian.
@@ -401,7 +400,7 @@ def surface_average(values: np.ndarray, vertices: np.ndarray, triangles: np.ndar
     of 128).
     """
     edges, _ = edge_counts(triangles)
-    edge = _median_length(vertices, edges)
+    edge = median_edge_length(vertices, edges)
     if edge <= 0 or reach <= 0:
         return values
     cell = DIFFUSION_CELL * reach
@@ -418,16 +417,9 @@ def surface_average(values: np.ndarray, vertices: np.ndarray, triangles: np.ndar
     coarse, centres = coarse / count, centres / count
     links = np.unique(np.sort(cluster[edges], axis=1), axis=0)
     links = links[links[:, 0] != links[:, 1]]
-    coarse = diffuse(coarse, neighbour_mean(links, len(count)), _diffusion_steps(reach, _median_length(centres, links)),
-                     0.5)
+    coarse = diffuse(coarse, neighbour_mean(links, len(count)),
+                     _diffusion_steps(reach, median_edge_length(centres, links)), 0.5)
     return diffuse(coarse[cluster], mean, _diffusion_steps(cell, edge), 0.5)
-
-
-def _median_length(vertices: np.ndarray, edges: np.ndarray) -> float:
-    """The median length of ``edges`` (k, 2) between ``vertices`` (n, 3), mm; 0 with no edge."""
-    if not len(edges):
-        return 0.0
-    return float(np.median(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)))
 
 
 def _diffusion_steps(reach: float, edge: float) -> int:

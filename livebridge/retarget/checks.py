@@ -162,15 +162,12 @@ def moved_off_rims(landmarks: LandmarkSet, vertices: np.ndarray, triangles: np.n
     :data:`OPENING_LANDMARKS`) moved to the nearest point of a triangle off every rim, when that lies within one
     median edge of it: a scan's grid has small holes where its scan had none of its points (dark brows), and a
     landmark on their rim would be refused by :func:`check_landmarks_on` in every transfer."""
-    from livebridge.face.meshio import edge_counts
+    from livebridge.face.meshio import edge_counts, median_edge_length, rim_vertices
     from livebridge.retarget.landmarks import closest_surface_points
 
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
-    edges, counts = edge_counts(_proper(triangles))
-    on_rim = np.zeros(len(vertices), bool)
-    on_rim[edges[counts == 1].ravel()] = True
-    rim_triangles = on_rim[triangles].any(axis=1)
+    rim_triangles = np.isin(triangles, rim_vertices(_proper(triangles))).any(axis=1)
     moving = [k for k, name in enumerate(landmarks.names)
               if rim_triangles[landmarks.triangles[k]] and not name.startswith(OPENING_LANDMARKS)]
     inner = np.flatnonzero(~rim_triangles & surface_triangles(vertices, triangles))
@@ -178,7 +175,7 @@ def moved_off_rims(landmarks: LandmarkSet, vertices: np.ndarray, triangles: np.n
         return landmarks
     positions = landmarks.positions(vertices, triangles)[moving]
     triangle, barycentric, distance = closest_surface_points(positions, vertices, triangles[inner])
-    edge = float(np.median(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)))
+    edge = median_edge_length(vertices, edge_counts(_proper(triangles))[0])
     new_triangles, new_barycentric = landmarks.triangles.copy(), landmarks.barycentric.copy()
     for k, t, b, d in zip(moving, inner[triangle], barycentric, distance):
         if d <= edge:

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from livebridge.face.meshio import rim_vertices
+
 CHIN_REACH = 0.2
 """The jaw's motion is read off the skin within this fraction of the face's height (eye corners' middle to
 chin) of the chin landmark."""
@@ -79,7 +81,7 @@ def bone_parts(vertices: np.ndarray, triangles: np.ndarray, landmarks) -> BonePa
         return BoneParts(none, none, none)
     label = _components(triangles, n)
     skin = np.isin(label, label[np.unique(triangles[landmarks.triangles])])
-    closed = ~np.isin(label, label[_open_edge_vertices(triangles)])
+    closed = ~np.isin(label, label[rim_vertices(triangles)])
     candidates = np.unique(label[~skin & closed & (np.bincount(triangles.ravel(), minlength=n) > 0)])
     if not len(candidates):
         return BoneParts(none, none, none)
@@ -123,14 +125,6 @@ def _components(triangles: np.ndarray, n: int) -> np.ndarray:
     edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]]])
     graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
     return connected_components(graph, directed=False)[1]
-
-
-def _open_edge_vertices(triangles: np.ndarray) -> np.ndarray:
-    """Vertex ids on an edge only one triangle has."""
-    from livebridge.face.meshio import edge_counts
-
-    edges, counts = edge_counts(triangles)
-    return np.unique(edges[counts == 1])
 
 
 def _face_axes(at: dict) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], float]:
