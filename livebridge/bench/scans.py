@@ -30,6 +30,9 @@ COLOUR_NOISE = 0.01
 """Per-point colour noise (0-1 scale)."""
 EXPOSURE = 0.05
 """Each scan's brightness is off by up to this fraction."""
+FLASH = (np.array([0.0, 0.0, 1.0]), 0.5)
+"""The lit scans' light: a scanner's flash on its viewing axis (direction towards the light in the scanner's
+frame) and the share of ambient light; the skin is Lambertian under it (see :func:`shading`)."""
 TEXTURED_NOISE_MM = 0.1
 """Vertex noise of the simulated textured meshes (a scanner's meshing smooths its points' noise)."""
 COLOUR_FOOTPRINT_MM = 1.0
@@ -77,7 +80,8 @@ class SyntheticScan:
 
 def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noise: float,
                  rng: np.random.Generator, hole: tuple[np.ndarray, float] | None = None, skin=None,
-                 exposure: float = 1.0) -> tuple[np.ndarray, np.ndarray | None]:
+                 exposure: float = 1.0, light: tuple[np.ndarray, float] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Points (<= n_points, 3) a scanner looking along -z sees on a mesh, with Gaussian noise ``noise`` mm,
     and their colours (same length, 3) when ``skin`` (a :class:`~livebridge.simulators.skin.SkinTexture` of
     the mesh's vertices) is given, else None.
@@ -85,7 +89,8 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     Area-weighted random barycentric points on the triangles facing +z; hidden ones (more than 1.5 mm behind
     the front-most surface within 0.5 mm in x-y) dropped; ``hole`` = (centre (3,), radius): no points there.
     A point's colour is the skin at its place on the mesh (barycentric in the texels of its triangle's
-    vertices) times :data:`SKIN_TONE` and ``exposure``, plus :data:`COLOUR_NOISE`.
+    vertices) times :data:`SKIN_TONE` and ``exposure``, shaded by ``light`` (:func:`shading`; None: unshaded, as
+    a texture a scanner has taken the lighting out of), plus :data:`COLOUR_NOISE`.
     """
     from scipy.ndimage import map_coordinates
 
@@ -107,8 +112,22 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
         return points, None
     texels = np.einsum("nk,nkd->nd", bary[keep], skin.vertex_texels[triangles[chosen[keep]]]).astype(np.float32)
     albedo = map_coordinates(skin.albedo, [texels[:, 1], texels[:, 0]], order=1, mode="nearest")
+    if light is not None:
+        albedo = albedo * shading(vertices, triangles, chosen[keep], bary[keep], *light)
     colours = albedo[:, None] * SKIN_TONE * exposure + rng.normal(0.0, COLOUR_NOISE, (len(points), 3))
     return points, np.clip(colours, 0.0, 1.0)
+
+
+def shading(vertices: np.ndarray, triangles: np.ndarray, triangle: np.ndarray, bary: np.ndarray,
+            towards_light: np.ndarray, ambient: float) -> np.ndarray:
+    """Lambertian shading (n,) of points on a mesh (``triangle`` (n,) ids, ``bary`` (n, 3)): ``ambient`` plus
+    the rest times the cosine between the surface's normal (interpolated from the vertices' normals, as smooth
+    as the skin) and ``towards_light`` (3,), unit, in the mesh's frame; 0 on the far side."""
+    from livebridge.face.meshio import vertex_normals
+
+    normals = np.einsum("nk,nkd->nd", bary, vertex_normals(vertices, triangles)[triangles[triangle]])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return ambient + (1.0 - ambient) * np.clip(normals @ towards_light, 0.0, None)
 
 
 def random_barycentric(rng: np.random.Generator, shape: tuple) -> np.ndarray:
@@ -173,13 +192,18 @@ def random_pose(rng: np.random.Generator, degrees: float = 10.0, shift_mm: float
 def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = SCAN_POINTS,
                     noise: float = SCAN_NOISE_MM, landmark_noise: float = LANDMARK_NOISE_MM,
                     hole_muscle: str | None = HOLE_MUSCLE, colour: bool = True,
-                    muscles=None, textured: bool = False) -> tuple[SyntheticScan, dict[str, SyntheticScan]]:
+                    muscles=None, textured: bool = False, lit: bool = False
+                    ) -> tuple[SyntheticScan, dict[str, SyntheticScan]]:
     """(neutral, {muscle: expression}) scans of ``basis`` (each element fully contracted), each with its own
     random head pose, sampling, noise and exposure; landmarks from ``landmarks`` (a LandmarkSet on the basis)
     plus Gaussian noise. The ``hole_muscle`` scan has a hole of :data:`HOLE_RADIUS_MM` on that side's cheek.
     ``colour``: the scans carry the skin painted on the neutral face; ``muscles``: only these (default all).
     ``textured``: each scan is instead the mesh a scanner would write (:func:`textured_mesh`: the triangles it
-    sees, vertices with :data:`TEXTURED_NOISE_MM` noise, the skin as its texture; ``n_points`` unused)."""
+    sees, vertices with :data:`TEXTURED_NOISE_MM` noise, the skin as its texture; ``n_points`` unused).
+    ``lit``: the point clouds' colours shaded by the scanner's :data:`FLASH`, fixed in the scanner's frame, so
+    the shading changes with each scan's head pose and with the expression's shape (not with ``textured``)."""
+    if lit and textured:
+        raise ValueError("lit scans are point clouds: the textured meshes' texture is the skin alone")
     from livebridge.geometry.transforms import apply
     from livebridge.simulators.skin import make_skin
 
@@ -195,7 +219,8 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
             seen_hole = None if hole is None else (apply(pose, hole[0][None])[0], hole[1])
             mesh = textured_mesh(apply(pose, shape), basis.triangles, skin, rng, seen_hole, exposure)
         else:
-            points, colours = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin, exposure)
+            light = (pose[:3, :3].T @ FLASH[0], FLASH[1]) if lit else None  # the flash in the mesh's frame
+            points, colours = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin, exposure, light)
         marks = landmarks.as_dict(shape, basis.triangles)
         marks = {name: apply(pose, p[None])[0] + rng.normal(0.0, landmark_noise, 3) for name, p in marks.items()}
         if textured:
@@ -280,10 +305,11 @@ class ScanFigures:
 
 
 def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[int, int] | None = None,
-                      **scan_options) -> ScanFigures:
+                      remove_shading: bool | None = None, **scan_options) -> ScanFigures:
     """Coloured scans of ``basis`` (unless ``colour=False`` among ``scan_options``; ``landmarks`` the 22 or a
     68-point set); the basis built from them with skin tracking and from shape alone (the same prepared scans,
-    colour ignored); each against the ICT elements and the true expressive surfaces."""
+    colour ignored); each against the ICT elements and the true expressive surfaces. ``remove_shading``: as
+    :func:`~livebridge.retarget.face_scan.prepare_neutral`'s."""
     from livebridge.retarget.basis import relative_errors
     from livebridge.retarget.face_scan import prepare_expression, prepare_neutral
     from livebridge.retarget.grid import GRID_SHAPE
@@ -295,7 +321,8 @@ def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[in
     # a 68-point set's own face as the reference too, named as the thesis's 22 (as the scans' landmarks are)
     reference = thesis_points_from_68(landmarks.as_dict(basis.neutral, basis.triangles), basis.neutral)
     start = time.perf_counter()
-    neutral = prepare_neutral(neutral_scan.as_scan(), neutral_scan.landmarks, reference, shape=grid or GRID_SHAPE)
+    neutral = prepare_neutral(neutral_scan.as_scan(), neutral_scan.landmarks, reference, shape=grid or GRID_SHAPE,
+                              remove_shading=remove_shading)
     faces = {name: prepare_expression(s.as_scan(), s.landmarks, neutral, name) for name, s in expression_scans.items()}
     prepared = time.perf_counter() - start
     start = time.perf_counter()
@@ -330,6 +357,7 @@ def run(quick: bool, log) -> dict:
         result["eyelids_with_lid_landmarks"] = _measure_lid_landmarks(basis, log)
         result["textured_meshes"] = _measure(basis, "textured meshes (the triangles a scanner sees, 0.1 mm vertex "
                                              "noise, the skin as their texture)", {"textured": True}, log)
+        result["lit_scans"] = _measure_lit(basis, log)
         result["other_proportions"] = _measure_other_face(basis, log)
     return result
 
@@ -345,6 +373,22 @@ def _measure_other_face(basis, log) -> dict:
 
     other = warped_basis(basis, load_landmark_set("ict-22").as_dict(basis.neutral, basis.triangles))
     return _measure_density(other, SCAN_POINTS, {}, log, "another face (the ICT face under the known warp)")
+
+
+def _measure_lit(basis, log) -> dict:
+    """The figures for scans whose colours hold the scanner's :data:`FLASH` (the shading divided out as
+    ``retarget scans --lighting auto`` decides), and the errors with the shading left in the colours."""
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    options = {"lit": True, "n_points": SCAN_POINTS}
+    result = _measure(basis, f"lit by the scanner's flash, {SCAN_POINTS} points a scan", options, log)
+    kept = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), remove_shading=False,
+                             **options)
+    log("  the same scans with their shading left in the colours:")
+    for name, error in zip(kept.names, kept.errors):
+        log(f"  {name:24s} error {error:.3f}")
+    return result | {"max_relative_error_shading_kept": float(np.nanmax(kept.errors)),
+                     "relative_errors_shading_kept": dict(zip(kept.names, (round(float(v), 4) for v in kept.errors)))}
 
 
 def _measure_lid_landmarks(basis, log) -> dict:
@@ -390,6 +434,9 @@ def _measure(basis, what: str, options: dict, log) -> dict:
     log(f"scans: {what}, {figures.n_vertices} grid vertices, {len(figures.names)} elements; "
         f"built in {figures.build_s:.1f} s with skin tracking, {figures.build_without_colour_s:.1f} s from shape "
         "alone")
+    if figures.neutral.shading is not None:
+        log(f"  lighting {'removed from' if figures.neutral.shading_removed else 'left in'} the colours (it explains "
+            f"{figures.neutral.shading.explained:.0%} of the neutral's brightness)")
     log(f"  {'element':24s} {'RMS mm':>7s} {'error':>7s} {'no colour':>9s} {'surface':>8s} {'no colour':>9s}")
     for k, name in enumerate(figures.names):
         size = np.linalg.norm(figures.truth[k], axis=1)
@@ -400,6 +447,8 @@ def _measure(basis, what: str, options: dict, log) -> dict:
 
     def per_element(values):
         return dict(zip(figures.names, (round(float(v), 4) for v in values)))
+
+    shading = figures.neutral.shading
 
     return {"n_vertices": figures.n_vertices, "limit": ERROR_LIMIT,
             "build_s": figures.build_s, "build_without_colour_s": figures.build_without_colour_s,
@@ -412,4 +461,6 @@ def _measure(basis, what: str, options: dict, log) -> dict:
             "surface_errors": per_element(figures.surface),
             "surface_errors_without_colour": per_element(figures.surface_without_colour),
             "gaps_over_limit": per_element(figures.gaps),
+            "shading_removed": figures.neutral.shading_removed,
+            "shading_explained": None if shading is None else round(shading.explained, 3),
             "told_another_face": [name for name, gap in zip(figures.names, figures.gaps) if gap > 1]}

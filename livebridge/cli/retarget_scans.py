@@ -89,6 +89,11 @@ def reference_landmarks(spec: str, scale: float) -> dict:
               help="A mesh scan is sampled into points this far apart, mm (default 0.5, the skin images' pixel; a "
                    "finer texture is blurred to it): its vertices, dense where it curves and sparse where it "
                    "does not, are no even sample of its surface.")
+@click.option("--lighting", type=click.Choice(["auto", "remove", "keep"]), default="auto", show_default=True,
+              help="The scans' colours hold the scanner's light as well as the skin: remove divides the shading "
+                   "the surface's normals explain out of every scan's colours (an opened jaw or a frown turns skin "
+                   "towards the light), keep leaves the colours as they are (a texture already delit); auto "
+                   "removes it when it explains at least 10% of the neutral's brightness.")
 @click.option("--fill-from", "template_spec", type=InputPath(builtins=("builtin",)), default=None,
               help="Complete the basis: every muscle of this basis ('builtin' or .npz) that no --expression shows is "
                    "retargeted onto the scanned neutral (it moves as that face's does, not as this person's).")
@@ -101,7 +106,7 @@ def reference_landmarks(spec: str, scale: float) -> dict:
                    "scans are over 8 MB in all (smaller ones prepare faster than processes start).")
 def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: Path, force: bool, reference: str,
           method: str, frame: str, grid_size, crop_radius, units: str, kernel: str, grid_obj, landmarks_out,
-          mesh_spacing: float | None, template_spec, fill_landmarks, workers: int | None) -> None:
+          mesh_spacing: float | None, lighting: str, template_spec, fill_landmarks, workers: int | None) -> None:
     """Build an actuation basis for a scanned person from a neutral scan and one scan per muscle.
 
     Each scan is normalised (nose tip at the origin, facing +z), cropped to the face and resampled on a
@@ -152,7 +157,11 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
                    "the reference face's", neutral_landmarks, units)
     click.echo(f"preparing {neutral_scan.name} and {len(files)} expression scan{'s' * (len(files) > 1)}")
     neutral = prepare_neutral(neutral_points, neutral_marks, reference_marks, method, (rows, columns), crop_radius,
-                              neutral_landmarks, scan_source=neutral_scan, mesh_spacing=mesh_spacing)
+                              neutral_landmarks, scan_source=neutral_scan, mesh_spacing=mesh_spacing,
+                              remove_shading={"auto": None, "remove": True, "keep": False}[lighting])
+    if neutral.shading is not None:
+        click.echo(f"lighting: {'removed from' if neutral.shading_removed else 'left in'} the scans' colours (it "
+                   f"explains {neutral.shading.explained:.0%} of the neutral's brightness)")
     faces, uncoloured = {}, []
     jobs = [(name, scan_path, landmark_path, scale, mesh_spacing) for name, (scan_path, landmark_path) in files.items()]
     for name, face in prepared_expressions(neutral, jobs, worker_count(workers, [path for _, path, *_ in jobs])):

@@ -48,6 +48,7 @@ from livebridge.retarget.normalise import (
 )
 from livebridge.retarget.same_face import surface_gap
 from livebridge.retarget.scan import Scan
+from livebridge.retarget.shading import MIN_EXPLAINED, Shading, fit_shading, surface_normals, unshaded
 from livebridge.retarget.skin_flow import fine_axes, in_front, pixels_of
 from livebridge.retarget.surface_fit import fitted_heights, noise_level
 from livebridge.retarget.tps import Kernel, fit_tps
@@ -125,6 +126,11 @@ class FaceScan:
     off_face_share : float
         An expression's: the share of its points (in the crop) left out as lying over :data:`OFF_FACE_MM`
         from the neutral's face (:func:`_on_the_face`).
+    shading : Shading or None
+        The lighting fitted to the scan's colours (:mod:`~livebridge.retarget.shading`); None without colour.
+    shading_removed : bool
+        Whether ``skin`` is the colours divided by ``shading`` (the neutral's shading explained enough of its
+        brightness; its expressions follow the neutral).
     """
 
     grid: FaceGrid
@@ -141,6 +147,8 @@ class FaceScan:
     gap_mm: float = float("nan")
     noise_mm: float = float("nan")
     off_face_share: float = 0.0
+    shading: Shading | None = None
+    shading_removed: bool = False
 
     @property
     def coloured(self) -> bool:
@@ -194,16 +202,18 @@ def crop_radius(landmarks: dict[str, np.ndarray]) -> float:
 def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dict[str, np.ndarray],
                     method: str = "rigid", shape: tuple[int, int] = GRID_SHAPE, radius: float | None = None,
                     source=None, chart: str = CHART_KIND, scan_source=None,
-                    mesh_spacing: float | None = None) -> FaceScan:
+                    mesh_spacing: float | None = None, remove_shading: bool | None = None) -> FaceScan:
     """The neutral scan normalised onto ``reference`` by ``method`` (see
     :func:`~livebridge.retarget.normalise.normalisation`), cropped to a sphere of ``radius`` around the nose
     tip and resampled on a ``shape`` grid over ``[-radius, radius]^2``; its skin images in a ``chart`` fitted
     to it (:func:`~livebridge.retarget.chart.face_chart`); its surface fitted to its points at the grid's
     vertices (:mod:`~livebridge.retarget.surface_fit`). A mesh is first sampled into points every
     ``mesh_spacing`` mm (default 0.5: :mod:`~livebridge.retarget.mesh_samples`), coloured from its texture or
-    vertices. Errors name ``source`` (the landmark file) or ``scan_source`` (the scan file: a flat scan).
-    Landmarks numbered as the 68-point iBUG layout are named as the thesis's
-    (:func:`~livebridge.retarget.landmarks.thesis_points_from_68`)."""
+    vertices. The colours' lighting (:mod:`~livebridge.retarget.shading`) is divided out if ``remove_shading``
+    (None: if it explains enough of the scan's brightness), and then from every expression scan too. Errors
+    name ``source`` (the landmark file) or ``scan_source`` (the scan file: a flat scan). Landmarks numbered as
+    the 68-point iBUG layout are named as the thesis's (:func:`~livebridge.retarget.landmarks.thesis_points_from_68`).
+    """
     landmarks = thesis_points_from_68(landmarks, scan.points, source)
     scan2face = normalisation(landmarks, reference, method, source)
     moved = transform_landmarks(scan2face, landmarks)
@@ -219,7 +229,7 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
                          f"its landmarks {spread:.3g} mm: are both in the same units and coordinates?",
                          scan_source or source, "points")
     x, y = square_axes(radius, shape)
-    face = _resampled(scan, points, x, y, radius, moved, scan2face, source, chart)
+    face = _resampled(scan, points, x, y, radius, moved, scan2face, source, chart, remove_shading=remove_shading)
     off_plane = face.vertices - face.vertices.mean(axis=0)
     depth = float(np.linalg.svd(off_plane, compute_uv=False)[-1] / np.sqrt(len(off_plane)))  # RMS off its plane
     if depth < MIN_DEPTH * radius:  # a plane has no face to register the expressions on
@@ -272,10 +282,12 @@ def _points_where(scan: Scan, keep: np.ndarray) -> Scan:
 
 def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float, landmarks: dict,
                scan2face: np.ndarray, source, chart: SkinChart | str = CHART_KIND,
-               skin_axes: tuple | None = None) -> FaceScan:
+               skin_axes: tuple | None = None, remove_shading: bool | None = None) -> FaceScan:
     """Points in the face frame cropped and resampled on ``x``, ``y``, and on the skin grid too (an image of
     the skin with colour, heights alone without): in ``chart`` (a kind: one of that kind fitted to this scan's
-    grid), on ``skin_axes`` (fine u, fine v, factor, margin; None: over this scan's grid)."""
+    grid), on ``skin_axes`` (fine u, fine v, factor, margin; None: over this scan's grid); the colours' shading
+    divided out if ``remove_shading`` (None: if it explains :data:`~livebridge.retarget.shading.MIN_EXPLAINED`
+    of this scan's brightness)."""
     inside = crop_sphere(points, np.zeros(3), radius)
     _check_dense(points[inside], x, y, source)
     grid = resample(points[inside], x, y, source=source)
@@ -291,14 +303,21 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
     fine_x, fine_y, factor, margin = skin_axes
     wider = crop_sphere(points, np.zeros(3), radius + SKIN_MARGIN_MM)
     on_chart = chart.to_chart(points[wider])
-    colours = None if colours is None else colours[wider]
+    shading = None
+    if colours is not None:
+        normals = surface_normals(points[wider])
+        shading = fit_shading(points[inside], colours[inside], normals[inside[wider]])
+        if remove_shading is None:
+            remove_shading = shading.explained >= MIN_EXPLAINED
+        colours = unshaded(colours[wider], normals, shading) if remove_shading else colours[wider]
     skin = resample(on_chart, fine_x, fine_y, skin_gap_mm(step), source, colours)
     visible = in_front(skin, on_chart)  # not another surface seen through a gap of the skin (a nostril)
     if not visible.all():
         on_chart, colours = on_chart[visible], None if colours is None else colours[visible]
         skin = resample(on_chart, fine_x, fine_y, skin_gap_mm(step), source, colours)
     skin_holes = holes(on_chart, fine_x, fine_y, opening_gap_mm(spacing, step))
-    return FaceScan(grid, landmarks, scan2face, skin, factor, margin, spacing, chart=chart, skin_holes=skin_holes)
+    return FaceScan(grid, landmarks, scan2face, skin, factor, margin, spacing, chart=chart, skin_holes=skin_holes,
+                    shading=shading, shading_removed=bool(remove_shading) and shading is not None)
 
 
 def _check_dense(points: np.ndarray, x: np.ndarray, y: np.ndarray, source) -> None:
@@ -380,7 +399,7 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     check_not_folded(neutral.landmarks, moved, landmarks_source or source)
     axes = None if neutral.skin is None else (neutral.skin.x, neutral.skin.y, neutral.skin_factor, neutral.skin_margin)
     face = _resampled(scan, points, neutral.grid.x, neutral.grid.y, radius, moved, scan2face, source, neutral.chart,
-                      axes)
+                      axes, neutral.shading_removed)
     inside = points[crop_sphere(points, np.zeros(3), radius)]
     return replace(face, gap_mm=surface_gap(inside, neutral.vertices, normals),
                    noise_mm=noise_level(inside, face.grid), off_face_share=off_face)
