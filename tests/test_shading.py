@@ -54,6 +54,15 @@ def test_skin_without_lighting_is_not_taken_for_shading():
     assert fit_shading(flat.points, flat.colours).explained < 0.5 * MIN_EXPLAINED
 
 
+def test_a_scan_too_dark_to_fit_has_no_shading_and_keeps_its_colours(rng):
+    points = rng.normal(size=(5000, 3))
+    colours = np.zeros((5000, 3))
+    colours[:50] = 0.5
+    shading = fit_shading(points, colours)
+    assert shading.explained == 0.0 and not shading.coefficients.any()
+    assert np.array_equal(unshaded(colours, surface_normals(points), shading), colours)
+
+
 def test_the_neutral_decides_and_its_expressions_follow():
     basis, landmarks = builtin_basis(), load_landmark_set("builtin-22")
     for lit in (False, True):

@@ -52,6 +52,9 @@ HUBER_K = 1.345
 ROBUST_STEPS = 5
 DARKEST = 1e-3
 """Points darker than this (0-1 scale) are left out of the fit (no logarithm)."""
+N_HARMONICS = 9
+MIN_POINTS = 100
+"""Fewer points brighter than :data:`DARKEST` fit no shading."""
 
 
 @dataclass(frozen=True)
@@ -60,7 +63,7 @@ class Shading:
 
     Attributes
     ----------
-    coefficients : ndarray, shape (9,)
+    coefficients : ndarray, shape (N_HARMONICS,)
         Of the log-brightness over :func:`harmonics` of the normal (the first, the constant, is the albedo's
         mean and is not divided out).
     explained : float
@@ -98,6 +101,8 @@ def fit_shading(points: np.ndarray, colours: np.ndarray, normals: np.ndarray | N
     normals = surface_normals(points) if normals is None else normals
     brightness = colours @ LUMINANCE
     lit = brightness > DARKEST
+    if lit.sum() < MIN_POINTS:  # nothing to fit: no shading found
+        return Shading(np.zeros(N_HARMONICS), 0.0)
     basis, values = harmonics(normals[lit]), np.log(brightness[lit])
     weights = np.ones(len(values))
     for _ in range(ROBUST_STEPS):
