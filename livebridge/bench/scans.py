@@ -32,7 +32,7 @@ EXPOSURE = 0.05
 """Each scan's brightness is off by up to this fraction."""
 FLASH = (np.array([0.0, 0.0, 1.0]), 0.5)
 """The lit scans' light: a scanner's flash on its viewing axis (direction towards the light in the scanner's
-frame) and the share of ambient light; the skin is Lambertian under it (see :func:`shading`)."""
+frame) and the share of ambient light; the skin is Lambertian under it (see :func:`lambertian`)."""
 TEXTURED_NOISE_MM = 0.1
 """Vertex noise of the simulated textured meshes (a scanner's meshing smooths its points' noise)."""
 COLOUR_FOOTPRINT_MM = 1.0
@@ -89,7 +89,7 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     Area-weighted random barycentric points on the triangles facing +z; hidden ones (more than 1.5 mm behind
     the front-most surface within 0.5 mm in x-y) dropped; ``hole`` = (centre (3,), radius): no points there.
     A point's colour is the skin at its place on the mesh (barycentric in the texels of its triangle's
-    vertices) times :data:`SKIN_TONE` and ``exposure``, shaded by ``light`` (:func:`shading`; None: unshaded, as
+    vertices) times :data:`SKIN_TONE` and ``exposure``, shaded by ``light`` (:func:`lambertian`; None: unshaded, as
     a texture a scanner has taken the lighting out of), plus :data:`COLOUR_NOISE`.
     """
     from scipy.ndimage import map_coordinates
@@ -113,13 +113,13 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     texels = np.einsum("nk,nkd->nd", bary[keep], skin.vertex_texels[triangles[chosen[keep]]]).astype(np.float32)
     albedo = map_coordinates(skin.albedo, [texels[:, 1], texels[:, 0]], order=1, mode="nearest")
     if light is not None:
-        albedo = albedo * shading(vertices, triangles, chosen[keep], bary[keep], *light)
+        albedo = albedo * lambertian(vertices, triangles, chosen[keep], bary[keep], *light)
     colours = albedo[:, None] * SKIN_TONE * exposure + rng.normal(0.0, COLOUR_NOISE, (len(points), 3))
     return points, np.clip(colours, 0.0, 1.0)
 
 
-def shading(vertices: np.ndarray, triangles: np.ndarray, triangle: np.ndarray, bary: np.ndarray,
-            towards_light: np.ndarray, ambient: float) -> np.ndarray:
+def lambertian(vertices: np.ndarray, triangles: np.ndarray, triangle: np.ndarray, bary: np.ndarray,
+               towards_light: np.ndarray, ambient: float) -> np.ndarray:
     """Lambertian shading (n,) of points on a mesh (``triangle`` (n,) ids, ``bary`` (n, 3)): ``ambient`` plus
     the rest times the cosine between the surface's normal (interpolated from the vertices' normals, as smooth
     as the skin) and ``towards_light`` (3,), unit, in the mesh's frame; 0 on the far side."""
@@ -429,14 +429,14 @@ def _measure(basis, what: str, options: dict, log) -> dict:
     """The figures of one bench run with scans made with ``options`` (of :func:`synthetic_scans`; ``what`` they
     are, for the log), as the JSON result."""
     from livebridge.retarget.landmarks import load_landmark_set
+    from livebridge.retarget.shading import lighting_said
 
     figures = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), **options)
     log(f"scans: {what}, {figures.n_vertices} grid vertices, {len(figures.names)} elements; "
         f"built in {figures.build_s:.1f} s with skin tracking, {figures.build_without_colour_s:.1f} s from shape "
         "alone")
     if figures.neutral.shading is not None:
-        log(f"  lighting {'removed from' if figures.neutral.shading_removed else 'left in'} the colours (it explains "
-            f"{figures.neutral.shading.explained:.0%} of the neutral's brightness)")
+        log(f"  {lighting_said(figures.neutral.shading, figures.neutral.shading_removed)}")
     log(f"  {'element':24s} {'RMS mm':>7s} {'error':>7s} {'no colour':>9s} {'surface':>8s} {'no colour':>9s}")
     for k, name in enumerate(figures.names):
         size = np.linalg.norm(figures.truth[k], axis=1)

@@ -124,6 +124,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
     from livebridge.retarget.same_face import another_face, neutral_off_expressions, off_expressions
     from livebridge.retarget.scan import read_scan
     from livebridge.retarget.scans import basis_from_scans, in_scan_frame
+    from livebridge.retarget.shading import lighting_said
 
     outputs = [(option, path) for option, path in (("--out", out), ("--grid-obj", grid_obj),
                                                     ("--landmarks-out", landmarks_out)) if path is not None]
@@ -160,8 +161,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
                               neutral_landmarks, scan_source=neutral_scan, mesh_spacing=mesh_spacing,
                               remove_shading={"auto": None, "remove": True, "keep": False}[lighting])
     if neutral.shading is not None:
-        click.echo(f"lighting: {'removed from' if neutral.shading_removed else 'left in'} the scans' colours (it "
-                   f"explains {neutral.shading.explained:.0%} of the neutral's brightness)")
+        click.echo(lighting_said(neutral.shading, neutral.shading_removed))
     faces, uncoloured = {}, []
     jobs = [(name, scan_path, landmark_path, scale, mesh_spacing) for name, (scan_path, landmark_path) in files.items()]
     for name, face in prepared_expressions(neutral, jobs, worker_count(workers, [path for _, path, *_ in jobs])):

@@ -119,3 +119,9 @@ def unshaded(colours: np.ndarray, normals: np.ndarray, shading: Shading) -> np.n
     """``colours`` (n, 3) divided by ``shading`` at ``normals`` (n, 3): the skin's albedo up to one factor."""
     varying = harmonics(normals)[:, 1:] @ shading.coefficients[1:]
     return colours * np.exp(-varying)[:, None]
+
+
+def lighting_said(shading: Shading, removed: bool) -> str:
+    """What was done with a person's scans' lighting, for the build's log (``shading`` the neutral's)."""
+    return (f"lighting: {'removed from' if removed else 'left in'} the scans' colours (it explains "
+            f"{shading.explained:.0%} of the neutral's brightness)")
