@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from livebridge.bench.scans import build_and_measure, synthetic_scans
+from livebridge.bench.scans import FLASH, build_and_measure, synthetic_scans
 from livebridge.cli import main
 from livebridge.face.builtin import builtin_basis
 from livebridge.retarget.face_scan import prepare_expression, prepare_neutral
@@ -75,6 +75,29 @@ def test_the_neutral_decides_and_its_expressions_follow():
             expected = lit if remove is None else remove
             assert neutral.shading_removed == jaw.shading_removed == expected, (lit, remove)
             assert (neutral.shading.explained >= MIN_EXPLAINED) == lit
+
+
+@pytest.mark.parametrize("lit", [False, True])
+def test_a_textured_mesh_s_lighting_is_found_in_its_texture(lit):
+    """A scanner's textured mesh has its light baked into the texture: read through the texture, the neutral's
+    shading is found (and removed) when the texture was lit, not when it holds the skin alone."""
+    from livebridge.bench.scans import lambertian, texel_shading
+    from livebridge.face.meshio import vertex_normals
+
+    basis, landmarks = builtin_basis(), load_landmark_set("builtin-22")
+    neutral_scan, _ = synthetic_scans(basis, landmarks, np.random.default_rng(5), muscles=(), textured=True, lit=lit)
+    neutral = prepare_neutral(neutral_scan.as_scan(), neutral_scan.landmarks, neutral_scan.landmarks, shape=(60, 60))
+    assert neutral.shading_removed == lit
+    assert (neutral.shading.explained > 2 * MIN_EXPLAINED) == lit
+    if lit:  # the simulator's texture: at each vertex's texel, the vertex's own shading
+        from livebridge.simulators.skin import make_skin
+
+        skin = make_skin(basis.neutral, 1, landmarks.as_dict(basis.neutral, basis.triangles)).level(1.0)
+        texels = texel_shading(basis.neutral, basis.triangles, skin, *FLASH)
+        at = np.round(skin.vertex_texels).astype(int)
+        inside = (at[:, 0] < texels.shape[1]) & (at[:, 1] < texels.shape[0])
+        own = lambertian(vertex_normals(basis.neutral, basis.triangles), *FLASH)
+        assert np.median(np.abs(texels[at[inside, 1], at[inside, 0]] - own[inside])) < 0.02
 
 
 def test_removing_the_flash_s_shading_tracks_an_opening_jaw_as_unlit_scans_do(ict):

@@ -94,7 +94,7 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     """
     from scipy.ndimage import map_coordinates
 
-    from livebridge.face.meshio import triangle_areas, triangle_normals
+    from livebridge.face.meshio import triangle_areas, triangle_normals, vertex_normals
     from livebridge.retarget.grid import front_surface
 
     corners = vertices[triangles]
@@ -112,21 +112,16 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
         return points, None
     texels = np.einsum("nk,nkd->nd", bary[keep], skin.vertex_texels[triangles[chosen[keep]]]).astype(np.float32)
     albedo = map_coordinates(skin.albedo, [texels[:, 1], texels[:, 0]], order=1, mode="nearest")
-    if light is not None:
-        albedo = albedo * lambertian(vertices, triangles, chosen[keep], bary[keep], *light)
+    if light is not None:  # the vertices' normals interpolated: the skin is as smooth as the mesh
+        normals = np.einsum("nk,nkd->nd", bary[keep], vertex_normals(vertices, triangles)[triangles[chosen[keep]]])
+        albedo = albedo * lambertian(normals / np.linalg.norm(normals, axis=1, keepdims=True), *light)
     colours = albedo[:, None] * SKIN_TONE * exposure + rng.normal(0.0, COLOUR_NOISE, (len(points), 3))
     return points, np.clip(colours, 0.0, 1.0)
 
 
-def lambertian(vertices: np.ndarray, triangles: np.ndarray, triangle: np.ndarray, bary: np.ndarray,
-               towards_light: np.ndarray, ambient: float) -> np.ndarray:
-    """Lambertian shading (n,) of points on a mesh (``triangle`` (n,) ids, ``bary`` (n, 3)): ``ambient`` plus
-    the rest times the cosine between the surface's normal (interpolated from the vertices' normals, as smooth
-    as the skin) and ``towards_light`` (3,), unit, in the mesh's frame; 0 on the far side."""
-    from livebridge.face.meshio import vertex_normals
-
-    normals = np.einsum("nk,nkd->nd", bary, vertex_normals(vertices, triangles)[triangles[triangle]])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+def lambertian(normals: np.ndarray, towards_light: np.ndarray, ambient: float) -> np.ndarray:
+    """Lambertian shading (n,) of skin with unit ``normals`` (n, 3): ``ambient`` plus the rest times the cosine
+    between the normal and ``towards_light`` (3,), unit, in the normals' frame; 0 on the far side."""
     return ambient + (1.0 - ambient) * np.clip(normals @ towards_light, 0.0, None)
 
 
@@ -140,12 +135,14 @@ def random_barycentric(rng: np.random.Generator, shape: tuple) -> np.ndarray:
 
 
 def textured_mesh(vertices: np.ndarray, triangles: np.ndarray, skin, rng: np.random.Generator,
-                  hole: tuple[np.ndarray, float] | None = None, exposure: float = 1.0):
+                  hole: tuple[np.ndarray, float] | None = None, exposure: float = 1.0,
+                  light: tuple[np.ndarray, float] | None = None):
     """What a textured-mesh scanner looking along -z writes of a face mesh (``vertices`` (n, 3) in its frame):
     (vertices with :data:`TEXTURED_NOISE_MM` noise, the triangles it sees (:func:`seen_triangles`; none within
     ``hole`` = (centre, radius)), their :class:`~livebridge.retarget.texture.Texture`: ``skin`` (a
     :class:`~livebridge.simulators.skin.SkinTexture` of the mesh's vertices) times :data:`SKIN_TONE` and
-    ``exposure``, with :data:`COLOUR_NOISE` per texel)."""
+    ``exposure``, shaded by ``light`` as :func:`scan_surface`'s (the vertices' shading interpolated over the
+    texture), with :data:`COLOUR_NOISE` per texel)."""
     from livebridge.retarget.texture import Texture
 
     noisy = vertices + rng.normal(0.0, TEXTURED_NOISE_MM, vertices.shape)
@@ -154,11 +151,27 @@ def textured_mesh(vertices: np.ndarray, triangles: np.ndarray, skin, rng: np.ran
         seen &= np.linalg.norm(noisy[triangles].mean(axis=1) - hole[0], axis=1) > hole[1]
     height, width = skin.albedo.shape
     uv = np.column_stack([(skin.vertex_texels[:, 0] + 0.5) / width, 1.0 - (skin.vertex_texels[:, 1] + 0.5) / height])
-    image = skin.albedo[..., None] * SKIN_TONE * exposure + rng.normal(0.0, COLOUR_NOISE, (height, width, 3))
+    albedo = skin.albedo if light is None else skin.albedo * texel_shading(vertices, triangles, skin, *light)
+    image = albedo[..., None] * SKIN_TONE * exposure + rng.normal(0.0, COLOUR_NOISE, (height, width, 3))
     kept = triangles[seen]
     texture = Texture(uv[kept], np.zeros(len(kept), np.int64), (np.clip(image, 0, 1).astype(np.float32),),
                       ("skin.png",))
     return noisy, kept, texture
+
+
+def texel_shading(vertices: np.ndarray, triangles: np.ndarray, skin, towards_light: np.ndarray,
+                  ambient: float) -> np.ndarray:
+    """:func:`lambertian` shading of a mesh's vertices (``vertices`` (n, 3), in the light's frame) spread over
+    its texture ``skin``'s texels (rows, columns) by linear interpolation between the vertices' texels; 1 on
+    texels no vertex reaches."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    from livebridge.face.meshio import vertex_normals
+
+    on_vertex = lambertian(vertex_normals(vertices, triangles), towards_light, ambient)
+    rows, columns = np.mgrid[0:skin.albedo.shape[0], 0:skin.albedo.shape[1]]
+    shade = LinearNDInterpolator(skin.vertex_texels, on_vertex, fill_value=1.0)(columns, rows)
+    return shade.astype(np.float32)
 
 
 def seen_triangles(vertices: np.ndarray, triangles: np.ndarray, rng: np.random.Generator,
@@ -200,10 +213,8 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
     ``colour``: the scans carry the skin painted on the neutral face; ``muscles``: only these (default all).
     ``textured``: each scan is instead the mesh a scanner would write (:func:`textured_mesh`: the triangles it
     sees, vertices with :data:`TEXTURED_NOISE_MM` noise, the skin as its texture; ``n_points`` unused).
-    ``lit``: the point clouds' colours shaded by the scanner's :data:`FLASH`, fixed in the scanner's frame, so
-    the shading changes with each scan's head pose and with the expression's shape (not with ``textured``)."""
-    if lit and textured:
-        raise ValueError("lit scans are point clouds: the textured meshes' texture is the skin alone")
+    ``lit``: the colours (or the texture) shaded by the scanner's :data:`FLASH`, fixed in the scanner's frame,
+    so the shading changes with each scan's head pose and with the expression's shape."""
     from livebridge.geometry.transforms import apply
     from livebridge.simulators.skin import make_skin
 
@@ -217,7 +228,8 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
         exposure = 1.0 + rng.uniform(-EXPOSURE, EXPOSURE)
         if textured:
             seen_hole = None if hole is None else (apply(pose, hole[0][None])[0], hole[1])
-            mesh = textured_mesh(apply(pose, shape), basis.triangles, skin, rng, seen_hole, exposure)
+            mesh = textured_mesh(apply(pose, shape), basis.triangles, skin, rng, seen_hole, exposure,
+                                 FLASH if lit else None)
         else:
             light = (pose[:3, :3].T @ FLASH[0], FLASH[1]) if lit else None  # the flash in the mesh's frame
             points, colours = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin, exposure, light)
@@ -357,7 +369,10 @@ def run(quick: bool, log) -> dict:
         result["eyelids_with_lid_landmarks"] = _measure_lid_landmarks(basis, log)
         result["textured_meshes"] = _measure(basis, "textured meshes (the triangles a scanner sees, 0.1 mm vertex "
                                              "noise, the skin as their texture)", {"textured": True}, log)
-        result["lit_scans"] = _measure_lit(basis, log)
+        result["lit_scans"] = _measure_lit(basis, f"lit by the scanner's flash, {SCAN_POINTS} points a scan",
+                                           {"n_points": SCAN_POINTS}, log)
+        result["lit_textured_meshes"] = _measure_lit(basis, "textured meshes lit by the scanner's flash",
+                                                     {"textured": True}, log)
         result["other_proportions"] = _measure_other_face(basis, log)
     return result
 
@@ -375,13 +390,14 @@ def _measure_other_face(basis, log) -> dict:
     return _measure_density(other, SCAN_POINTS, {}, log, "another face (the ICT face under the known warp)")
 
 
-def _measure_lit(basis, log) -> dict:
-    """The figures for scans whose colours hold the scanner's :data:`FLASH` (the shading divided out as
-    ``retarget scans --lighting auto`` decides), and the errors with the shading left in the colours."""
+def _measure_lit(basis, what: str, options: dict, log) -> dict:
+    """The figures for scans (made with ``options``; ``what`` they are, for the log) whose colours hold the
+    scanner's :data:`FLASH` (the shading divided out as ``retarget scans --lighting auto`` decides), and the
+    errors with the shading left in the colours."""
     from livebridge.retarget.landmarks import load_landmark_set
 
-    options = {"lit": True, "n_points": SCAN_POINTS}
-    result = _measure(basis, f"lit by the scanner's flash, {SCAN_POINTS} points a scan", options, log)
+    options = options | {"lit": True}
+    result = _measure(basis, what, options, log)
     kept = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), remove_shading=False,
                              **options)
     log("  the same scans with their shading left in the colours:")
