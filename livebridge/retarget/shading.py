@@ -18,7 +18,10 @@ bench's lit scans that gives the jaw 0.080 and the frown 0.092 / 0.097 (0.100 / 
 elements within 10 % as unlit (10 left in); but the eyelids 0.229 / 0.232 (0.224 / 0.205) and the lip corner
 and press 0.120 / 0.126 (0.115 / 0.122), where the 4.5 mm normals round off the lids' and lips' curvature (the
 correction faded out where a normal's neighbourhood is far from a plane was far worse: its on-off pattern is a
-pattern to the flow).
+pattern to the flow; the neutral's fit, turned into each expression scan's frame, in place of the scan's own,
+was no better: eyelids 0.237 / 0.220). From textured meshes with the flash in their texture
+(``lit_textured_meshes``): the jaw 0.101 -> 0.056, 14 of 16 within 10 % as unlit (13 left in), the eyelids
+0.163 / 0.162 -> 0.175 / 0.164.
 
 A scan whose colour has no shading left (a texture the scanner already took the lighting out of) still
 correlates a little with its normals (brows, lips and the eyes' rims are darker where the face turns):
