@@ -57,6 +57,7 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from livebridge.retarget.grid import FaceGrid
+from livebridge.retarget.shading import LUMINANCE
 from livebridge.retarget.skin_smoothing import (
     WIDTHS,
     adaptive_smooth,
@@ -156,7 +157,7 @@ def skin_image(grid: FaceGrid, contrast_mm: float = CONTRAST_MM) -> tuple[np.nda
     """The luminance of a coloured grid contrast-normalised over ``contrast_mm``, (n_rows, n_cols) float32
     (0 where masked), and its valid mask."""
     valid = skin_valid(grid)
-    luminance = np.where(valid, np.nan_to_num(grid.colours) @ np.array([0.299, 0.587, 0.114]), 0.0)
+    luminance = np.where(valid, np.nan_to_num(grid.colours) @ LUMINANCE, 0.0)
     sigma = contrast_mm / grid.spacing
     mean = masked_blur(luminance, valid, sigma)
     detail = np.where(valid, luminance - mean, 0.0)
