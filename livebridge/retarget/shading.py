@@ -18,11 +18,15 @@ bench's lit scans that gives the jaw 0.080 and the frown 0.092 / 0.097 (0.100 / 
 elements within 10 % as unlit (10 left in); but the eyelids 0.229 / 0.232 (0.224 / 0.205) and the lip corner
 and press 0.120 / 0.126 (0.115 / 0.122). From textured meshes with the flash in their texture
 (``lit_textured_meshes``): the jaw 0.101 -> 0.056, 14 of 16 within 10 % as unlit (13 left in), the eyelids
-0.163 / 0.162 -> 0.175 / 0.164. What costs the eyelids is not the normals' reach (16 or 32 neighbours on the
-textured meshes: 0.168 / 0.184, 0.181 / 0.174), nor fitting each scan on its own (the neutral's fit, turned
-into each expression scan's frame, in place of the scan's own: 0.237 / 0.220 on the lit scans); a correction
-faded out where a normal's neighbourhood is far from a plane, or near the eyes, was far worse (its fading is a
-pattern to the flow).
+0.163 / 0.162 -> 0.175 / 0.164. What costs the eyelids is how sensitive their tracking is to what little
+shading the fit leaves: divided by the simulator's true shading the lit scans give the unlit figures (0.198 /
+0.181), but the fit with the simulator's exact normals, within 2-5 % of the true shading near the eyes, gives
+0.245 / 0.360 (the jaw 0.073, the frown 0.080 / 0.093), and a smooth brightness field of +-3 % (30 mm across)
+on unshaded scans moves the right eyelid 0.181 -> 0.209. The normals' reach (16 or 32 neighbours on the
+textured meshes: 0.168 / 0.184, 0.181 / 0.174), fitting the brightness rather than its logarithm (0.231 /
+0.228) and the neutral's fit, turned into each expression scan's frame, in place of each scan's own (0.237 /
+0.220) change nothing; a correction faded out where a normal's neighbourhood is far from a plane, or near the
+eyes, was far worse (its fading is a pattern to the flow).
 
 A scan whose colour has no shading left (a texture the scanner already took the lighting out of) still
 correlates a little with its normals (brows, lips and the eyes' rims are darker where the face turns):
