@@ -13,7 +13,7 @@ from livebridge.retarget.shading import LUMINANCE, MIN_EXPLAINED, fit_shading, s
 from tests.factories import write_builtin_scans
 
 
-def _neutral_scans(lit_too: bool = True, n_points: int = 20_000):
+def _neutral_scans(n_points: int = 20_000):
     """The built-in face's neutral scanned twice with the same points and skin: under the bench's flash, and
     with colours that hold the skin alone."""
     basis, landmarks = builtin_basis(), load_landmark_set("builtin-22")

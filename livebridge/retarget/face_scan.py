@@ -127,7 +127,8 @@ class FaceScan:
         An expression's: the share of its points (in the crop) left out as lying over :data:`OFF_FACE_MM`
         from the neutral's face (:func:`_on_the_face`).
     shading : Shading or None
-        The lighting fitted to the scan's colours (:mod:`~livebridge.retarget.shading`); None without colour.
+        The lighting fitted to the scan's colours (:mod:`~livebridge.retarget.shading`); None without colour,
+        and for an expression whose neutral's shading was left in (nothing to divide out, nothing fitted).
     shading_removed : bool
         Whether ``skin`` is the colours divided by ``shading`` (the neutral's shading explained enough of its
         brightness; its expressions follow the neutral).
@@ -282,12 +283,14 @@ def _points_where(scan: Scan, keep: np.ndarray) -> Scan:
 
 def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float, landmarks: dict,
                scan2face: np.ndarray, source, chart: SkinChart | str = CHART_KIND,
-               skin_axes: tuple | None = None, remove_shading: bool | None = None) -> FaceScan:
+               skin_axes: tuple | None = None, remove_shading: bool | None = None,
+               report_shading: bool = True) -> FaceScan:
     """Points in the face frame cropped and resampled on ``x``, ``y``, and on the skin grid too (an image of
     the skin with colour, heights alone without): in ``chart`` (a kind: one of that kind fitted to this scan's
     grid), on ``skin_axes`` (fine u, fine v, factor, margin; None: over this scan's grid); the colours' shading
     divided out if ``remove_shading`` (None: if it explains :data:`~livebridge.retarget.shading.MIN_EXPLAINED`
-    of this scan's brightness)."""
+    of this scan's brightness), and fitted when it is left in only if ``report_shading`` (the neutral's, for the
+    build's log)."""
     inside = crop_sphere(points, np.zeros(3), radius)
     _check_dense(points[inside], x, y, source)
     grid = resample(points[inside], x, y, source=source)
@@ -304,12 +307,14 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
     wider = crop_sphere(points, np.zeros(3), radius + SKIN_MARGIN_MM)
     on_chart = chart.to_chart(points[wider])
     shading = None
-    if colours is not None:
+    if colours is not None and (remove_shading is not False or report_shading):
         normals = surface_normals(points[wider])
         shading = fit_shading(points[inside], colours[inside], normals[inside[wider]])
         if remove_shading is None:
             remove_shading = shading.explained >= MIN_EXPLAINED
-        colours = unshaded(colours[wider], normals, shading) if remove_shading else colours[wider]
+    colours = None if colours is None else colours[wider]
+    if remove_shading and shading is not None:
+        colours = unshaded(colours, normals, shading)
     skin = resample(on_chart, fine_x, fine_y, skin_gap_mm(step), source, colours)
     visible = in_front(skin, on_chart)  # not another surface seen through a gap of the skin (a nostril)
     if not visible.all():
@@ -399,7 +404,7 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     check_not_folded(neutral.landmarks, moved, landmarks_source or source)
     axes = None if neutral.skin is None else (neutral.skin.x, neutral.skin.y, neutral.skin_factor, neutral.skin_margin)
     face = _resampled(scan, points, neutral.grid.x, neutral.grid.y, radius, moved, scan2face, source, neutral.chart,
-                      axes, neutral.shading_removed)
+                      axes, neutral.shading_removed, report_shading=False)
     inside = points[crop_sphere(points, np.zeros(3), radius)]
     return replace(face, gap_mm=surface_gap(inside, neutral.vertices, normals),
                    noise_mm=noise_level(inside, face.grid), off_face_share=off_face)
