@@ -31,9 +31,10 @@ def assert_cli_refused(result, *words) -> None:
 
 
 def write_builtin_scans(folder, seed: int, stems: dict[str, str], basis=None, colour: bool = False,
-                        landmarks: str = "builtin-22", lit: bool = False) -> None:
-    """The built-in face's (or ``basis``'s, on the built-in face's topology) neutral and expressions as 8000-point
-    scans, without colour unless ``colour`` (shaded by the bench's flash if ``lit``), ``STEM.ply`` (ascii) and
+                        landmarks: str = "builtin-22", lit: bool = False, n_points: int = 8000, eyes=None) -> None:
+    """The built-in face's (or ``basis``'s, on the ``landmarks`` set's topology) neutral and expressions as
+    ``n_points``-point scans, without colour unless ``colour`` (shaded by the bench's flash if ``lit``; seeing the
+    head's ``eyes`` between the lids, :class:`~livebridge.bench.scan_eyes.Eyeballs`), ``STEM.ply`` (ascii) and
     ``STEM.landmarks.csv`` (``name,x,y,z``; the shipped ``landmarks`` set's points) in ``folder``; ``stems``:
     ``"neutral"`` or a muscle -> file stem."""
     from livebridge.bench.scans import synthetic_scans
@@ -43,8 +44,8 @@ def write_builtin_scans(folder, seed: int, stems: dict[str, str], basis=None, co
 
     muscles = tuple(name for name in stems if name != "neutral")
     neutral, expressions = synthetic_scans(basis or builtin_basis(), load_landmark_set(landmarks),
-                                           np.random.default_rng(seed), n_points=8000, hole_muscle=None, colour=colour,
-                                           muscles=muscles, lit=lit)
+                                           np.random.default_rng(seed), n_points=n_points, hole_muscle=None,
+                                           colour=colour, muscles=muscles, lit=lit, eyes=eyes)
     for name, stem in stems.items():
         scan = neutral if name == "neutral" else expressions[name]
         write_ply(folder / f"{stem}.ply", scan.points, None, "ascii", scan.colours)

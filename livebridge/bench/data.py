@@ -10,6 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
+
 from livebridge.face.basis import Basis
 
 _REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -33,3 +35,25 @@ def ict_basis() -> Basis | None:
     if data is None:
         return None
     return import_basis("choe-ko-ict", data / "ict-facekit" / "face_region.npz")
+
+
+ICT_EYE_MATERIALS = {"M_ScleraLeft": False, "M_ScleraRight": False, "M_IrisLeft": True, "M_IrisRight": True}
+"""The ICT head's eyeball materials, and whether each is an iris."""
+
+
+def ict_eyeballs():
+    """The ICT head's eyeballs (:class:`~livebridge.bench.scan_eyes.Eyeballs`, mm, in its face region's frame)
+    from its neutral OBJ, or None without the data."""
+    from livebridge.bench.scan_eyes import Eyeballs
+    from livebridge.face.basis_import import UNITS_TO_MM
+    from livebridge.face.obj_file import read_obj_data
+
+    data = shared_data_dir()
+    if data is None:
+        return None
+    path = data / "ict-facekit" / "obj" / "generic_neutral_mesh.obj"
+    obj = read_obj_data(path.read_bytes(), path)
+    material = np.array([ICT_EYE_MATERIALS.get(name) for name in obj.face_material], dtype=object)
+    eye = np.flatnonzero(material != None)  # noqa: E711 (elementwise)
+    used, triangles = np.unique(obj.triangles[eye], return_inverse=True)
+    return Eyeballs(obj.points[used] * UNITS_TO_MM["cm"], triangles.reshape(-1, 3), material[eye].astype(bool))

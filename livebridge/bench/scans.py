@@ -80,7 +80,7 @@ class SyntheticScan:
 
 def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noise: float,
                  rng: np.random.Generator, hole: tuple[np.ndarray, float] | None = None, skin=None,
-                 exposure: float = 1.0, light: tuple[np.ndarray, float] | None = None
+                 exposure: float = 1.0, light: tuple[np.ndarray, float] | None = None, eyes=None
                  ) -> tuple[np.ndarray, np.ndarray | None]:
     """Points (<= n_points, 3) a scanner looking along -z sees on a mesh, with Gaussian noise ``noise`` mm,
     and their colours (same length, 3) when ``skin`` (a :class:`~livebridge.simulators.skin.SkinTexture` of
@@ -90,7 +90,8 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     the front-most surface within 0.5 mm in x-y) dropped; ``hole`` = (centre (3,), radius): no points there.
     A point's colour is the skin at its place on the mesh (barycentric in the texels of its triangle's
     vertices) times :data:`SKIN_TONE` and ``exposure``, shaded by ``light`` (:func:`lambertian`; None: unshaded, as
-    a texture a scanner has taken the lighting out of), plus :data:`COLOUR_NOISE`.
+    a texture a scanner has taken the lighting out of), plus :data:`COLOUR_NOISE`. ``eyes``: the head's
+    :class:`~livebridge.bench.scan_eyes.Eyeballs`, seen through the eye openings (as densely, unshaded).
     """
     from scipy.ndimage import map_coordinates
 
@@ -107,16 +108,25 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     keep = front_surface(points, 0.5, 1.5)
     if hole is not None:
         keep &= np.linalg.norm(points - hole[0], axis=1) > hole[1]
-    points = points[keep] + rng.normal(0.0, noise, (int(keep.sum()), 3))
+    points = points[keep]
+    if skin is not None:
+        texels = np.einsum("nk,nkd->nd", bary[keep], skin.vertex_texels[triangles[chosen[keep]]]).astype(np.float32)
+        albedo = map_coordinates(skin.albedo, [texels[:, 1], texels[:, 0]], order=1, mode="nearest")
+        if light is not None:  # the vertices' normals interpolated: the skin is as smooth as the mesh
+            normals = np.einsum("nk,nkd->nd", bary[keep], vertex_normals(vertices, triangles)[triangles[chosen[keep]]])
+            albedo = albedo * lambertian(normals / np.linalg.norm(normals, axis=1, keepdims=True), *light)
+        colours = albedo[:, None] * SKIN_TONE
+    if eyes is not None:
+        from livebridge.bench.scan_eyes import eye_points
+
+        seen, eye_colours = eye_points(eyes, vertices, triangles, n_points / weight.sum(), rng)
+        points = np.vstack([points, seen])
+        if skin is not None:
+            colours = np.vstack([colours, eye_colours])
+    points = points + rng.normal(0.0, noise, points.shape)
     if skin is None:
         return points, None
-    texels = np.einsum("nk,nkd->nd", bary[keep], skin.vertex_texels[triangles[chosen[keep]]]).astype(np.float32)
-    albedo = map_coordinates(skin.albedo, [texels[:, 1], texels[:, 0]], order=1, mode="nearest")
-    if light is not None:  # the vertices' normals interpolated: the skin is as smooth as the mesh
-        normals = np.einsum("nk,nkd->nd", bary[keep], vertex_normals(vertices, triangles)[triangles[chosen[keep]]])
-        albedo = albedo * lambertian(normals / np.linalg.norm(normals, axis=1, keepdims=True), *light)
-    colours = albedo[:, None] * SKIN_TONE * exposure + rng.normal(0.0, COLOUR_NOISE, (len(points), 3))
-    return points, np.clip(colours, 0.0, 1.0)
+    return points, np.clip(colours * exposure + rng.normal(0.0, COLOUR_NOISE, colours.shape), 0.0, 1.0)
 
 
 def lambertian(normals: np.ndarray, towards_light: np.ndarray, ambient: float) -> np.ndarray:
@@ -205,7 +215,7 @@ def random_pose(rng: np.random.Generator, degrees: float = 10.0, shift_mm: float
 def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = SCAN_POINTS,
                     noise: float = SCAN_NOISE_MM, landmark_noise: float = LANDMARK_NOISE_MM,
                     hole_muscle: str | None = HOLE_MUSCLE, colour: bool = True,
-                    muscles=None, textured: bool = False, lit: bool = False
+                    muscles=None, textured: bool = False, lit: bool = False, eyes=None
                     ) -> tuple[SyntheticScan, dict[str, SyntheticScan]]:
     """(neutral, {muscle: expression}) scans of ``basis`` (each element fully contracted), each with its own
     random head pose, sampling, noise and exposure; landmarks from ``landmarks`` (a LandmarkSet on the basis)
@@ -214,7 +224,9 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
     ``textured``: each scan is instead the mesh a scanner would write (:func:`textured_mesh`: the triangles it
     sees, vertices with :data:`TEXTURED_NOISE_MM` noise, the skin as its texture; ``n_points`` unused).
     ``lit``: the colours (or the texture) shaded by the scanner's :data:`FLASH`, fixed in the scanner's frame,
-    so the shading changes with each scan's head pose and with the expression's shape."""
+    so the shading changes with each scan's head pose and with the expression's shape. ``eyes``: the head's
+    :class:`~livebridge.bench.scan_eyes.Eyeballs` (fixed in the skull), which point clouds also see through the
+    eye openings."""
     from livebridge.geometry.transforms import apply
     from livebridge.simulators.skin import make_skin
 
@@ -232,7 +244,8 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
                                  FLASH if lit else None)
         else:
             light = (pose[:3, :3].T @ FLASH[0], FLASH[1]) if lit else None  # the flash in the mesh's frame
-            points, colours = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin, exposure, light)
+            points, colours = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin, exposure, light,
+                                           eyes)
         marks = landmarks.as_dict(shape, basis.triangles)
         marks = {name: apply(pose, p[None])[0] + rng.normal(0.0, landmark_noise, 3) for name, p in marks.items()}
         if textured:
@@ -317,11 +330,12 @@ class ScanFigures:
 
 
 def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[int, int] | None = None,
-                      remove_shading: bool | None = None, **scan_options) -> ScanFigures:
+                      remove_shading: bool | None = None, leave_out_eyeballs: bool = True,
+                      **scan_options) -> ScanFigures:
     """Coloured scans of ``basis`` (unless ``colour=False`` among ``scan_options``; ``landmarks`` the 22 or a
     68-point set); the basis built from them with skin tracking and from shape alone (the same prepared scans,
-    colour ignored); each against the ICT elements and the true expressive surfaces. ``remove_shading``: as
-    :func:`~livebridge.retarget.face_scan.prepare_neutral`'s."""
+    colour ignored); each against the ICT elements and the true expressive surfaces. ``remove_shading``,
+    ``leave_out_eyeballs``: as :func:`~livebridge.retarget.face_scan.prepare_neutral`'s."""
     from livebridge.retarget.basis import relative_errors
     from livebridge.retarget.face_scan import prepare_expression, prepare_neutral
     from livebridge.retarget.grid import GRID_SHAPE
@@ -334,7 +348,7 @@ def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[in
     reference = thesis_points_from_68(landmarks.as_dict(basis.neutral, basis.triangles), basis.neutral)
     start = time.perf_counter()
     neutral = prepare_neutral(neutral_scan.as_scan(), neutral_scan.landmarks, reference, shape=grid or GRID_SHAPE,
-                              remove_shading=remove_shading)
+                              remove_shading=remove_shading, leave_out_eyeballs=leave_out_eyeballs)
     faces = {name: prepare_expression(s.as_scan(), s.landmarks, neutral, name) for name, s in expression_scans.items()}
     prepared = time.perf_counter() - start
     start = time.perf_counter()
@@ -356,7 +370,7 @@ def build_and_measure(basis, landmarks, rng: np.random.Generator, grid: tuple[in
 
 
 def run(quick: bool, log) -> dict:
-    from livebridge.bench.data import ict_basis
+    from livebridge.bench.data import ict_basis, ict_eyeballs
 
     basis = ict_basis()
     if basis is None:
@@ -374,7 +388,27 @@ def run(quick: bool, log) -> dict:
         result["lit_textured_meshes"] = _measure_lit(basis, "textured meshes lit by the scanner's flash",
                                                      {"textured": True}, log)
         result["other_proportions"] = _measure_other_face(basis, log)
+        eyes = ict_eyeballs()
+        if eyes is not None:
+            result["scanned_eyes"] = _measure_scanned_eyes(basis, eyes, log)
     return result
+
+
+def _measure_scanned_eyes(basis, eyes, log) -> dict:
+    """The figures for scans that also see the head's ``eyes`` (:class:`~livebridge.bench.scan_eyes.Eyeballs`)
+    through the eye openings, as a real scanner does (the eyeballs left out by their colour:
+    :mod:`~livebridge.retarget.eyeballs`), and the errors with the eyeballs kept in the scans."""
+    from livebridge.retarget.landmarks import load_landmark_set
+
+    options = {"n_points": SCAN_POINTS, "eyes": eyes}
+    result = _measure(basis, f"the eyes seen between the lids, {SCAN_POINTS} points a scan", options, log)
+    kept = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), leave_out_eyeballs=False,
+                             **options)
+    log("  the same scans with the eyeballs kept:")
+    for name, error in zip(kept.names, kept.errors):
+        log(f"  {name:24s} error {error:.3f}")
+    return result | {"max_relative_error_eyeballs_kept": float(np.nanmax(kept.errors)),
+                     "relative_errors_eyeballs_kept": dict(zip(kept.names, (round(float(v), 4) for v in kept.errors)))}
 
 
 def _measure_other_face(basis, log) -> dict:
@@ -453,6 +487,8 @@ def _measure(basis, what: str, options: dict, log) -> dict:
         "alone")
     if figures.neutral.shading is not None:
         log(f"  {lighting_said(figures.neutral.shading, figures.neutral.shading_removed)}")
+    if figures.neutral.eyeball_points:
+        log(f"  {figures.neutral.eyeball_points} points of the neutral were eyeballs, left out")
     log(f"  {'element':24s} {'RMS mm':>7s} {'error':>7s} {'no colour':>9s} {'surface':>8s} {'no colour':>9s}")
     for k, name in enumerate(figures.names):
         size = np.linalg.norm(figures.truth[k], axis=1)
@@ -479,4 +515,5 @@ def _measure(basis, what: str, options: dict, log) -> dict:
             "gaps_over_limit": per_element(figures.gaps),
             "shading_removed": figures.neutral.shading_removed,
             "shading_explained": None if shading is None else round(shading.explained, 3),
+            "eyeball_points_left_out": figures.neutral.eyeball_points,
             "told_another_face": [name for name, gap in zip(figures.names, figures.gaps) if gap > 1]}

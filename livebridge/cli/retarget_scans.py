@@ -94,6 +94,10 @@ def reference_landmarks(spec: str, scale: float) -> dict:
                    "the surface's normals explain out of every scan's colours (an opened jaw or a frown turns skin "
                    "towards the light), keep leaves the colours as they are (a texture already delit); auto "
                    "removes it when it explains at least 10% of the neutral's brightness.")
+@click.option("--keep-eyeballs", is_flag=True,
+              help="Keep the points whose colour reads as an eyeball seen between the lids (the sclera, the iris; "
+                   "by default left out of every scan, so each eye's opening is a hole whose edges are the lids' "
+                   "margins). Give it when the detection takes skin for eyes (bright or coloured eye make-up).")
 @click.option("--fill-from", "template_spec", type=InputPath(builtins=("builtin",)), default=None,
               help="Complete the basis: every muscle of this basis ('builtin' or .npz) that no --expression shows is "
                    "retargeted onto the scanned neutral (it moves as that face's does, not as this person's).")
@@ -106,7 +110,8 @@ def reference_landmarks(spec: str, scale: float) -> dict:
                    "scans are over 8 MB in all (smaller ones prepare faster than processes start).")
 def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: Path, force: bool, reference: str,
           method: str, frame: str, grid_size, crop_radius, units: str, kernel: str, grid_obj, landmarks_out,
-          mesh_spacing: float | None, lighting: str, template_spec, fill_landmarks, workers: int | None) -> None:
+          mesh_spacing: float | None, lighting: str, keep_eyeballs: bool, template_spec, fill_landmarks,
+          workers: int | None) -> None:
     """Build an actuation basis for a scanned person from a neutral scan and one scan per muscle.
 
     Each scan is normalised (nose tip at the origin, facing +z), cropped to the face and resampled on a
@@ -159,9 +164,13 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
     click.echo(f"preparing {neutral_scan.name} and {len(files)} expression scan{'s' * (len(files) > 1)}")
     neutral = prepare_neutral(neutral_points, neutral_marks, reference_marks, method, (rows, columns), crop_radius,
                               neutral_landmarks, scan_source=neutral_scan, mesh_spacing=mesh_spacing,
-                              remove_shading={"auto": None, "remove": True, "keep": False}[lighting])
+                              remove_shading={"auto": None, "remove": True, "keep": False}[lighting],
+                              leave_out_eyeballs=not keep_eyeballs)
     if neutral.shading is not None:
         click.echo(lighting_said(neutral.shading, neutral.shading_removed))
+    if neutral.eyeball_points:
+        click.echo(f"eyes: {neutral.eyeball_points} points of {neutral_scan.name} are eyeballs seen between the lids, "
+                   "left out of it and of the expression scans (--keep-eyeballs keeps them)")
     faces, uncoloured = {}, []
     jobs = [(name, scan_path, landmark_path, scale, mesh_spacing) for name, (scan_path, landmark_path) in files.items()]
     for name, face in prepared_expressions(neutral, jobs, worker_count(workers, [path for _, path, *_ in jobs])):

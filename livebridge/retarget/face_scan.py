@@ -20,6 +20,7 @@ from livebridge.errors import InputError
 from livebridge.face.meshio import vertex_normals
 from livebridge.geometry.transforms import apply, transform_scale
 from livebridge.retarget.chart import PLANAR, SkinChart, face_chart
+from livebridge.retarget.eyeballs import eyeball_points
 from livebridge.retarget.grid import (
     GAP_SPACINGS,
     GRID_SHAPE,
@@ -132,6 +133,11 @@ class FaceScan:
     shading_removed : bool
         Whether ``skin`` is the colours divided by ``shading`` (the neutral's shading explained enough of its
         brightness; its expressions follow the neutral).
+    eyeball_points : int
+        How many of the scan's points were eyeballs seen through the eye openings, left out
+        (:mod:`~livebridge.retarget.eyeballs`).
+    eyeballs_left_out : bool
+        Whether they were sought (the neutral's choice; its expressions follow it).
     """
 
     grid: FaceGrid
@@ -150,6 +156,8 @@ class FaceScan:
     off_face_share: float = 0.0
     shading: Shading | None = None
     shading_removed: bool = False
+    eyeball_points: int = 0
+    eyeballs_left_out: bool = True
 
     @property
     def coloured(self) -> bool:
@@ -203,7 +211,8 @@ def crop_radius(landmarks: dict[str, np.ndarray]) -> float:
 def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dict[str, np.ndarray],
                     method: str = "rigid", shape: tuple[int, int] = GRID_SHAPE, radius: float | None = None,
                     source=None, chart: str = CHART_KIND, scan_source=None,
-                    mesh_spacing: float | None = None, remove_shading: bool | None = None) -> FaceScan:
+                    mesh_spacing: float | None = None, remove_shading: bool | None = None,
+                    leave_out_eyeballs: bool = True) -> FaceScan:
     """The neutral scan normalised onto ``reference`` by ``method`` (see
     :func:`~livebridge.retarget.normalise.normalisation`), cropped to a sphere of ``radius`` around the nose
     tip and resampled on a ``shape`` grid over ``[-radius, radius]^2``; its skin images in a ``chart`` fitted
@@ -211,7 +220,9 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     vertices (:mod:`~livebridge.retarget.surface_fit`). A mesh is first sampled into points every
     ``mesh_spacing`` mm (default 0.5: :mod:`~livebridge.retarget.mesh_samples`), coloured from its texture or
     vertices. The colours' lighting (:mod:`~livebridge.retarget.shading`) is divided out if ``remove_shading``
-    (None: if it explains enough of the scan's brightness), and then from every expression scan too. Errors
+    (None: if it explains enough of the scan's brightness), and then from every expression scan too. The eyeballs
+    seen through the eye openings are left out (:mod:`~livebridge.retarget.eyeballs`) if ``leave_out_eyeballs``,
+    and then from every expression scan too. Errors
     name ``source`` (the landmark file) or ``scan_source`` (the scan file: a flat scan). Landmarks numbered as
     the 68-point iBUG layout are named as the thesis's (:func:`~livebridge.retarget.landmarks.thesis_points_from_68`).
     """
@@ -223,6 +234,7 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     scan = _as_points(scan, landmarks, radius / abs(transform_scale(scan2face)), mesh_spacing, scan2face)
     whole = scan.points
     scan, points = _without_spikes(scan, apply(scan2face, scan.points), radius)
+    scan, points, eyeballs = _without_eyeballs(scan, points, moved, leave_out_eyeballs)
     if not len(points):  # the crop holds no point: say how far apart the scan's and the landmarks' places are
         size = float(np.ptp(whole, axis=0).max())
         spread = float(np.ptp(np.array(list(landmarks.values())), axis=0).max())
@@ -238,7 +250,8 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
                          "(a face is tens of mm deep)", scan_source or source, "points")
     face.landmark_set(source)  # every landmark on the resampled face, or a clear error
     inside = crop_sphere(points, np.zeros(3), radius)
-    return replace(face, fitted_heights=fitted_heights(points[inside], face.grid))
+    return replace(face, fitted_heights=fitted_heights(points[inside], face.grid), eyeball_points=eyeballs,
+                   eyeballs_left_out=leave_out_eyeballs)
 
 
 def _as_points(scan: Scan, landmarks: dict[str, np.ndarray], radius: float, spacing: float | None,
@@ -274,6 +287,19 @@ def _on_the_face(scan: Scan, points: np.ndarray, vertices: np.ndarray) -> tuple[
     if not far.any():
         return scan, points, 0.0
     return _points_where(scan, ~far), points[~far], float(far.mean())
+
+
+def _without_eyeballs(scan: Scan, points: np.ndarray, landmarks: dict, leave_out: bool = True
+                      ) -> tuple[Scan, np.ndarray, int]:
+    """A point cloud (``scan``; ``points`` (n, 3) the same in the face frame, ``landmarks`` too) without the
+    eyeballs seen through the eye openings (:mod:`~livebridge.retarget.eyeballs`) if ``leave_out``, and how
+    many points they were."""
+    if not leave_out:
+        return scan, points, 0
+    eyes = eyeball_points(points, scan.colours, landmarks)
+    if not eyes.any():
+        return scan, points, 0
+    return _points_where(scan, ~eyes), points[~eyes], int(eyes.sum())
 
 
 def _points_where(scan: Scan, keep: np.ndarray) -> Scan:
@@ -401,13 +427,15 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     scan, points = _without_spikes(scan, apply(scan2face, scan.points), radius)
     scan, points, off_face = _on_the_face(scan, points, neutral.vertices)
     moved = transform_landmarks(scan2face, landmarks)
+    scan, points, eyeballs = _without_eyeballs(scan, points, moved, neutral.eyeballs_left_out)
     check_not_folded(neutral.landmarks, moved, landmarks_source or source)
     axes = None if neutral.skin is None else (neutral.skin.x, neutral.skin.y, neutral.skin_factor, neutral.skin_margin)
     face = _resampled(scan, points, neutral.grid.x, neutral.grid.y, radius, moved, scan2face, source, neutral.chart,
                       axes, neutral.shading_removed, report_shading=False)
     inside = points[crop_sphere(points, np.zeros(3), radius)]
     return replace(face, gap_mm=surface_gap(inside, neutral.vertices, normals),
-                   noise_mm=noise_level(inside, face.grid), off_face_share=off_face)
+                   noise_mm=noise_level(inside, face.grid), off_face_share=off_face, eyeball_points=eyeballs,
+                   eyeballs_left_out=neutral.eyeballs_left_out)
 
 
 def check_sides(landmarks: dict[str, np.ndarray], reference: dict[str, np.ndarray], source=None) -> None:

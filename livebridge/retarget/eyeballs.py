@@ -1,0 +1,150 @@
+"""The eyeballs a scanner sees through the eye openings, told from the skin by their colour and left out.
+
+The scan pipeline reads an eye's opening as a hole in the skin (:mod:`~livebridge.retarget.eyelids`: where
+the lids' margins are, and where they went in an expression). A scanner sees the eyes too, the white sclera
+and the iris between the lids; resampled with the skin they fill the opening, and the closing lid's skin is
+then tracked against a surface that never moves.
+
+Within an ellipse around each eye (:data:`REGION_EYE_WIDTHS`, from the two eye corners' landmarks), a point
+is unlike skin when its chromaticity lies far from that of the skin in a ring around the ellipse
+(:data:`CHROMA_SPREADS` of the ring's robust spread, at least :data:`MIN_CHROMA`), or when it is much darker
+(:data:`DARK`: a pupil, a dark iris). Light (flash, shading) scales the three channels alike and leaves the
+chromaticity as it is. The opening is the region, on a raster of :data:`CELL_MM`, where most points are unlike
+skin, in one piece with holes filled (a highlight on the cornea), reaching at least
+:data:`~livebridge.retarget.eyelids.MIN_OPENING_EYE_WIDTHS` eye widths along the eye: a mole or a lash's
+shadow is none. A closed eye shows lid skin only and loses nothing.
+
+A scan without colour keeps its eyeballs: the openings then come from the lids' landmarks, if given (see
+:mod:`~livebridge.retarget.eyelids`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from livebridge.retarget.eyelids import MIN_OPENING_EYE_WIDTHS
+
+REGION_EYE_WIDTHS = (0.6, 0.4)
+"""Semi-axes of the ellipse searched for an eyeball, along and across the eye, in eye widths (corner to
+corner): a wide-open eye's opening reaches 0.25 of them above and below the corners' line, the brows lie
+beyond 0.55."""
+RING = 1.6
+"""The skin the eyeball is told from: between the ellipse and this times it."""
+CELL_MM = 0.5
+"""The raster on which the opening is found."""
+CHROMA_SPREADS = 4.0
+"""A point is unlike skin this many robust spreads (1.4826 MAD) of the ring's chromaticity away from its
+median."""
+MIN_CHROMA = 0.02
+"""... and at least this far (chromaticity, the channels over their sum): skin's hue varies little, the
+sclera's white lies 0.05-0.07 from a light skin's, a brown iris as far the other way."""
+DARK = 0.2
+"""A point darker than this times the ring's median brightness is unlike skin whatever its hue."""
+MOST = 0.5
+"""A raster cell is in the opening when more than this share of its points is unlike skin."""
+LINE_EYE_WIDTHS = 0.15
+"""Between the corners and within this many eye widths of their line, every point unlike skin is the eye's,
+in an opening or not: a closed eye's lids may leave a slit of eyeball too short to be an opening, a
+squint's may break into pieces."""
+RIM_CELLS = 2
+"""Within this many cells of the opening's edge a point is the eye's only if unlike skin; farther in, every
+point is."""
+SIDES = ("L", "R")
+
+
+def eyeball_points(points: np.ndarray, colours: np.ndarray | None, landmarks: dict[str, np.ndarray]
+                   ) -> np.ndarray:
+    """Which points are an eyeball seen through an eye's opening.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        The scan in the face frame (+z out of the face).
+    colours : ndarray, shape (n, 3), or None
+        RGB in [0, 1]; None: nothing is found.
+    landmarks : dict of str to ndarray, shape (3,)
+        In the face frame; the eyes searched are those with ``eye_inner_<side>`` and ``eye_outer_<side>``.
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+    """
+    found = np.zeros(len(points), dtype=bool)
+    if colours is None or not len(points):
+        return found
+    for side in SIDES:
+        corners = [landmarks.get(f"eye_{which}_{side}") for which in ("inner", "outer")]
+        if any(corner is None for corner in corners):
+            continue
+        found |= _one_eye(points, colours, np.asarray(corners[0], float), np.asarray(corners[1], float))
+    return found
+
+
+def _one_eye(points: np.ndarray, colours: np.ndarray, inner: np.ndarray, outer: np.ndarray) -> np.ndarray:
+    """The eyeball points (n,) bool of the eye between corners ``inner`` and ``outer`` (3,)."""
+    along = (outer - inner)[:2]
+    width = float(np.linalg.norm(along))
+    if width <= 0:
+        return np.zeros(len(points), dtype=bool)
+    along /= width
+    local = (points[:, :2] - 0.5 * (inner + outer)[:2]) @ np.array([along, [-along[1], along[0]]]).T
+    reach = np.hypot(local[:, 0] / (REGION_EYE_WIDTHS[0] * width), local[:, 1] / (REGION_EYE_WIDTHS[1] * width))
+    # the eye's own depth: not the nose's side or a cheek seen past the ellipse in x-y
+    near = np.abs(points[:, 2] - 0.5 * (inner[2] + outer[2])) < width
+    region, ring = near & (reach <= 1.0), near & (reach > 1.0) & (reach <= RING)
+    if region.sum() < 10 or ring.sum() < 10:
+        return np.zeros(len(points), dtype=bool)
+    unlike = _unlike_skin(colours[region], colours[ring])
+    on_line = (np.abs(local[region, 0]) < 0.5 * width) & (np.abs(local[region, 1]) < LINE_EYE_WIDTHS * width)
+    opening = _opening(local[region], unlike, width) | (unlike & on_line)
+    found = np.zeros(len(points), dtype=bool)
+    found[np.flatnonzero(region)[opening]] = True
+    return found
+
+
+def _unlike_skin(colours: np.ndarray, skin: np.ndarray) -> np.ndarray:
+    """Which of ``colours`` (m, 3) are unlike the ``skin`` colours (k, 3): far in chromaticity or much darker."""
+    def chroma(rgb):
+        total = rgb.sum(axis=1, keepdims=True)
+        return rgb[:, :2] / np.maximum(total, 1e-6), total[:, 0]
+
+    skin_chroma, skin_total = chroma(skin)
+    centre = np.median(skin_chroma, axis=0)
+    spread = 1.4826 * np.median(np.linalg.norm(skin_chroma - centre, axis=1))
+    limit = max(CHROMA_SPREADS * spread, MIN_CHROMA)
+    own, total = chroma(colours)
+    return (np.linalg.norm(own - centre, axis=1) > limit) | (total < DARK * np.median(skin_total))
+
+
+def _opening(local: np.ndarray, unlike: np.ndarray, width: float) -> np.ndarray:
+    """Which points (``local``: (m, 2) mm along and across the eye; ``unlike``: (m,) bool) lie in the eye's
+    opening: cells of :data:`CELL_MM` where most points are unlike skin, joined, holes filled, the pieces
+    at least :data:`~livebridge.retarget.eyelids.MIN_OPENING_EYE_WIDTHS` eye widths long."""
+    cell = np.floor((local - local.min(axis=0)) / CELL_MM).astype(int)
+    shape = tuple(cell.max(axis=0) + 1)
+    count = np.zeros(shape)
+    np.add.at(count, tuple(cell.T), 1.0)
+    share = np.zeros(shape)
+    np.add.at(share, tuple(cell.T), unlike.astype(float))
+    voted = np.where(count > 0, share > MOST * count, _neighbours_vote(count, share))
+    mask = ndimage.binary_fill_holes(ndimage.binary_closing(voted))
+    labels, n = ndimage.label(mask)
+    keep = np.zeros(n + 1, dtype=bool)
+    for k, piece in enumerate(ndimage.find_objects(labels), start=1):
+        length = (piece[0].stop - piece[0].start) * CELL_MM
+        keep[k] = length >= MIN_OPENING_EYE_WIDTHS * width
+    opening = keep[labels]
+    # inside, every point (a stray point left in the hole would be resampled into a disc of surface); near the
+    # rim, whose cells hold lid skin too, only the points unlike skin
+    inside = ndimage.binary_erosion(opening, iterations=RIM_CELLS)
+    near = ndimage.binary_dilation(opening, iterations=RIM_CELLS)
+    at = tuple(cell.T)
+    return inside[at] | (near[at] & unlike)
+
+
+def _neighbours_vote(count: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """Cells no point fell in (a sparse scan leaves gaps inside the opening too) take the vote of the 3 x 3
+    cells around them."""
+    count, share = (ndimage.uniform_filter(a, 3) for a in (count, share))
+    return share > MOST * np.maximum(count, 1e-9)
