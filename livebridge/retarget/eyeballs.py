@@ -9,10 +9,11 @@ Within an ellipse around each eye (:data:`REGION_EYE_WIDTHS`, from the two eye c
 is unlike skin when its chromaticity lies far from that of the skin in a ring around the ellipse
 (:data:`CHROMA_SPREADS` of the ring's robust spread, at least :data:`MIN_CHROMA`), or when it is much darker
 (:data:`DARK`: a pupil, a dark iris). Light (flash, shading) scales the three channels alike and leaves the
-chromaticity as it is. The opening is the region, on a raster of :data:`CELL_MM`, where most points are unlike
-skin, in one piece with holes filled (a highlight on the cornea), reaching at least
+chromaticity as it is. The opening is the convex hull of the cells of a raster of :data:`CELL_MM` where most
+points are unlike skin, in the pieces that reach the line between the corners and together span at least
 :data:`~livebridge.retarget.eyelids.MIN_OPENING_EYE_WIDTHS` eye widths along the eye: a mole or a lash's
-shadow is none. A closed eye shows lid skin only and loses nothing.
+shadow is none, and an iris as like skin as the skin around it (a brown iris by a brown skin) is inside the
+hull of the whites either side of it. A closed eye shows lid skin only and loses nothing.
 
 A scan without colour keeps its eyeballs: the openings then come from the lids' landmarks, if given (see
 :mod:`~livebridge.retarget.eyelids`).
@@ -48,8 +49,8 @@ LINE_EYE_WIDTHS = 0.15
 in an opening or not: a closed eye's lids may leave a slit of eyeball too short to be an opening, a
 squint's may break into pieces."""
 RIM_CELLS = 2
-"""Within this many cells of the opening's edge a point is the eye's only if unlike skin; farther in, every
-point is."""
+"""Within this many cells around the opening's cells a point outside their hull is the eye's if unlike skin;
+inside the hull every point is."""
 SIDES = ("L", "R")
 
 
@@ -119,28 +120,44 @@ def _unlike_skin(colours: np.ndarray, skin: np.ndarray) -> np.ndarray:
 
 def _opening(local: np.ndarray, unlike: np.ndarray, width: float) -> np.ndarray:
     """Which points (``local``: (m, 2) mm along and across the eye; ``unlike``: (m,) bool) lie in the eye's
-    opening: cells of :data:`CELL_MM` where most points are unlike skin, joined, holes filled, the pieces
-    at least :data:`~livebridge.retarget.eyelids.MIN_OPENING_EYE_WIDTHS` eye widths long."""
-    cell = np.floor((local - local.min(axis=0)) / CELL_MM).astype(int)
+    opening: the convex hull of the cells of :data:`CELL_MM` where most points are unlike skin, joined and
+    holes filled, in the pieces that reach the corners' line, together at least
+    :data:`~livebridge.retarget.eyelids.MIN_OPENING_EYE_WIDTHS` eye widths long.
+
+    The hull, because between the lids an opening is convex, and an iris may be as like skin as the skin is
+    (a brown iris by a brown skin) and split the whites into two pieces either side of it."""
+    low = local.min(axis=0)
+    cell = np.floor((local - low) / CELL_MM).astype(int)
     shape = tuple(cell.max(axis=0) + 1)
     count = np.zeros(shape)
     np.add.at(count, tuple(cell.T), 1.0)
     share = np.zeros(shape)
     np.add.at(share, tuple(cell.T), unlike.astype(float))
     voted = np.where(count > 0, share > MOST * count, _neighbours_vote(count, share))
-    mask = ndimage.binary_fill_holes(ndimage.binary_closing(voted))
-    labels, n = ndimage.label(mask)
-    keep = np.zeros(n + 1, dtype=bool)
-    for k, piece in enumerate(ndimage.find_objects(labels), start=1):
-        length = (piece[0].stop - piece[0].start) * CELL_MM
-        keep[k] = length >= MIN_OPENING_EYE_WIDTHS * width
-    opening = keep[labels]
-    # inside, every point (a stray point left in the hole would be resampled into a disc of surface); near the
-    # rim, whose cells hold lid skin too, only the points unlike skin
-    inside = ndimage.binary_erosion(opening, iterations=RIM_CELLS)
-    near = ndimage.binary_dilation(opening, iterations=RIM_CELLS)
-    at = tuple(cell.T)
-    return inside[at] | (near[at] & unlike)
+    labels, _ = ndimage.label(ndimage.binary_fill_holes(ndimage.binary_closing(voted)))
+    centres = low + (np.indices(shape).transpose(1, 2, 0) + 0.5) * CELL_MM
+    line = (np.abs(centres[..., 0]) < 0.5 * width) & (np.abs(centres[..., 1]) < LINE_EYE_WIDTHS * width)
+    pieces = np.isin(labels, np.setdiff1d(labels[line], 0))
+    extent = centres[pieces, 0]
+    if not extent.size or np.ptp(extent) + CELL_MM < MIN_OPENING_EYE_WIDTHS * width:
+        return np.zeros(len(local), dtype=bool)
+    # inside the hull of the pieces' cell centres, every point (a stray point left in the hole would be
+    # resampled into a disc of surface); around it, whose cells hold lid skin too, only the points unlike skin
+    hull = _hull(local - low, np.argwhere(pieces) + 0.5)
+    near = ndimage.binary_dilation(pieces, iterations=RIM_CELLS)[tuple(cell.T)]
+    return hull | (near & unlike)
+
+
+def _hull(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Which ``points`` (m, 2; mm from the raster's corner) lie in the convex hull of the centres of ``cells``
+    (k, 2; in cells of :data:`CELL_MM`)."""
+    from scipy.spatial import Delaunay, QhullError
+
+    try:
+        triangulation = Delaunay(cells * CELL_MM)
+    except QhullError:  # all in a line: no area
+        return np.zeros(len(points), dtype=bool)
+    return triangulation.find_simplex(points) >= 0
 
 
 def _neighbours_vote(count: np.ndarray, share: np.ndarray) -> np.ndarray:
