@@ -49,14 +49,10 @@ def eye_points(eyes: Eyeballs, face: np.ndarray, face_triangles: np.ndarray, per
     """Points (k, 3) a scanner looking along -z sees on ``eyes`` past the face mesh (``face`` (n, 3) vertices,
     ``face_triangles`` (m, 3)), ``per_mm2`` of them per mm² of the eyeballs' surface facing it, and their
     colours (k, 3), before exposure and noise."""
-    from livebridge.bench.scans import random_barycentric
-    from livebridge.face.meshio import triangle_areas, triangle_normals
+    from livebridge.bench.surface_samples import facing_samples, facing_weights
 
-    facing = triangle_normals(eyes.vertices, eyes.triangles)[:, 2] > 0.05
-    weight = np.where(facing, triangle_areas(eyes.vertices, eyes.triangles), 0.0)
-    count = int(rng.poisson(per_mm2 * weight.sum()))
-    chosen = rng.choice(len(eyes.triangles), count, p=weight / weight.sum())
-    points = np.einsum("nk,nkd->nd", random_barycentric(rng, (count,)), eyes.vertices[eyes.triangles[chosen]])
+    count = int(rng.poisson(per_mm2 * facing_weights(eyes.vertices, eyes.triangles).sum()))
+    points, chosen, _ = facing_samples(eyes.vertices, eyes.triangles, count, rng)
     seen = _seen(points, np.vstack([face, eyes.vertices]), np.vstack([face_triangles, eyes.triangles + len(face)]),
                  len(face_triangles))
     points, chosen = points[seen], chosen[seen]

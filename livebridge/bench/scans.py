@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from livebridge.bench.surface_samples import facing_samples, facing_weights, random_barycentric
+
 if TYPE_CHECKING:
     from livebridge.retarget.face_scan import FaceScan
 
@@ -95,16 +97,10 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     """
     from scipy.ndimage import map_coordinates
 
-    from livebridge.face.meshio import triangle_areas, triangle_normals, vertex_normals
+    from livebridge.face.meshio import vertex_normals
     from livebridge.retarget.grid import front_surface
 
-    corners = vertices[triangles]
-    area = triangle_areas(vertices, triangles)
-    facing = triangle_normals(vertices, triangles)[:, 2] > 0.05
-    weight = np.where(facing, area, 0.0)
-    chosen = rng.choice(len(triangles), n_points, p=weight / weight.sum())
-    bary = random_barycentric(rng, (n_points,))
-    points = np.einsum("nk,nkd->nd", bary, corners[chosen])
+    points, chosen, bary = facing_samples(vertices, triangles, n_points, rng)
     keep = front_surface(points, 0.5, 1.5)
     if hole is not None:
         keep &= np.linalg.norm(points - hole[0], axis=1) > hole[1]
@@ -119,7 +115,8 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     if eyes is not None:
         from livebridge.bench.scan_eyes import eye_points
 
-        seen, eye_colours = eye_points(eyes, vertices, triangles, n_points / weight.sum(), rng)
+        seen, eye_colours = eye_points(eyes, vertices, triangles, n_points / facing_weights(vertices, triangles).sum(),
+                                       rng)
         points = np.vstack([points, seen])
         if skin is not None:
             colours = np.vstack([colours, eye_colours])
@@ -133,15 +130,6 @@ def lambertian(normals: np.ndarray, towards_light: np.ndarray, ambient: float) -
     """Lambertian shading (n,) of skin with unit ``normals`` (n, 3): ``ambient`` plus the rest times the cosine
     between the normal and ``towards_light`` (3,), unit, in the normals' frame; 0 on the far side."""
     return ambient + (1.0 - ambient) * np.clip(normals @ towards_light, 0.0, None)
-
-
-def random_barycentric(rng: np.random.Generator, shape: tuple) -> np.ndarray:
-    """Barycentric coordinates (*shape, 3) of points uniform over a triangle: two uniform numbers, folded back
-    into the triangle where they sum past 1."""
-    a, b = rng.random((2, *shape))
-    flip = a + b > 1
-    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
-    return np.stack([1 - a - b, a, b], axis=-1)
 
 
 def textured_mesh(vertices: np.ndarray, triangles: np.ndarray, skin, rng: np.random.Generator,
@@ -189,10 +177,9 @@ def seen_triangles(vertices: np.ndarray, triangles: np.ndarray, rng: np.random.G
     """Mask (m,) of the triangles a scanner looking along -z sees (what its mesh keeps): facing +z, and at
     least half of ``samples`` random points on each on the front surface (as :func:`scan_surface` keeps
     points)."""
-    from livebridge.face.meshio import triangle_normals
     from livebridge.retarget.grid import front_surface
 
-    facing = np.flatnonzero(triangle_normals(vertices, triangles)[:, 2] > 0.05)
+    facing = np.flatnonzero(facing_weights(vertices, triangles) > 0)
     bary = random_barycentric(rng, (len(facing), samples))
     points = np.einsum("tsk,tkd->tsd", bary, vertices[triangles[facing]])
     seen = front_surface(points.reshape(-1, 3), 0.5, 1.5).reshape(len(facing), samples).mean(axis=1) >= 0.5
