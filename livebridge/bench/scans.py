@@ -385,17 +385,9 @@ def _measure_scanned_eyes(basis, eyes, log) -> dict:
     """The figures for scans that also see the head's ``eyes`` (:class:`~livebridge.bench.scan_eyes.Eyeballs`)
     through the eye openings, as a real scanner does (the eyeballs left out by their colour:
     :mod:`~livebridge.retarget.eyeballs`), and the errors with the eyeballs kept in the scans."""
-    from livebridge.retarget.landmarks import load_landmark_set
-
-    options = {"n_points": SCAN_POINTS, "eyes": eyes}
-    result = _measure(basis, f"the eyes seen between the lids, {SCAN_POINTS} points a scan", options, log)
-    kept = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), leave_out_eyeballs=False,
-                             **options)
-    log("  the same scans with the eyeballs kept:")
-    for name, error in zip(kept.names, kept.errors):
-        log(f"  {name:24s} error {error:.3f}")
-    return result | {"max_relative_error_eyeballs_kept": float(np.nanmax(kept.errors)),
-                     "relative_errors_eyeballs_kept": dict(zip(kept.names, (round(float(v), 4) for v in kept.errors)))}
+    return _measure_against(basis, f"the eyes seen between the lids, {SCAN_POINTS} points a scan",
+                            {"n_points": SCAN_POINTS, "eyes": eyes}, log, {"leave_out_eyeballs": False},
+                            "with the eyeballs kept", "eyeballs_kept")
 
 
 def _measure_other_face(basis, log) -> dict:
@@ -415,17 +407,23 @@ def _measure_lit(basis, what: str, options: dict, log) -> dict:
     """The figures for scans (made with ``options``; ``what`` they are, for the log) whose colours hold the
     scanner's :data:`FLASH` (the shading divided out as ``retarget scans --lighting auto`` decides), and the
     errors with the shading left in the colours."""
+    return _measure_against(basis, what, options | {"lit": True}, log, {"remove_shading": False},
+                            "with their shading left in the colours", "shading_kept")
+
+
+def _measure_against(basis, what: str, options: dict, log, without: dict, said: str, suffix: str) -> dict:
+    """The figures for scans made with ``options`` (``what`` they are, for the log), and the errors of the same
+    scans built with ``without`` (:func:`build_and_measure`'s keywords: a step of the pipeline left out; logged
+    as built ``said``), as ``max_relative_error_<suffix>`` and ``relative_errors_<suffix>``."""
     from livebridge.retarget.landmarks import load_landmark_set
 
-    options = options | {"lit": True}
     result = _measure(basis, what, options, log)
-    kept = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), remove_shading=False,
-                             **options)
-    log("  the same scans with their shading left in the colours:")
-    for name, error in zip(kept.names, kept.errors):
+    other = build_and_measure(basis, load_landmark_set("ict-22"), np.random.default_rng(7), **without, **options)
+    log(f"  the same scans {said}:")
+    for name, error in zip(other.names, other.errors):
         log(f"  {name:24s} error {error:.3f}")
-    return result | {"max_relative_error_shading_kept": float(np.nanmax(kept.errors)),
-                     "relative_errors_shading_kept": dict(zip(kept.names, (round(float(v), 4) for v in kept.errors)))}
+    return result | {f"max_relative_error_{suffix}": float(np.nanmax(other.errors)),
+                     f"relative_errors_{suffix}": dict(zip(other.names, (round(float(v), 4) for v in other.errors)))}
 
 
 def _measure_lid_landmarks(basis, log) -> dict:
