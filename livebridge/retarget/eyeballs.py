@@ -18,9 +18,10 @@ every point is the eye's; at its edge (:data:`HULL_EDGE_CELLS`) and around it (:
 unlike skin. A closed eye shows lid skin only and loses nothing.
 
 `livebridge bench scans` (``scanned_eyes``: the 60k-point scans also seeing the ICT head's eyeballs, sclera
-and a brown iris, between the lids): left out, 983 points of the neutral, the eyelids 0.208 / 0.214 relative
+and a brown iris, between the lids): left out, 946 points of the neutral, the eyelids 0.200 / 0.208 relative
 RMS, as without eyes (0.198 / 0.180 from another draw); kept, 0.688 / 1.151. With a second eyeball simulation
-(seeds 7 and 8) every element came within 0.006 of the same scans with every eyeball point dropped.
+(seeds 7 and 8) every element came within 0.006 of the same scans with every eyeball point dropped; 7-19 skin
+points a scan were taken, all on the lids' rims.
 
 A scan without colour keeps its eyeballs: the eyelids are then read from the lids' landmarks, if given (see
 :mod:`~livebridge.retarget.eyelids`).
