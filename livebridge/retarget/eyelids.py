@@ -29,9 +29,9 @@ files also name the lids' points of the 68-point iBUG layout (37, 38, 40, 41 on 
 44, 46, 47 on the left, as ``lm_37`` ...; a landmark detector on each scan's texture gives them), the margins
 and their motion come from those landmarks. Where the opening is seen it is used first: in `livebridge bench
 scans` with the 8 lid landmarks added (0.5 mm noise, 60k points a scan) the margins from the landmarks gave 0.40
-and 0.41 relative RMS for the two eyelid elements, from the openings 0.36 and 0.35 (the lid landmarks still
-join the landmark spline of the shape warp: :func:`~livebridge.retarget.scans.geometric_element` uses every
-landmark both scans name).
+and 0.41 relative RMS for the two eyelid elements, from the openings 0.36 and 0.35 (the lid landmarks also join
+the landmark spline of the warp a skin flow starts from; a warp from shape alone leaves them out:
+:func:`~livebridge.retarget.scans.shape_element`).
 """
 
 from __future__ import annotations

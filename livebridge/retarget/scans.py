@@ -70,7 +70,7 @@ from livebridge.face.meshio import vertex_normals
 from livebridge.face.muscle_place import muscle_for
 from livebridge.geometry.transforms import apply, invert
 from livebridge.retarget.chart import SkinChart
-from livebridge.retarget.eyelids import closing_openings, eyelid_guess, moving_lids
+from livebridge.retarget.eyelids import LID_LANDMARK_NAMES, closing_openings, eyelid_guess, moving_lids
 from livebridge.retarget.face_scan import LANDMARK_SMOOTHING, FaceScan, opening_gap_mm, skin_gap_mm
 from livebridge.retarget.grid import (
     FaceGrid,
@@ -132,8 +132,15 @@ def shape_element(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL
     eyelid's slide read from where the eye opening went (:func:`_lids_guess`), which no landmark knows.
 
     On the bench's ICT scans (seed 7, 60k points) the eyelid elements 0.94 / 1.02 relative RMS from the warp,
-    0.56 / 0.57 with the lids' guess."""
-    base = geometric_element(neutral, expression, stride, kernel, source)
+    0.56 / 0.57 with the lids' guess.
+
+    The lids' iBUG landmarks (:data:`~livebridge.retarget.eyelids.LID_LANDMARK_NAMES`), when the files name them,
+    give the guess its margins where no opening is seen, and stay out of the warp's landmark spline: there they
+    carried the lids' 10 mm to the skin around the eyes, which no flow corrects without colour (the bench's
+    scans with the 8 lid landmarks, eyelids 0.603 / 0.552 instead of 1.103 / 1.019; with the eyeballs seen and
+    no colour to leave them out by, 0.580 / 0.562 instead of 0.970 / 0.903). A flow started from the warp
+    does better with them (0.204 / 0.227 against 0.206 / 0.247), so :func:`tracked_motion` keeps them."""
+    base = geometric_element(neutral, expression, stride, kernel, source, left_out=LID_LANDMARK_NAMES)
     if neutral.skin is None or expression.skin is None:
         return base
     guess, _, eyes = _lids_guess(neutral, expression, base)
@@ -280,7 +287,8 @@ def _carried(grid: FaceGrid, chart: SkinChart, motion: np.ndarray, trust: np.nda
 
 
 def geometric_element(neutral: FaceScan, expression: FaceScan, stride: int = CONTROL_STRIDE,
-                      kernel: Kernel | str = Kernel.BIHARMONIC, source=None, still: bool = True) -> np.ndarray:
+                      kernel: Kernel | str = Kernel.BIHARMONIC, source=None, still: bool = True,
+                      left_out: tuple = ()) -> np.ndarray:
     """The displacement (n_vertices, 3) from the landmark TPS, control points snapped to the expressive
     surface and the TPS warp through them (§5.5): the motion along the skin is known at the landmarks only.
 
@@ -289,8 +297,9 @@ def geometric_element(neutral: FaceScan, expression: FaceScan, stride: int = CON
     face no landmark pins (a lip corner's 11 mm out to the cheek's edge). The skin flow starts from the thesis's
     warp (``still=False``): from this one, in `livebridge bench scans`, the other face's jaw was 0.167 relative
     RMS instead of 0.090 (the chin's skin that goes out of the scanner's view under the opened jaw), the other
-    elements within 0.007 but for the right eyelid at 60k points (0.242 -> 0.226)."""
-    names = [name for name in neutral.landmarks if name in expression.landmarks]
+    elements within 0.007 but for the right eyelid at 60k points (0.242 -> 0.226). The landmarks named in
+    ``left_out`` do not join the landmark TPS."""
+    names = [name for name in neutral.landmarks if name in expression.landmarks and name not in left_out]
     if len(names) < 4:
         raise InputError(f"the expression scan shares {len(names)} landmarks with the neutral (at least 4)",
                          source, "landmarks")
