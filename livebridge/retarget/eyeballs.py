@@ -139,14 +139,9 @@ def _opening(local: np.ndarray, unlike: np.ndarray, width: float) -> np.ndarray:
     (a brown iris by a brown skin) and split the whites into two pieces either side of it."""
     low = local.min(axis=0)
     cell = np.floor((local - low) / CELL_MM).astype(int)
-    shape = tuple(cell.max(axis=0) + 1)
-    count = np.zeros(shape)
-    np.add.at(count, tuple(cell.T), 1.0)
-    share = np.zeros(shape)
-    np.add.at(share, tuple(cell.T), unlike.astype(float))
-    voted = np.where(count > 0, share > MOST * count, _neighbours_vote(count, share))
+    voted = _voted(cell, unlike)
     labels, _ = ndimage.label(ndimage.binary_fill_holes(ndimage.binary_closing(voted)))
-    centres = low + (np.indices(shape).transpose(1, 2, 0) + 0.5) * CELL_MM
+    centres = low + (np.indices(voted.shape).transpose(1, 2, 0) + 0.5) * CELL_MM
     line = (np.abs(centres[..., 0]) < 0.5 * width) & (np.abs(centres[..., 1]) < LINE_EYE_WIDTHS * width)
     pieces = np.isin(labels, np.setdiff1d(labels[line], 0))
     extent = centres[pieces, 0]
@@ -173,8 +168,13 @@ def _hull(cells: np.ndarray) -> np.ndarray:
     return (triangulation.find_simplex(np.indices(cells.shape).reshape(2, -1).T) >= 0).reshape(cells.shape)
 
 
-def _neighbours_vote(count: np.ndarray, share: np.ndarray) -> np.ndarray:
-    """Cells no point fell in (a sparse scan leaves gaps inside the opening too) take the vote of the 3 x 3
-    cells around them."""
-    count, share = (ndimage.uniform_filter(a, 3) for a in (count, share))
-    return share > MOST * np.maximum(count, 1e-9)
+def _voted(cell: np.ndarray, unlike: np.ndarray) -> np.ndarray:
+    """The raster (bool) of the cells where more than :data:`MOST` of the points (in cells ``cell`` (m, 2)) are
+    ``unlike`` (m,) skin; a cell no point fell in (a sparse scan leaves gaps inside the opening too) takes the
+    vote of the 3 x 3 cells around it."""
+    shape = tuple(cell.max(axis=0) + 1)
+    count, share = np.zeros(shape), np.zeros(shape)
+    np.add.at(count, tuple(cell.T), 1.0)
+    np.add.at(share, tuple(cell.T), unlike.astype(float))
+    around, around_share = (ndimage.uniform_filter(a, 3) for a in (count, share))
+    return np.where(count > 0, share > MOST * count, around_share > MOST * np.maximum(around, 1e-9))
