@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from livebridge.bench.surface_samples import facing_samples, facing_weights
+
 SCLERA = np.array([0.86, 0.83, 0.80])
 """RGB of the eye's white (before the scan's exposure)."""
 IRIS = np.array([0.30, 0.20, 0.12])
@@ -49,8 +51,6 @@ def eye_points(eyes: Eyeballs, face: np.ndarray, face_triangles: np.ndarray, per
     """Points (k, 3) a scanner looking along -z sees on ``eyes`` past the face mesh (``face`` (n, 3) vertices,
     ``face_triangles`` (m, 3)), ``per_mm2`` of them per mm² of the eyeballs' surface facing it, and their
     colours (k, 3), before exposure and noise."""
-    from livebridge.bench.surface_samples import facing_samples, facing_weights
-
     count = int(rng.poisson(per_mm2 * facing_weights(eyes.vertices, eyes.triangles).sum()))
     points, chosen, _ = facing_samples(eyes.vertices, eyes.triangles, count, rng)
     seen = _seen(points, np.vstack([face, eyes.vertices]), np.vstack([face_triangles, eyes.triangles + len(face)]),
