@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from livebridge.bench.surface_samples import facing_samples, facing_weights
+from livebridge.bench.surface_samples import facing_samples, facing_weights, random_barycentric
 
 SCLERA = np.array([0.86, 0.83, 0.80])
 """RGB of the eye's white (before the scan's exposure)."""
@@ -24,6 +24,10 @@ BRIGHTNESS_SPREAD = 0.1
 """Each eye point's brightness is off by up to this fraction (the sclera's veins and the iris's pattern)."""
 PIXEL_MM = 0.1
 """Pixel of the depth buffer that decides what the scanner sees."""
+TRIANGLE_SAMPLES = 8
+"""Random points a triangle of a textured mesh is judged seen by (most of them)."""
+PATCH_TEXELS = 4
+"""Side of each flat patch of an eye mesh's texture."""
 FAR_MM = 1e5
 """The depth buffer's camera is this far in front of the face (its view is all but orthographic)."""
 
@@ -59,6 +63,32 @@ def eye_points(eyes: Eyeballs, face: np.ndarray, face_triangles: np.ndarray, per
     colours = np.where(eyes.iris[chosen, None], IRIS, SCLERA)
     colours = np.where(_in_pupil(eyes, points, chosen)[:, None], PUPIL, colours)
     return points, colours * rng.uniform(1 - BRIGHTNESS_SPREAD, 1 + BRIGHTNESS_SPREAD, (len(points), 1))
+
+
+def eye_mesh(eyes: Eyeballs, pose: np.ndarray, face: np.ndarray, face_triangles: np.ndarray,
+             rng: np.random.Generator, exposure: float = 1.0):
+    """The eyeball triangles a textured-mesh scanner looking along -z keeps, with the head at ``pose`` (4, 4;
+    ``face`` (n, 3) the face mesh's vertices already there, ``face_triangles`` (m, 3)): those with most of
+    :data:`TRIANGLE_SAMPLES` random points on them seen past the face. Returns their vertices (k, 3; all of the
+    eyes', posed), triangles (t, 3), texture coordinates (t, 3, 2; OBJ convention) and the image they index
+    (rows, columns, 3): flat patches of sclera, iris and pupil times ``exposure``, each triangle wholly one
+    (the pupil's: its centre within :data:`PUPIL_SHARE` of the iris's radius)."""
+    from livebridge.geometry.transforms import apply
+
+    vertices = apply(pose, eyes.vertices)
+    bary = random_barycentric(rng, (len(eyes.triangles), TRIANGLE_SAMPLES))
+    samples = np.einsum("tsk,tkd->tsd", bary, vertices[eyes.triangles]).reshape(-1, 3)
+    seen = _seen(samples, np.vstack([face, vertices]), np.vstack([face_triangles, eyes.triangles + len(face)]),
+                 len(face_triangles)).reshape(len(eyes.triangles), TRIANGLE_SAMPLES).mean(axis=1) >= 0.5
+    kept = np.flatnonzero(seen)
+    centres = eyes.vertices[eyes.triangles[kept]].mean(axis=1)
+    kind = np.where(_in_pupil(eyes, centres, kept), 2, np.where(eyes.iris[kept], 1, 0))
+    patches = (SCLERA, IRIS, PUPIL)
+    image = np.concatenate([np.broadcast_to(colour * exposure, (PATCH_TEXELS, PATCH_TEXELS, 3)) for colour in patches],
+                           axis=1)
+    u = (kind + 0.5) / len(patches)
+    uv = np.broadcast_to(np.stack([u, np.full(len(u), 0.5)], axis=-1)[:, None, :], (len(kept), 3, 2))
+    return vertices, eyes.triangles[kept], np.ascontiguousarray(uv), np.clip(image, 0.0, 1.0).astype(np.float32)
 
 
 def _in_pupil(eyes: Eyeballs, points: np.ndarray, chosen: np.ndarray) -> np.ndarray:

@@ -134,13 +134,15 @@ def lambertian(normals: np.ndarray, towards_light: np.ndarray, ambient: float) -
 
 def textured_mesh(vertices: np.ndarray, triangles: np.ndarray, skin, rng: np.random.Generator,
                   hole: tuple[np.ndarray, float] | None = None, exposure: float = 1.0,
-                  light: tuple[np.ndarray, float] | None = None):
+                  light: tuple[np.ndarray, float] | None = None, eyes=None):
     """What a textured-mesh scanner looking along -z writes of a face mesh (``vertices`` (n, 3) in its frame):
     (vertices with :data:`TEXTURED_NOISE_MM` noise, the triangles it sees (:func:`seen_triangles`; none within
     ``hole`` = (centre, radius)), their :class:`~livebridge.retarget.texture.Texture`: ``skin`` (a
     :class:`~livebridge.simulators.skin.SkinTexture` of the mesh's vertices) times :data:`SKIN_TONE` and
     ``exposure``, shaded by ``light`` as :func:`scan_surface`'s (the vertices' shading interpolated over the
-    texture), with :data:`COLOUR_NOISE` per texel)."""
+    texture), with :data:`COLOUR_NOISE` per texel). ``eyes``: (the head's
+    :class:`~livebridge.bench.scan_eyes.Eyeballs`, the pose (4, 4) that put the face mesh where it is): the
+    eyeball triangles seen are kept too, textured from a second image (:func:`~livebridge.bench.scan_eyes.eye_mesh`)."""
     from livebridge.retarget.texture import Texture
 
     noisy = vertices + rng.normal(0.0, TEXTURED_NOISE_MM, vertices.shape)
@@ -154,7 +156,17 @@ def textured_mesh(vertices: np.ndarray, triangles: np.ndarray, skin, rng: np.ran
     kept = triangles[seen]
     texture = Texture(uv[kept], np.zeros(len(kept), np.int64), (np.clip(image, 0, 1).astype(np.float32),),
                       ("skin.png",))
-    return noisy, kept, texture
+    if eyes is None:
+        return noisy, kept, texture
+    from livebridge.bench.scan_eyes import eye_mesh
+
+    eye_vertices, eye_triangles, eye_uv, eye_image = eye_mesh(*eyes, vertices, triangles, rng, exposure)
+    eye_image = np.clip(eye_image + rng.normal(0.0, COLOUR_NOISE, eye_image.shape), 0, 1).astype(np.float32)
+    texture = Texture(np.concatenate([texture.uv, eye_uv]),
+                      np.concatenate([texture.image_index, np.ones(len(eye_triangles), np.int64)]),
+                      texture.images + (eye_image,), texture.names + ("eyes.png",))
+    noisy = np.vstack([noisy, eye_vertices + rng.normal(0.0, TEXTURED_NOISE_MM, eye_vertices.shape)])
+    return noisy, np.vstack([kept, eye_triangles + len(vertices)]), texture
 
 
 def texel_shading(vertices: np.ndarray, triangles: np.ndarray, skin, towards_light: np.ndarray,
@@ -212,8 +224,8 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
     sees, vertices with :data:`TEXTURED_NOISE_MM` noise, the skin as its texture; ``n_points`` unused).
     ``lit``: the colours (or the texture) shaded by the scanner's :data:`FLASH`, fixed in the scanner's frame,
     so the shading changes with each scan's head pose and with the expression's shape. ``eyes``: the head's
-    :class:`~livebridge.bench.scan_eyes.Eyeballs` (fixed in the skull), which point clouds also see through the
-    eye openings."""
+    :class:`~livebridge.bench.scan_eyes.Eyeballs` (fixed in the skull), which the scans also see through the eye
+    openings (unlit)."""
     from livebridge.geometry.transforms import apply
     from livebridge.simulators.skin import make_skin
 
@@ -228,7 +240,7 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
         if textured:
             seen_hole = None if hole is None else (apply(pose, hole[0][None])[0], hole[1])
             mesh = textured_mesh(apply(pose, shape), basis.triangles, skin, rng, seen_hole, exposure,
-                                 FLASH if lit else None)
+                                 FLASH if lit else None, None if eyes is None else (eyes, pose))
         else:
             light = (pose[:3, :3].T @ FLASH[0], FLASH[1]) if lit else None  # the flash in the mesh's frame
             points, colours = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin, exposure, light,
