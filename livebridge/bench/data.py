@@ -53,7 +53,7 @@ def ict_eyeballs():
         return None
     path = data / "ict-facekit" / "obj" / "generic_neutral_mesh.obj"
     obj = read_obj_data(path.read_bytes(), path)
-    material = np.array([ICT_EYE_MATERIALS.get(name) for name in obj.face_material], dtype=object)
-    eye = np.flatnonzero(material != None)  # noqa: E711 (elementwise)
+    eye = np.flatnonzero([name in ICT_EYE_MATERIALS for name in obj.face_material])
     used, triangles = np.unique(obj.triangles[eye], return_inverse=True)
-    return Eyeballs(obj.points[used] * UNITS_TO_MM["cm"], triangles.reshape(-1, 3), material[eye].astype(bool))
+    iris = np.array([ICT_EYE_MATERIALS[obj.face_material[k]] for k in eye])
+    return Eyeballs(obj.points[used] * UNITS_TO_MM["cm"], triangles.reshape(-1, 3), iris)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from livebridge.bench.surface_samples import facing_samples, facing_weights, random_barycentric
+from livebridge.bench.surface_samples import facing_samples, facing_weights, triangle_samples
 
 SCLERA = np.array([0.86, 0.83, 0.80])
 """RGB of the eye's white (before the scan's exposure)."""
@@ -57,8 +57,7 @@ def eye_points(eyes: Eyeballs, face: np.ndarray, face_triangles: np.ndarray, per
     colours (k, 3), before exposure and noise."""
     count = int(rng.poisson(per_mm2 * facing_weights(eyes.vertices, eyes.triangles).sum()))
     points, chosen, _ = facing_samples(eyes.vertices, eyes.triangles, count, rng)
-    seen = _seen(points, np.vstack([face, eyes.vertices]), np.vstack([face_triangles, eyes.triangles + len(face)]),
-                 len(face_triangles))
+    seen = _seen(points, face, face_triangles, eyes.vertices, eyes.triangles)
     points, chosen = points[seen], chosen[seen]
     colours = np.where(eyes.iris[chosen, None], IRIS, SCLERA)
     colours = np.where(_in_pupil(eyes, points, chosen)[:, None], PUPIL, colours)
@@ -76,11 +75,9 @@ def eye_mesh(eyes: Eyeballs, pose: np.ndarray, face: np.ndarray, face_triangles:
     from livebridge.geometry.transforms import apply
 
     vertices = apply(pose, eyes.vertices)
-    bary = random_barycentric(rng, (len(eyes.triangles), TRIANGLE_SAMPLES))
-    samples = np.einsum("tsk,tkd->tsd", bary, vertices[eyes.triangles]).reshape(-1, 3)
-    seen = _seen(samples, np.vstack([face, vertices]), np.vstack([face_triangles, eyes.triangles + len(face)]),
-                 len(face_triangles)).reshape(len(eyes.triangles), TRIANGLE_SAMPLES).mean(axis=1) >= 0.5
-    kept = np.flatnonzero(seen)
+    samples = triangle_samples(vertices, eyes.triangles, TRIANGLE_SAMPLES, rng).reshape(-1, 3)
+    seen = _seen(samples, face, face_triangles, vertices, eyes.triangles).reshape(-1, TRIANGLE_SAMPLES)
+    kept = np.flatnonzero(seen.mean(axis=1) >= 0.5)
     centres = eyes.vertices[eyes.triangles[kept]].mean(axis=1)
     kind = np.where(_in_pupil(eyes, centres, kept), 2, np.where(eyes.iris[kept], 1, 0))
     patches = (SCLERA, IRIS, PUPIL)
@@ -107,11 +104,15 @@ def _in_pupil(eyes: Eyeballs, points: np.ndarray, chosen: np.ndarray) -> np.ndar
     return out
 
 
-def _seen(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, first: int) -> np.ndarray:
-    """Which ``points`` (k, 3) on the eyes are seen from +z: the nearest surface of their pixel of a depth buffer
-    (:data:`PIXEL_MM`) of the mesh ``vertices``, ``triangles`` is one of the eyes' (those from ``first`` on)."""
+def _seen(points: np.ndarray, face: np.ndarray, face_triangles: np.ndarray, eye_vertices: np.ndarray,
+          eye_triangles: np.ndarray) -> np.ndarray:
+    """Which ``points`` (k, 3) on the eyes (``eye_vertices`` (n, 3), ``eye_triangles`` (m, 3)) are seen from +z:
+    the nearest surface of their pixel of a depth buffer (:data:`PIXEL_MM`) of the face (``face`` vertices,
+    ``face_triangles``) and the eyes is one of the eyes'."""
     from livebridge.simulators.raster import project_vertices, rasterize
 
+    vertices = np.vstack([face, eye_vertices])
+    triangles = np.vstack([face_triangles, eye_triangles + len(face)])
     if not len(points):
         return np.zeros(0, dtype=bool)
     low, high = points[:, :2].min(axis=0) - 1.0, points[:, :2].max(axis=0) + 1.0
@@ -133,5 +134,5 @@ def _seen(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, first
     at = np.rint(projected(points)).astype(int)
     inside = (at[:, 0] >= 0) & (at[:, 0] < width) & (at[:, 1] >= 0) & (at[:, 1] < height)
     seen = np.zeros(len(points), dtype=bool)
-    seen[inside] = ids[at[inside, 1], at[inside, 0]] >= first
+    seen[inside] = ids[at[inside, 1], at[inside, 0]] >= len(face_triangles)
     return seen

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from livebridge.bench.surface_samples import facing_samples, facing_weights, random_barycentric
+from livebridge.bench.surface_samples import facing_samples, facing_weights, triangle_samples
 
 if TYPE_CHECKING:
     from livebridge.retarget.face_scan import FaceScan
@@ -192,8 +192,7 @@ def seen_triangles(vertices: np.ndarray, triangles: np.ndarray, rng: np.random.G
     from livebridge.retarget.grid import front_surface
 
     facing = np.flatnonzero(facing_weights(vertices, triangles) > 0)
-    bary = random_barycentric(rng, (len(facing), samples))
-    points = np.einsum("tsk,tkd->tsd", bary, vertices[triangles[facing]])
+    points = triangle_samples(vertices, triangles[facing], samples, rng)
     seen = front_surface(points.reshape(-1, 3), 0.5, 1.5).reshape(len(facing), samples).mean(axis=1) >= 0.5
     mask = np.zeros(len(triangles), bool)
     mask[facing[seen]] = True

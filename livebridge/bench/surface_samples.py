@@ -27,6 +27,14 @@ def facing_samples(vertices: np.ndarray, triangles: np.ndarray, count: int, rng:
     return np.einsum("nk,nkd->nd", bary, vertices[triangles[chosen]]), chosen, bary
 
 
+def triangle_samples(vertices: np.ndarray, triangles: np.ndarray, per_triangle: int, rng: np.random.Generator
+                     ) -> np.ndarray:
+    """``per_triangle`` points uniform over each of ``triangles`` (t, 3): (t, per_triangle, 3); what a simulated
+    scanner judges whether it saw a triangle by."""
+    bary = random_barycentric(rng, (len(triangles), per_triangle))
+    return np.einsum("tsk,tkd->tsd", bary, vertices[triangles])
+
+
 def random_barycentric(rng: np.random.Generator, shape: tuple) -> np.ndarray:
     """Barycentric coordinates (*shape, 3) of points uniform over a triangle: two uniform numbers, folded back
     into the triangle where they sum past 1."""

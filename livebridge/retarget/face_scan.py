@@ -222,9 +222,9 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     vertices. The colours' lighting (:mod:`~livebridge.retarget.shading`) is divided out if ``remove_shading``
     (None: if it explains enough of the scan's brightness), and then from every expression scan too. The eyeballs
     seen through the eye openings are left out (:mod:`~livebridge.retarget.eyeballs`) if ``leave_out_eyeballs``,
-    and then from every expression scan too. Errors
-    name ``source`` (the landmark file) or ``scan_source`` (the scan file: a flat scan). Landmarks numbered as
-    the 68-point iBUG layout are named as the thesis's (:func:`~livebridge.retarget.landmarks.thesis_points_from_68`).
+    and then from every expression scan too. Errors name ``source`` (the landmark file) or ``scan_source`` (the
+    scan file: a flat scan). Landmarks numbered as the 68-point iBUG layout are named as the thesis's
+    (:func:`~livebridge.retarget.landmarks.thesis_points_from_68`).
     """
     landmarks = thesis_points_from_68(landmarks, scan.points, source)
     scan2face = normalisation(landmarks, reference, method, source)
