@@ -23,8 +23,10 @@ the shape-only rigid registration (which can slide a fraction of a mm along the 
 along the skin that is not above the flow's noise (estimated on that still skin) is shrunk towards zero.
 With more than one coloured expression, the skin is tracked twice: the second time against a template of the
 neutral skin averaged from the neutral and the OTHER expressions' skin images, warped back by their first
-tracked motion (:mod:`~livebridge.retarget.skin_template`), so the neutral scan's own noise no longer sits
-in every element's flow. The second tracking starts from the first one's motion, not from the geometric warp
+tracked motion (:mod:`~livebridge.retarget.skin_template`), so the neutral scan's own image noise no longer
+sits in every element's flow. Where that noise misplaced the neutral's skin, it still does (the template lies
+where the neutral put the skin): that shared motion is read off the skin each expression leaves still and taken
+out of every tracked element (:mod:`~livebridge.retarget.neutral_noise`). The second tracking starts from the first one's motion, not from the geometric warp
 again: the template's averaged skin is softer than one scan's, and from the warp's first guess the opened
 jaw's chin was lost in it (jaw 0.073 after the first tracking, 0.115 after the second from the warp, 0.054
 from the first's motion; 150k points a scan, cylinder chart); and it trusts no skin more than the first
@@ -78,6 +80,7 @@ from livebridge.retarget.grid import (
 from livebridge.retarget.landmarks import (
     closest_surface_points,
 )
+from livebridge.retarget.neutral_noise import without_neutral_noise
 from livebridge.retarget.seams import LipSeam
 from livebridge.retarget.skin_flow import outline_share, ramp, skin_motion
 from livebridge.retarget.skin_smoothing import SMOOTH_SPACINGS, shrink_noise, still_skin_correction
@@ -379,14 +382,17 @@ def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
     if colour and neutral.coloured and len(coloured) == len(names) > 1:
         passes = 2
         neutrals, starts, trusts = _with_templates(neutral, expressions, kernel, say)
-    elements = []
+    elements, tracked = [], []
     for k, (own, name, start, trust) in enumerate(zip(neutrals, names, starts, trusts), 1):
         tracking = colour and own.coloured and expressions[name].coloured
+        tracked.append(tracking)
         say(f"  {name}: {'tracking the skin' if tracking else 'shape only'} "
             f"({k}/{len(names)}{', second pass, against the template' if passes == 2 else ''})")
         elements.append(expression_element(own, expressions[name], kernel=kernel, source=name, colour=colour,
                                            start=start, start_trust=trust))
     elements = np.stack(elements)
+    tracked = np.array(tracked)
+    elements[tracked] = without_neutral_noise(elements[tracked])
     muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks)
                     for name, element in zip(expressions, elements))
     return Basis(neutral.mesh_vertices, neutral.triangles, elements, muscles)
