@@ -17,7 +17,7 @@ def _muscles(rng, k):
         centre = rng.uniform(8, SIDE - 8, 2)
         bump = np.exp(-((rows - centre[0]) ** 2 + (cols - centre[1]) ** 2) / (2 * rng.uniform(4, 8) ** 2))
         direction = rng.normal(size=3)
-        out.append((bump.ravel()[:, None] * direction / np.linalg.norm(direction) * rng.uniform(3, 8)))
+        out.append(bump.ravel()[:, None] * direction / np.linalg.norm(direction) * rng.uniform(3, 8))
     return np.array(out)
 
 
