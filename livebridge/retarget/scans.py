@@ -28,8 +28,8 @@ sits in every element's flow. Where that noise misplaced the neutral's skin, it 
 where the neutral put the skin): that shared motion is read off the skin each expression leaves still and taken
 out of every tracked element (:mod:`~livebridge.retarget.neutral_noise`). The second tracking starts from the
 first one's motion, not from the geometric warp again: the template's averaged skin is softer than one
-scan's, and from the warp's first guess the opened jaw's chin was lost in it (jaw 0.073 after the first tracking, 0.115 after the second from the warp, 0.054
-from the first's motion; 150k points a scan, cylinder chart); and it trusts no skin more than the first
+scan's, and from the warp's first guess the opened jaw's chin was lost in it (jaw 0.073 after the first
+tracking, 0.115 after the second from the warp, 0.054 from the first's motion; 150k points a scan, cylinder chart); and it trusts no skin more than the first
 tracking did (:func:`_within`: the chin's underside, seen from below the neutral's view, was claimed by
 wrong flows against the template). Around a closing eye the second tracking's start
 has the lids' margins pinned again where the eye openings say they went (:mod:`~livebridge.retarget.eyelids`,
