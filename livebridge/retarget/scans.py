@@ -22,28 +22,28 @@ closing eye the flow starts from where the eye openings say the lids went
 the shape-only rigid registration (which can slide a fraction of a mm along the face), and tracked motion
 along the skin that is not above the flow's noise (estimated on that still skin) is shrunk towards zero.
 With more than one coloured expression, the skin is tracked twice: the second time against a template of the
-neutral skin averaged from the neutral and the OTHER expressions' skin images, warped back by their first
-tracked motion (:mod:`~livebridge.retarget.skin_template`), so the neutral scan's own image noise no longer
-sits in every element's flow. Where that noise misplaced the neutral's skin, it still does (the template lies
-where the neutral put the skin): that shared motion is read off the skin each expression leaves still and taken
-out of every tracked element (:mod:`~livebridge.retarget.neutral_noise`). The second tracking starts from the
-first one's motion, not from the geometric warp again: the template's averaged skin is softer than one
-scan's, and from the warp's first guess the opened jaw's chin was lost in it (jaw 0.073 after the first
-tracking, 0.115 after the second from the warp, 0.054 from the first's motion; 150k points a scan, cylinder chart); and it trusts no skin more than the first
-tracking did (:func:`_within`: the chin's underside, seen from below the neutral's view, was claimed by
-wrong flows against the template). Around a closing eye the second tracking's start
-has the lids' margins pinned again where the eye openings say they went (:mod:`~livebridge.retarget.eyelids`,
-on top of the first motion): the first tracking's smoothing pulls a margin's motion back towards the still skin
-around it (the upper margin's grid vertices of the bench's closed eyes moved 4.7 mm instead of 6.5, their skin
-pixels' flow 5.7), and a flow started there lands between its start and the skin's true place again. In
-`livebridge bench scans` (seed 7) the eyelid elements went from 0.302 / 0.319 to 0.294 / 0.271 at 60k points a
-scan, from 0.238 / 0.241 to 0.217 / 0.233 at 150k (every other element unchanged); with the two eyelid scans
-alone, seed 8 at 60k, 0.337 / 0.339 -> 0.293 / 0.321. Starting the lids' skin from the first tracking's own
-guess instead (the eyelids' guess on the shape warp, not on the first motion) gained less (the two alone, seed
-7: 0.302 / 0.326 at 60k, 0.205 / 0.247 at 150k, against 0.294 / 0.335 and 0.210 / 0.235). The pin needs the
-openings read right: a squint's slit narrower than the skin image's gap reads as a closed eye, and pinned there
-the synthetic squint's lid of tests/test_eyelids.py was tracked to 0.43-0.52 of its motion instead of 0.06
-(the openings are read at the scan's own point spacing: :func:`~livebridge.retarget.face_scan.opening_gap_mm`).
+neutral skin averaged from the neutral and the OTHER expressions' skin images, warped back by their first tracked
+motion (:mod:`~livebridge.retarget.skin_template`), so the neutral scan's own image noise no longer sits in every
+element's flow. Where that noise misplaced the neutral's skin, it still does (the template lies where the neutral
+put the skin): that shared motion is read off the skin each expression leaves still and taken out of every tracked
+element (:mod:`~livebridge.retarget.neutral_noise`). The second tracking starts from the first one's motion, not
+from the geometric warp again: the template's averaged skin is softer than one scan's, and from the warp's first
+guess the opened jaw's chin was lost in it (jaw 0.073 after the first tracking, 0.115 after the second from the
+warp, 0.054 from the first's motion; 150k points a scan, cylinder chart); and it trusts no skin more than the
+first tracking did (:func:`_within`: the chin's underside, seen from below the neutral's view, was claimed by
+wrong flows against the template). Around a closing eye the second tracking's start has the lids' margins pinned
+again where the eye openings say they went (:mod:`~livebridge.retarget.eyelids`, on top of the first motion): the
+first tracking's smoothing pulls a margin's motion back towards the still skin around it (the upper margin's grid
+vertices of the bench's closed eyes moved 4.7 mm instead of 6.5, their skin pixels' flow 5.7), and a flow started
+there lands between its start and the skin's true place again. In `livebridge bench scans` (seed 7) the eyelid
+elements went from 0.302 / 0.319 to 0.294 / 0.271 at 60k points a scan, from 0.238 / 0.241 to 0.217 / 0.233 at
+150k (every other element unchanged); with the two eyelid scans alone, seed 8 at 60k, 0.337 / 0.339 -> 0.293 /
+0.321. Starting the lids' skin from the first tracking's own guess instead (the eyelids' guess on the shape warp,
+not on the first motion) gained less (the two alone, seed 7: 0.302 / 0.326 at 60k, 0.205 / 0.247 at 150k, against
+0.294 / 0.335 and 0.210 / 0.235). The pin needs the openings read right: a squint's slit narrower than the skin
+image's gap reads as a closed eye, and pinned there the synthetic squint's lid of tests/test_eyelids.py was
+tracked to 0.43-0.52 of its motion instead of 0.06 (the openings are read at the scan's own point spacing:
+:func:`~livebridge.retarget.face_scan.opening_gap_mm`).
 
 The untracked skin of a closing eye's lids (the vertices whose first guess the eye openings set,
 :func:`~livebridge.retarget.eyelids.eyelid_guess`: the lids up to their reach beyond the margins) keeps that
