@@ -757,6 +757,46 @@ def test_skin_template_averages_the_scans_into_a_cleaner_neutral_skin(rng):
     assert tracking_error(template) < 0.95 * tracking_error(None)
 
 
+def test_the_neutral_scan_s_noise_shared_by_every_tracked_slide_is_taken_out(rng):
+    """A neutral and eight expression scans of one textured skin, each sliding its own 10 mm patch of it by 1-3
+    mm in its own direction, each with its own sampling and noise, each tracked against the neutral: the
+    neutral's own noise misplaces its skin alike in every tracking, and the skin each expression leaves still
+    shows it (:mod:`~livebridge.retarget.neutral_noise`). Taken out, every slide is nearer the truth (measured
+    here 0.060 -> 0.051 mm mean RMS error, on three other draws 0.060 -> 0.050, 0.062 -> 0.054, 0.061 -> 0.053;
+    every slide better)."""
+    from livebridge.retarget.neutral_noise import without_neutral_noise
+    from livebridge.retarget.skin_flow import pixels_of, skin_motion
+
+    texture = _texture(rng, 0.6)
+
+    def slide(xy, centre, size, direction):
+        return size * np.exp(-((xy - centre) ** 2).sum(axis=1) / 10.0 ** 2)[:, None] * direction
+
+    def scan(move, n=12_000):
+        skin = rng.uniform(-38, 38, (n, 2))
+        at = skin if move is None else skin + slide(skin, *move)
+        grey = texture(skin[:, ::-1]) + rng.normal(0, 0.03, n)
+        points = np.column_stack([at, 10 * np.exp(-(at ** 2).sum(axis=1) / 40.0 ** 2)]) + rng.normal(0, 0.1, (n, 3))
+        return resample(points, fine_x, fine_y, colours=np.repeat(grey[:, None], 3, axis=1)), points
+
+    x, y, fine_x, fine_y = _skin_axes()
+    neutral_skin, points = scan(None)
+    xy = resample(points, x, y).vertices[:, :2]
+    at = pixels_of(neutral_skin, xy)
+    directions = rng.normal(size=(8, 2))
+    moves = [(rng.uniform(-20, 20, 2), rng.uniform(1.0, 3.0), d / np.linalg.norm(d)) for d in directions]
+    tracked = np.array([skin_motion(neutral_skin, scan(move)[0], at, np.zeros((len(xy), 3)))[0] for move in moves])
+    truth = np.array([slide(xy, *move) for move in moves])
+    inner = (np.abs(xy) < 30).all(axis=1)  # the flow's own edge effects aside
+
+    def errors(motions):
+        return np.sqrt(np.mean(np.sum((motions[:, inner, :2] - truth[:, inner]) ** 2, axis=2), axis=1))
+
+    before, after = errors(tracked), errors(without_neutral_noise(tracked))
+    assert np.all(after < before), (before.round(3), after.round(3))
+    assert after.mean() < 0.92 * before.mean(), (before.mean(), after.mean())
+
+
 def test_second_tracking_trusts_no_skin_the_first_could_not_track():
     """A smooth slide of textured skin tracked a second time, from the first tracking's motion, against a
     template that is wrong over a patch (there it shows the skin 2.8 mm off, as a template averaged from
