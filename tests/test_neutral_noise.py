@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from livebridge.retarget.neutral_noise import MIN_ELEMENTS, neutral_noise, without_neutral_noise
+from livebridge.retarget.neutral_noise import MIN_ELEMENTS, neutral_noise
 
 SIDE = 60  # a 60 x 60 grid of vertices, 1 mm apart
 
@@ -37,7 +37,7 @@ def test_the_shared_noise_is_taken_out_and_the_muscles_kept():
     shared = _smooth_noise(rng, 0.2)
     own = np.array([_smooth_noise(rng, 0.1) for _ in truth])
     built = truth + shared + own
-    cleaned = without_neutral_noise(built)
+    cleaned = built - neutral_noise(built)
     before, after = _relative(built, truth), _relative(cleaned, truth)
     assert np.all(after < before)
     assert np.mean(after) < 0.6 * np.mean(before)
@@ -48,14 +48,14 @@ def test_the_shared_noise_is_taken_out_and_the_muscles_kept():
 
 def test_noise_free_elements_are_left_almost_as_they_are():
     truth = _muscles(np.random.default_rng(4), 16)
-    cleaned = without_neutral_noise(truth)
+    cleaned = truth - neutral_noise(truth)
     assert np.all(_relative(cleaned, truth) < 0.02)
 
 
 def test_with_too_few_elements_nothing_is_taken():
     rng = np.random.default_rng(5)
     built = _muscles(rng, MIN_ELEMENTS - 1) + _smooth_noise(rng, 0.2)
-    assert np.array_equal(without_neutral_noise(built), built)
+    assert np.array_equal(built - neutral_noise(built), built)
     assert not neutral_noise(built).any()
 
 
@@ -65,4 +65,4 @@ def test_a_few_elements_do_not_make_it_worse(k):
     rng = np.random.default_rng(6)
     truth = _muscles(rng, k)
     built = truth + _smooth_noise(rng, 0.2) + np.array([_smooth_noise(rng, 0.1) for _ in truth])
-    assert np.mean(_relative(without_neutral_noise(built), truth)) < np.mean(_relative(built, truth))
+    assert np.mean(_relative(built - neutral_noise(built), truth)) < np.mean(_relative(built, truth))

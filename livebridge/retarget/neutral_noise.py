@@ -10,8 +10,8 @@ motions that carry it, so it lies where the neutral scan put the skin.
 What reveals it is the skin an expression leaves still: there, the element's tracked motion is that shared field
 plus the expression's own noise. A brow raise leaves the mouth still, a smile the forehead, so at every vertex
 some of the scans see it. :func:`neutral_noise` averages, per vertex, the motions of the elements that barely move
-it (weighted by how still, :data:`STILL_MM`), and :func:`without_neutral_noise` takes that from every element,
-where it moves the vertex too.
+it (weighted by how still, :data:`STILL_MM`); :func:`~livebridge.retarget.scans.basis_from_scans` takes that from
+every tracked element, where it moves the vertex too.
 
 Measured on the bench's scans (`livebridge bench scans`; 60k points a scan, 16 elements): the tracked flows'
 errors on the skin correlate 0.6-0.7 with the mean of the other 15 elements' errors after an 8 mm blur (about
@@ -49,7 +49,3 @@ def neutral_noise(elements: np.ndarray) -> np.ndarray:
     weight = np.exp(-0.5 * (size / STILL_MM) ** 2)
     return np.einsum("kn,knd->nd", weight, elements) / (weight.sum(axis=0) + PRIOR_WEIGHT)[:, None]
 
-
-def without_neutral_noise(elements: np.ndarray) -> np.ndarray:
-    """``elements`` (k, n_vertices, 3) with :func:`neutral_noise` taken from each (a new array)."""
-    return np.asarray(elements, dtype=np.float64) - neutral_noise(elements)[None]

@@ -80,7 +80,7 @@ from livebridge.retarget.grid import (
 from livebridge.retarget.landmarks import (
     closest_surface_points,
 )
-from livebridge.retarget.neutral_noise import without_neutral_noise
+from livebridge.retarget.neutral_noise import neutral_noise
 from livebridge.retarget.seams import LipSeam
 from livebridge.retarget.skin_flow import outline_share, ramp, skin_motion
 from livebridge.retarget.skin_smoothing import SMOOTH_SPACINGS, shrink_noise, still_skin_correction
@@ -392,7 +392,11 @@ def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
                                            start=start, start_trust=trust))
     elements = np.stack(elements)
     tracked = np.array(tracked)
-    elements[tracked] = without_neutral_noise(elements[tracked])
+    shared = neutral_noise(elements[tracked])
+    if shared.any():
+        elements[tracked] -= shared
+        say(f"  the neutral scan's own noise, which every tracked element shares: "
+            f"{np.sqrt(np.mean(np.sum(shared ** 2, axis=1))):.2f} mm RMS, taken out of the {tracked.sum()}")
     muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks)
                     for name, element in zip(expressions, elements))
     return Basis(neutral.mesh_vertices, neutral.triangles, elements, muscles)
