@@ -396,7 +396,7 @@ def basis_from_scans(neutral: FaceScan, expressions: dict[str, FaceScan],
     if shared.any():
         elements[tracked] -= shared
         say(f"  the neutral scan's own noise, which every tracked element shares: "
-            f"{np.sqrt(np.mean(np.sum(shared ** 2, axis=1))):.2f} mm RMS, taken out of the {tracked.sum()}")
+            f"{np.sqrt(np.mean(np.sum(shared ** 2, axis=1))):.2f} mm RMS, taken out of all {tracked.sum()}")
     muscles = tuple(muscle_for(name, element, neutral.vertices, neutral.landmarks)
                     for name, element in zip(expressions, elements))
     return Basis(neutral.mesh_vertices, neutral.triangles, elements, muscles)
