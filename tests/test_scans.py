@@ -3,6 +3,7 @@ registration against known transforms, and a basis from simulated ICT scans agai
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -1389,11 +1390,14 @@ def test_the_build_tells_of_each_element_in_both_passes():
     lines = []
     basis_from_scans(neutral, faces, log=lines.append)
     first, second = faces
-    assert [line.strip() for line in lines] == [
+    assert [line.strip() for line in lines[:4]] == [
         f"{first}: tracking the skin (1/2, first pass, against the neutral)",
         f"{second}: tracking the skin (2/2, first pass, against the neutral)",
         f"{first}: tracking the skin (1/2, second pass, against the template)",
         f"{second}: tracking the skin (2/2, second pass, against the template)"]
+    # and what it took out of both (retarget/neutral_noise.py), in mm
+    assert len(lines) == 5 and re.fullmatch(r"the neutral scan's own noise, which every tracked element shares: "
+                                            r"0\.\d\d mm RMS, taken out of all 2", lines[4].strip()), lines[4:]
 
 
 @pytest.mark.parametrize("units, factor", [("m", 0.001), ("cm", 0.1)])
