@@ -165,6 +165,21 @@ def test_a_simulated_camera_whose_read_raises_is_dead_in_the_status_line():
     assert pipeline.status_line().endswith("cameras 3/4 (dead: cam1)")
 
 
+
+def test_a_status_window_with_no_labelled_frame_says_none_not_nan():
+    """The first status lines of a run can come before any frame of their window was labelled (CI saw
+    "labelled nan% | error upper nan lower nan mm"): the figures not measured read "none"."""
+    from dataclasses import replace
+
+    from livebridge.runtime.demo import build_demo
+
+    pipeline = build_demo(size=SMALL, realtime=False, servo=False, render=False, log=_quiet).pipeline
+    nothing = pipeline.recent_summary()  # before any frame: nothing measured
+    line = pipeline.front.status(nothing)
+    assert "labelled none | error upper none lower none mm" in line and "nan" not in line, line
+    measured = replace(nothing, labelled_fraction=0.9987, error_upper_mm=0.0441, error_lower_mm=0.156)
+    assert "labelled 99.9% | error upper 0.044 lower 0.156 mm" in pipeline.front.status(measured)
+
 # -- configurations that can never solve: refused up front ---------------------------------------------------------
 
 def _calibration(path: Path, poses) -> Path:

@@ -24,7 +24,7 @@ from livebridge.markerless.model import MarkerlessModel
 from livebridge.markerless.normalise import Normalisation, PoseState, detect_leds, normalise
 from livebridge.reconstruct.detect import ReaderDetectingSource
 from livebridge.runtime.frame import FrameTiming, SolvedFrame
-from livebridge.runtime.front import FrontStats
+from livebridge.runtime.front import FrontStats, shown
 
 
 class LedDetectingSource(ReaderDetectingSource):
@@ -159,9 +159,9 @@ class MarkerlessFront:
     def status(self, summary) -> str:
         figures = dict(summary.quality)
         confidence, leds, held = (figures.get(k, math.nan) for k in ("confidence", "leds", "held"))
-        part = f"markerless confidence {confidence:.2f} | regions held {100 * held:.0f}%"
+        part = f"markerless confidence {shown(confidence, '.2f')} | regions held {shown(100 * held, '.0f', '%')}"
         if self.model.normalisation.head_rig is not None:
-            part += f" | LEDs seen {100 * leds:.0f}%"
+            part += f" | LEDs seen {shown(100 * leds, '.0f', '%')}"
         stats = self.stats()
         return part + (f" | camera dead: {stats.dead[0]}" if stats.dead else "")
 

@@ -8,10 +8,17 @@ markerless (one camera, co-articulation regions) and Live Link Face (an iPhone's
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
 from livebridge.runtime.frame import SolvedFrame
+
+
+def shown(value: float, spec: str, unit: str = "") -> str:
+    """A figure for the status line: ``value`` in ``spec`` (a format spec) with ``unit``, or ``none`` when nothing
+    was measured (NaN: no frame of the window labelled yet, no render client)."""
+    return f"{value:{spec}}{unit}" if math.isfinite(value) else "none"
 
 
 @dataclass(frozen=True)

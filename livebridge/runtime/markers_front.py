@@ -25,7 +25,7 @@ from livebridge.errors import InputError
 from livebridge.face.basis import Basis
 from livebridge.face.markers import MarkerSet
 from livebridge.runtime.frame import FrameTiming, SolvedFrame
-from livebridge.runtime.front import FrontStats
+from livebridge.runtime.front import FrontStats, shown
 from livebridge.runtime.session import LABELLING_TIMEOUT_S
 
 
@@ -243,8 +243,9 @@ class MarkerFront:
                 f"({self.unlabelled_attempts} frame sets tried) | {self._cameras_part()}")
 
     def status(self, summary) -> str:
-        return (f"labelled {100 * summary.labelled_fraction:.1f}% | error upper {summary.error_upper_mm:.3f} "
-                f"lower {summary.error_lower_mm:.3f} mm | {self._cameras_part()}")
+        return (f"labelled {shown(100 * summary.labelled_fraction, '.1f', '%')} | error upper "
+                f"{shown(summary.error_upper_mm, '.3f')} lower {shown(summary.error_lower_mm, '.3f')} mm | "
+                f"{self._cameras_part()}")
 
     def _cameras_part(self) -> str:
         stats = self.stats()

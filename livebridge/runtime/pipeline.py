@@ -45,7 +45,7 @@ import numpy as np
 from livebridge.capture.queue import NewestQueue
 from livebridge.errors import InputError
 from livebridge.runtime.frame import SolvedFrame
-from livebridge.runtime.front import Front
+from livebridge.runtime.front import Front, shown
 
 
 @dataclass(frozen=True, eq=False)
@@ -220,7 +220,7 @@ def _percentile(values, q) -> float:
 
 def milliseconds(value: float) -> str:
     """A latency for people: ``1.23 ms``, or ``none`` when nothing was timed (NaN: no render client, say)."""
-    return f"{value:.2f} ms" if math.isfinite(value) else "none"
+    return shown(value, ".2f", " ms")
 
 
 @dataclass
