@@ -309,6 +309,17 @@ def _texture(rng, blur_mm: float = 0.8):
     return RegularGridInterpolator((axis, axis), 0.5 + noise / (4 * noise.std()))
 
 
+
+def _slid_scan(rng, texture, shift=None, n: int = 12_000) -> tuple[np.ndarray, np.ndarray]:
+    """A sparse scan (``n`` points, 0.1 mm noise; colours: ``texture`` with 0.03 noise, grey) of a gently curved
+    surface whose skin is moved by ``shift`` (a function of the neutral skin's x-y (n, 2) to its offset (n, 2); None:
+    the neutral): (points (n, 3), colours (n, 3)). Each scan resolves the fine pattern its own way."""
+    skin = rng.uniform(-38, 38, (n, 2))
+    at = skin if shift is None else skin + shift(skin)
+    grey = texture(skin[:, ::-1]) + rng.normal(0, 0.03, n)
+    points = np.column_stack([at, 10 * np.exp(-(at ** 2).sum(axis=1) / 40.0 ** 2)]) + rng.normal(0, 0.1, (n, 3))
+    return points, np.repeat(grey[:, None], 3, axis=1)
+
 def _tracked_slide(rng, peak_mm: float, width_mm: float = 12.0, blur_mm: float = 0.8) -> tuple[float, float]:
     """A textured (:func:`_texture` of ``blur_mm``), gently curved surface whose skin slides by a known smooth
     field ``d`` (``peak_mm`` at its peak, Gaussian of ``width_mm``) in an expression scan with other sampling
@@ -723,12 +734,8 @@ def test_skin_template_averages_the_scans_into_a_cleaner_neutral_skin(rng):
     def slide(xy, centre, size):
         return size * np.exp(-((xy - centre) ** 2).sum(axis=1) / 12.0 ** 2)[:, None] * np.array([[0.8, 0.6]])
 
-    def scan(centre, size, n=12_000):
-        skin = rng.uniform(-38, 38, (n, 2))  # sparse: each scan resolves the fine pattern its own way
-        at = skin + slide(skin, centre, size)
-        grey = texture(skin[:, ::-1]) + rng.normal(0, 0.03, n)
-        points = np.column_stack([at, 10 * np.exp(-(at ** 2).sum(axis=1) / 40.0 ** 2)]) + rng.normal(0, 0.1, (n, 3))
-        return points, np.repeat(grey[:, None], 3, axis=1)
+    def scan(centre, size):
+        return _slid_scan(rng, texture, lambda skin: slide(skin, centre, size))
 
     x, y, fine_x, fine_y = _skin_axes()
     points, colours = scan([0.0, 0.0], 0.0)
@@ -773,12 +780,9 @@ def test_the_neutral_scan_s_noise_shared_by_every_tracked_slide_is_taken_out(rng
     def slide(xy, centre, size, direction):
         return size * np.exp(-((xy - centre) ** 2).sum(axis=1) / 10.0 ** 2)[:, None] * direction
 
-    def scan(move, n=12_000):
-        skin = rng.uniform(-38, 38, (n, 2))
-        at = skin if move is None else skin + slide(skin, *move)
-        grey = texture(skin[:, ::-1]) + rng.normal(0, 0.03, n)
-        points = np.column_stack([at, 10 * np.exp(-(at ** 2).sum(axis=1) / 40.0 ** 2)]) + rng.normal(0, 0.1, (n, 3))
-        return resample(points, fine_x, fine_y, colours=np.repeat(grey[:, None], 3, axis=1)), points
+    def scan(move):
+        points, colours = _slid_scan(rng, texture, None if move is None else lambda skin: slide(skin, *move))
+        return resample(points, fine_x, fine_y, colours=colours), points
 
     x, y, fine_x, fine_y = _skin_axes()
     neutral_skin, points = scan(None)
