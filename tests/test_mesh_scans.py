@@ -238,3 +238,24 @@ def _truth_on_grid(basis, neutral, muscle: str) -> np.ndarray:
     triangle, bary, _ = closest_surface_points(on_mesh, basis.neutral, basis.triangles)
     corners = basis.elements[basis.index(muscle)][basis.triangles[triangle]]
     return np.einsum("nk,nkd->nd", bary, corners) @ neutral.scan2face[:3, :3].T
+
+
+def test_the_bench_s_whole_mesh_clouds_hold_the_skin_a_frontal_scanner_does_not_see(face):
+    """`livebridge bench scans`'s ``whole_mesh_clouds``: points on every triangle by its area, the back-facing
+    ones too (a cloud sampled from the mesh itself); its frontal scanner's clouds have none there."""
+    from livebridge.bench.scans import scan_surface
+    from livebridge.face.meshio import triangle_areas, triangle_normals
+    from livebridge.retarget.landmarks import closest_surface_points
+
+    basis, _ = face
+    facing_z = triangle_normals(basis.neutral, basis.triangles)[:, 2]
+    areas = triangle_areas(basis.neutral, basis.triangles)
+    away = facing_z < 0.0
+    shares = {}
+    for whole in (False, True):
+        points, _ = scan_surface(basis.neutral, basis.triangles, 20_000, 0.0, np.random.default_rng(4), whole=whole)
+        triangle, _, _ = closest_surface_points(points, basis.neutral, basis.triangles)
+        shares[whole] = float(np.mean(away[triangle]))
+    expected = areas[away].sum() / areas.sum()  # 0.2 on the built-in face
+    assert shares[False] < 0.005
+    assert abs(shares[True] - expected) < 0.03, (shares, expected)

@@ -82,14 +82,16 @@ class SyntheticScan:
 
 def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noise: float,
                  rng: np.random.Generator, hole: tuple[np.ndarray, float] | None = None, skin=None,
-                 exposure: float = 1.0, light: tuple[np.ndarray, float] | None = None, eyes=None
-                 ) -> tuple[np.ndarray, np.ndarray | None]:
+                 exposure: float = 1.0, light: tuple[np.ndarray, float] | None = None, eyes=None,
+                 whole: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
     """Points (<= n_points, 3) a scanner looking along -z sees on a mesh, with Gaussian noise ``noise`` mm,
     and their colours (same length, 3) when ``skin`` (a :class:`~livebridge.simulators.skin.SkinTexture` of
     the mesh's vertices) is given, else None.
 
     Area-weighted random barycentric points on the triangles facing +z; hidden ones (more than 1.5 mm behind
     the front-most surface within 0.5 mm in x-y) dropped; ``hole`` = (centre (3,), radius): no points there.
+    ``whole``: on every triangle, hidden or not (the lips' inner sides, the eyelids' folds, under the nose and
+    chin), as a cloud sampled from the mesh itself or fused from scanners all round the head holds them.
     A point's colour is the skin at its place on the mesh (barycentric in the texels of its triangle's
     vertices) times :data:`SKIN_TONE` and ``exposure``, shaded by ``light`` (:func:`lambertian`; None: unshaded, as
     a texture a scanner has taken the lighting out of), plus :data:`COLOUR_NOISE`. ``eyes``: the head's
@@ -100,8 +102,8 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     from livebridge.face.meshio import vertex_normals
     from livebridge.retarget.grid import front_surface
 
-    points, chosen, bary = facing_samples(vertices, triangles, n_points, rng)
-    keep = front_surface(points, 0.5, 1.5)
+    points, chosen, bary = facing_samples(vertices, triangles, n_points, rng, every_triangle=whole)
+    keep = np.ones(len(points), dtype=bool) if whole else front_surface(points, 0.5, 1.5)
     if hole is not None:
         keep &= np.linalg.norm(points - hole[0], axis=1) > hole[1]
     points = points[keep]
@@ -213,7 +215,7 @@ def random_pose(rng: np.random.Generator, degrees: float = 10.0, shift_mm: float
 def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = SCAN_POINTS,
                     noise: float = SCAN_NOISE_MM, landmark_noise: float = LANDMARK_NOISE_MM,
                     hole_muscle: str | None = HOLE_MUSCLE, colour: bool = True,
-                    muscles=None, textured: bool = False, lit: bool = False, eyes=None
+                    muscles=None, textured: bool = False, lit: bool = False, eyes=None, whole: bool = False
                     ) -> tuple[SyntheticScan, dict[str, SyntheticScan]]:
     """(neutral, {muscle: expression}) scans of ``basis`` (each element fully contracted), each with its own
     random head pose, sampling, noise and exposure; landmarks from ``landmarks`` (a LandmarkSet on the basis)
@@ -224,7 +226,8 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
     ``lit``: the colours (or the texture) shaded by the scanner's :data:`FLASH`, fixed in the scanner's frame,
     so the shading changes with each scan's head pose and with the expression's shape. ``eyes``: the head's
     :class:`~livebridge.bench.scan_eyes.Eyeballs` (fixed in the skull), which the scans also see through the eye
-    openings (unlit)."""
+    openings (unlit). ``whole``: each point cloud sampled over the whole mesh, the skin the front hides too
+    (:func:`scan_surface`)."""
     from livebridge.geometry.transforms import apply
     from livebridge.simulators.skin import make_skin
 
@@ -243,7 +246,7 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
         else:
             light = (pose[:3, :3].T @ FLASH[0], FLASH[1]) if lit else None  # the flash in the mesh's frame
             points, colours = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin, exposure, light,
-                                           eyes)
+                                           eyes, whole)
         marks = landmarks.as_dict(shape, basis.triangles)
         marks = {name: apply(pose, p[None])[0] + rng.normal(0.0, landmark_noise, 3) for name, p in marks.items()}
         if textured:
@@ -386,6 +389,9 @@ def run(quick: bool, log) -> dict:
         result["lit_textured_meshes"] = _measure_lit(basis, "textured meshes lit by the scanner's flash",
                                                      {"textured": True}, log)
         result["other_proportions"] = _measure_other_face(basis, log)
+        result["whole_mesh_clouds"] = _measure_density(basis, SCAN_POINTS, {"whole": True}, log,
+                                                       "clouds sampled over the whole mesh, the skin the front hides "
+                                                       "too")
         eyes = ict_eyeballs()
         if eyes is not None:
             result["scanned_eyes"] = _measure_scanned_eyes(basis, eyes, log)

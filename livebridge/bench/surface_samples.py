@@ -1,5 +1,5 @@
-"""Random points on the triangles of a mesh that face a scanner looking along -z (area-weighted), for the
-simulated scanners of :mod:`~livebridge.bench.scans` and :mod:`~livebridge.bench.scan_eyes`."""
+"""Random points on the triangles of a mesh that face a scanner looking along -z, or on all of them
+(area-weighted), for the simulated scanners of :mod:`~livebridge.bench.scans` and :mod:`~livebridge.bench.scan_eyes`."""
 
 from __future__ import annotations
 
@@ -17,11 +17,14 @@ def facing_weights(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.where(facing, triangle_areas(vertices, triangles), 0.0)
 
 
-def facing_samples(vertices: np.ndarray, triangles: np.ndarray, count: int, rng: np.random.Generator
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``count`` points uniform over the area of the triangles facing +z: (points (count, 3), the triangle
-    each lies on (count,), its barycentric coordinates there (count, 3))."""
-    weight = facing_weights(vertices, triangles)
+def facing_samples(vertices: np.ndarray, triangles: np.ndarray, count: int, rng: np.random.Generator,
+                   every_triangle: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``count`` points uniform over the area of the triangles facing +z (of all triangles if
+    ``every_triangle``): (points (count, 3), the triangle each lies on (count,), its barycentric coordinates
+    there (count, 3))."""
+    from livebridge.face.meshio import triangle_areas
+
+    weight = triangle_areas(vertices, triangles) if every_triangle else facing_weights(vertices, triangles)
     chosen = rng.choice(len(triangles), count, p=weight / weight.sum())
     bary = random_barycentric(rng, (count,))
     return np.einsum("nk,nkd->nd", bary, vertices[triangles[chosen]]), chosen, bary
