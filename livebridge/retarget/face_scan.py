@@ -242,16 +242,15 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
                          f"its landmarks {spread:.3g} mm: are both in the same units and coordinates?",
                          scan_source or source, "points")
     x, y = square_axes(radius, shape)
-    face = _resampled(scan, points, x, y, radius, moved, scan2face, source, chart, remove_shading=remove_shading)
+    face = _resampled(scan, points, x, y, radius, moved, scan2face, source, chart, remove_shading=remove_shading,
+                      fit_surface=True)
     off_plane = face.vertices - face.vertices.mean(axis=0)
     depth = float(np.linalg.svd(off_plane, compute_uv=False)[-1] / np.sqrt(len(off_plane)))  # RMS off its plane
     if depth < MIN_DEPTH * radius:  # a plane has no face to register the expressions on
         raise InputError(f"flat: its face crop lies within {depth:.2g} mm (RMS) of a plane over {2 * radius:.3g} mm "
                          "(a face is tens of mm deep)", scan_source or source, "points")
     face.landmark_set(source)  # every landmark on the resampled face, or a clear error
-    inside = crop_sphere(points, np.zeros(3), radius)
-    return replace(face, fitted_heights=fitted_heights(points[inside], face.grid), eyeball_points=eyeballs,
-                   eyeballs_left_out=leave_out_eyeballs)
+    return replace(face, eyeball_points=eyeballs, eyeballs_left_out=leave_out_eyeballs)
 
 
 def _as_points(scan: Scan, landmarks: dict[str, np.ndarray], radius: float, spacing: float | None,
@@ -310,16 +309,20 @@ def _points_where(scan: Scan, keep: np.ndarray) -> Scan:
 def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float, landmarks: dict,
                scan2face: np.ndarray, source, chart: SkinChart | str = CHART_KIND,
                skin_axes: tuple | None = None, remove_shading: bool | None = None,
-               report_shading: bool = True) -> FaceScan:
+               report_shading: bool = True, fit_surface: bool = False) -> FaceScan:
     """Points in the face frame cropped and resampled on ``x``, ``y``, and on the skin grid too (an image of
     the skin with colour, heights alone without): in ``chart`` (a kind: one of that kind fitted to this scan's
     grid), on ``skin_axes`` (fine u, fine v, factor, margin; None: over this scan's grid); the colours' shading
     divided out if ``remove_shading`` (None: if it explains :data:`~livebridge.retarget.shading.MIN_EXPLAINED`
     of this scan's brightness), and fitted when it is left in only if ``report_shading`` (the neutral's, for the
-    build's log)."""
+    build's log); the surface fitted at the grid's vertices too if ``fit_surface`` (the neutral's:
+    :attr:`FaceScan.fitted_heights`), straight after the grid's resampling, whose triangulation of the same points
+    it reuses (:func:`~livebridge.retarget.grid.containing_triangles` keeps the last one; the skin images'
+    resampling triangulates others)."""
     inside = crop_sphere(points, np.zeros(3), radius)
     _check_dense(points[inside], x, y, source)
     grid = resample(points[inside], x, y, source=source)
+    fitted = fitted_heights(points[inside], grid) if fit_surface else None
     if isinstance(chart, str):
         chart = face_chart(grid.vertices, chart)
     colours = scan.colours
@@ -348,7 +351,8 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
         skin = resample(on_chart, fine_x, fine_y, skin_gap_mm(step), source, colours)
     skin_holes = holes(on_chart, fine_x, fine_y, opening_gap_mm(spacing, step))
     return FaceScan(grid, landmarks, scan2face, skin, factor, margin, spacing, chart=chart, skin_holes=skin_holes,
-                    shading=shading, shading_removed=bool(remove_shading) and shading is not None)
+                    shading=shading, shading_removed=bool(remove_shading) and shading is not None,
+                    fitted_heights=fitted)
 
 
 def _check_dense(points: np.ndarray, x: np.ndarray, y: np.ndarray, source) -> None:
