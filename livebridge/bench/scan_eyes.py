@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from livebridge.bench.surface_samples import facing_samples, facing_weights, triangle_samples
+from livebridge.bench.surface_samples import area_samples, facing_weights, triangle_samples
 
 SCLERA = np.array([0.86, 0.83, 0.80])
 """RGB of the eye's white (before the scan's exposure)."""
@@ -56,7 +56,7 @@ def eye_points(eyes: Eyeballs, face: np.ndarray, face_triangles: np.ndarray, per
     ``face_triangles`` (m, 3)), ``per_mm2`` of them per mm² of the eyeballs' surface facing it, and their
     colours (k, 3), before exposure and noise."""
     count = int(rng.poisson(per_mm2 * facing_weights(eyes.vertices, eyes.triangles).sum()))
-    points, chosen, _ = facing_samples(eyes.vertices, eyes.triangles, count, rng)
+    points, chosen, _ = area_samples(eyes.vertices, eyes.triangles, count, rng)
     seen = _seen(points, face, face_triangles, eyes.vertices, eyes.triangles)
     points, chosen = points[seen], chosen[seen]
     colours = np.where(eyes.iris[chosen, None], IRIS, SCLERA)

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from livebridge.bench.surface_samples import facing_samples, facing_weights, triangle_samples
+from livebridge.bench.surface_samples import area_samples, facing_weights, triangle_samples
 
 if TYPE_CHECKING:
     from livebridge.retarget.face_scan import FaceScan
@@ -102,7 +102,7 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     from livebridge.face.meshio import vertex_normals
     from livebridge.retarget.grid import front_surface
 
-    points, chosen, bary = facing_samples(vertices, triangles, n_points, rng, every_triangle=whole)
+    points, chosen, bary = area_samples(vertices, triangles, n_points, rng, facing_only=not whole)
     keep = np.ones(len(points), dtype=bool) if whole else front_surface(points, 0.5, 1.5)
     if hole is not None:
         keep &= np.linalg.norm(points - hole[0], axis=1) > hole[1]

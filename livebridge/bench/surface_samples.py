@@ -17,14 +17,14 @@ def facing_weights(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.where(facing, triangle_areas(vertices, triangles), 0.0)
 
 
-def facing_samples(vertices: np.ndarray, triangles: np.ndarray, count: int, rng: np.random.Generator,
-                   every_triangle: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``count`` points uniform over the area of the triangles facing +z (of all triangles if
-    ``every_triangle``): (points (count, 3), the triangle each lies on (count,), its barycentric coordinates
-    there (count, 3))."""
+def area_samples(vertices: np.ndarray, triangles: np.ndarray, count: int, rng: np.random.Generator,
+                 facing_only: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``count`` points uniform over the area of the triangles facing +z (of all triangles unless
+    ``facing_only``): (points (count, 3), the triangle each lies on (count,), its barycentric coordinates there
+    (count, 3))."""
     from livebridge.face.meshio import triangle_areas
 
-    weight = triangle_areas(vertices, triangles) if every_triangle else facing_weights(vertices, triangles)
+    weight = facing_weights(vertices, triangles) if facing_only else triangle_areas(vertices, triangles)
     chosen = rng.choice(len(triangles), count, p=weight / weight.sum())
     bary = random_barycentric(rng, (count,))
     return np.einsum("nk,nkd->nd", bary, vertices[triangles[chosen]]), chosen, bary
