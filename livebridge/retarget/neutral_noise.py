@@ -55,4 +55,3 @@ def neutral_noise(elements: np.ndarray) -> np.ndarray:
     size = np.linalg.norm(elements, axis=2)
     weight = np.exp(-0.5 * (size / STILL_MM) ** 2)
     return np.einsum("kn,knd->nd", weight, elements) / (weight.sum(axis=0) + PRIOR_WEIGHT)[:, None]
-
