@@ -175,7 +175,7 @@ def test_flying_points_are_cut_before_the_resampling(face, monkeypatch):
 
     basis, landmarks = face
     rng = np.random.default_rng(3)
-    points, _ = scan_surface(basis.neutral, basis.triangles, 30000, 0.1, rng)
+    points, _, _ = scan_surface(basis.neutral, basis.triangles, 30000, 0.1, rng)
     stray = rng.random(len(points)) < 0.01
     thrown = points.copy()
     thrown[stray, 2] += rng.choice([-1.0, 1.0], stray.sum()) * rng.uniform(2.0, 20.0, stray.sum())
@@ -211,7 +211,7 @@ def test_a_scan_of_a_head_turned_away_names_every_landmark_it_did_not_see(face):
     still_motion = {}
     for degrees in (0, 60):
         turn = rotation_matrix(np.array([0.0, np.radians(degrees), 0.0]))  # +x (the subject's left) away from +z
-        seen, _ = scan_surface(brow @ turn.T, basis.triangles, 60_000, 0.0, np.random.default_rng(3))
+        seen, _, _ = scan_surface(brow @ turn.T, basis.triangles, 60_000, 0.0, np.random.default_rng(3))
         marks = {name: p @ turn.T for name, p in load_landmark_set("builtin-22").as_dict(brow,
                                                                                           basis.triangles).items()}
         unseen = []
@@ -253,7 +253,7 @@ def test_the_bench_s_whole_mesh_clouds_hold_the_skin_a_frontal_scanner_does_not_
     away = facing_z < 0.0
     shares = {}
     for whole in (False, True):
-        points, _ = scan_surface(basis.neutral, basis.triangles, 20_000, 0.0, np.random.default_rng(4), whole=whole)
+        points, _, _ = scan_surface(basis.neutral, basis.triangles, 20_000, 0.0, np.random.default_rng(4), whole=whole)
         triangle, _, _ = closest_surface_points(points, basis.neutral, basis.triangles)
         shares[whole] = float(np.mean(away[triangle]))
     expected = areas[away].sum() / areas.sum()  # 0.2 on the built-in face

@@ -63,6 +63,8 @@ class SyntheticScan:
         A textured mesh's triangles (``points`` its vertices), None for a point cloud.
     texture : Texture or None
         A textured mesh's texture (:mod:`~livebridge.retarget.texture`).
+    normals : ndarray, shape (n, 3), or None
+        A point cloud's unit normals, out of the surface, as its file would carry them.
     """
 
     points: np.ndarray
@@ -71,22 +73,27 @@ class SyntheticScan:
     colours: np.ndarray | None = None
     triangles: np.ndarray | None = None
     texture: object = None
+    normals: np.ndarray | None = None
 
     def as_scan(self, colour: bool = True):
         """The :class:`~livebridge.retarget.scan.Scan` a reader would give (without colour if not ``colour``)."""
         from livebridge.retarget.scan import Scan
 
         triangles = np.zeros((0, 3)) if self.triangles is None else self.triangles
-        return Scan(self.points, triangles, self.colours if colour else None, self.texture if colour else None)
+        return Scan(self.points, triangles, self.colours if colour else None, self.texture if colour else None,
+                    self.normals)
 
 
 def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noise: float,
                  rng: np.random.Generator, hole: tuple[np.ndarray, float] | None = None, skin=None,
                  exposure: float = 1.0, light: tuple[np.ndarray, float] | None = None, eyes=None,
-                 whole: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+                 whole: bool = False, normals: bool = False
+                 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Points (<= n_points, 3) a scanner looking along -z sees on a mesh, with Gaussian noise ``noise`` mm,
     and their colours (same length, 3) when ``skin`` (a :class:`~livebridge.simulators.skin.SkinTexture` of
-    the mesh's vertices) is given, else None.
+    the mesh's vertices) is given, else None; and their unit normals (same length, 3) if ``normals``, else None:
+    the mesh's vertex normals interpolated and turned by :data:`NORMAL_NOISE`, as a scanner's estimate is (the
+    eyeballs' points: towards +z).
 
     Area-weighted random barycentric points on the triangles facing +z; hidden ones (more than 1.5 mm behind
     the front-most surface within 0.5 mm in x-y) dropped; ``hole`` = (centre (3,), radius): no points there.
@@ -107,25 +114,41 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     if hole is not None:
         keep &= np.linalg.norm(points - hole[0], axis=1) > hole[1]
     points = points[keep]
+    colours, point_normals = None, None
+    if normals:
+        on_vertices = vertex_normals(vertices, triangles)
+        point_normals = _noisy(np.einsum("nk,nkd->nd", bary[keep], on_vertices[triangles[chosen[keep]]]), rng)
     if skin is not None:
         texels = np.einsum("nk,nkd->nd", bary[keep], skin.vertex_texels[triangles[chosen[keep]]]).astype(np.float32)
         albedo = map_coordinates(skin.albedo, [texels[:, 1], texels[:, 0]], order=1, mode="nearest")
         if light is not None:  # the vertices' normals interpolated: the skin is as smooth as the mesh
-            normals = np.einsum("nk,nkd->nd", bary[keep], vertex_normals(vertices, triangles)[triangles[chosen[keep]]])
-            albedo = albedo * lambertian(normals / np.linalg.norm(normals, axis=1, keepdims=True), *light)
+            smooth = np.einsum("nk,nkd->nd", bary[keep], vertex_normals(vertices, triangles)[triangles[chosen[keep]]])
+            albedo = albedo * lambertian(smooth / np.linalg.norm(smooth, axis=1, keepdims=True), *light)
         colours = albedo[:, None] * SKIN_TONE
     if eyes is not None:
         from livebridge.bench.scan_eyes import eye_points
 
         seen, eye_colours = eye_points(eyes, vertices, triangles, n_points / facing_weights(vertices, triangles).sum(),
                                        rng)
+        if point_normals is not None:
+            point_normals = np.vstack([point_normals, np.tile([0.0, 0.0, 1.0], (len(seen), 1))])
         points = np.vstack([points, seen])
         if skin is not None:
             colours = np.vstack([colours, eye_colours])
     points = points + rng.normal(0.0, noise, points.shape)
-    if skin is None:
-        return points, None
-    return points, np.clip(colours * exposure + rng.normal(0.0, COLOUR_NOISE, colours.shape), 0.0, 1.0)
+    if skin is not None:
+        colours = np.clip(colours * exposure + rng.normal(0.0, COLOUR_NOISE, colours.shape), 0.0, 1.0)
+    return points, colours, point_normals
+
+
+NORMAL_NOISE = 0.05
+"""Gaussian noise added to each component of a simulated scan's unit normals before they are made unit again
+(about 4 degrees: a normal estimated from noisy points' neighbourhoods)."""
+
+
+def _noisy(normals: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    normals = normals / np.linalg.norm(normals, axis=1, keepdims=True) + rng.normal(0.0, NORMAL_NOISE, normals.shape)
+    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
 def lambertian(normals: np.ndarray, towards_light: np.ndarray, ambient: float) -> np.ndarray:
@@ -215,8 +238,8 @@ def random_pose(rng: np.random.Generator, degrees: float = 10.0, shift_mm: float
 def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = SCAN_POINTS,
                     noise: float = SCAN_NOISE_MM, landmark_noise: float = LANDMARK_NOISE_MM,
                     hole_muscle: str | None = HOLE_MUSCLE, colour: bool = True,
-                    muscles=None, textured: bool = False, lit: bool = False, eyes=None, whole: bool = False
-                    ) -> tuple[SyntheticScan, dict[str, SyntheticScan]]:
+                    muscles=None, textured: bool = False, lit: bool = False, eyes=None, whole: bool = False,
+                    normals: bool = False) -> tuple[SyntheticScan, dict[str, SyntheticScan]]:
     """(neutral, {muscle: expression}) scans of ``basis`` (each element fully contracted), each with its own
     random head pose, sampling, noise and exposure; landmarks from ``landmarks`` (a LandmarkSet on the basis)
     plus Gaussian noise. The ``hole_muscle`` scan has a hole of :data:`HOLE_RADIUS_MM` on that side's cheek.
@@ -227,7 +250,7 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
     so the shading changes with each scan's head pose and with the expression's shape. ``eyes``: the head's
     :class:`~livebridge.bench.scan_eyes.Eyeballs` (fixed in the skull), which the scans also see through the eye
     openings (unlit). ``whole``: each point cloud sampled over the whole mesh, the skin the front hides too
-    (:func:`scan_surface`)."""
+    (:func:`scan_surface`); ``normals``: each point cloud with its points' normals."""
     from livebridge.geometry.transforms import apply
     from livebridge.simulators.skin import make_skin
 
@@ -245,13 +268,14 @@ def synthetic_scans(basis, landmarks, rng: np.random.Generator, n_points: int = 
                                  FLASH if lit else None, None if eyes is None else (eyes, pose))
         else:
             light = (pose[:3, :3].T @ FLASH[0], FLASH[1]) if lit else None  # the flash in the mesh's frame
-            points, colours = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin, exposure, light,
-                                           eyes, whole)
+            points, colours, point_normals = scan_surface(shape, basis.triangles, n_points, noise, rng, hole, skin,
+                                                          exposure, light, eyes, whole, normals)
         marks = landmarks.as_dict(shape, basis.triangles)
         marks = {name: apply(pose, p[None])[0] + rng.normal(0.0, landmark_noise, 3) for name, p in marks.items()}
         if textured:
             return SyntheticScan(mesh[0], marks, pose, None, mesh[1], mesh[2])
-        return SyntheticScan(apply(pose, points), marks, pose, colours)
+        turned = None if point_normals is None else point_normals @ pose[:3, :3].T
+        return SyntheticScan(apply(pose, points), marks, pose, colours, normals=turned)
 
     neutral = one(basis.neutral)
     expressions = {}
@@ -392,6 +416,9 @@ def run(quick: bool, log) -> dict:
         result["whole_mesh_clouds"] = _measure_density(basis, SCAN_POINTS, {"whole": True}, log,
                                                        "clouds sampled over the whole mesh, the skin the front hides "
                                                        "too")
+        result["whole_mesh_clouds_with_normals"] = _measure_density(
+            basis, SCAN_POINTS, {"whole": True, "normals": True}, log,
+            "clouds sampled over the whole mesh with their normals (those facing away from the front left out)")
         eyes = ict_eyeballs()
         if eyes is not None:
             result["scanned_eyes"] = _measure_scanned_eyes(basis, eyes, log)

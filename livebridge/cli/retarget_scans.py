@@ -125,6 +125,7 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
 
     from livebridge.face.muscle_place import misplaced
     from livebridge.retarget.face_scan import OFF_FACE_MM, prepare_neutral
+    from livebridge.retarget.facing import facing_said
     from livebridge.retarget.point_files import picked_points_file, read_points
     from livebridge.retarget.same_face import another_face, neutral_off_expressions, off_expressions
     from livebridge.retarget.scan import read_scan
@@ -168,6 +169,9 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
                               leave_out_eyeballs=not keep_eyeballs)
     if neutral.shading is not None:
         click.echo(lighting_said(neutral.shading, neutral.shading_removed))
+    said = facing_said(neutral.facing, neutral_scan.name)
+    if said:
+        click.echo(said)
     if neutral.eyeball_points:
         click.echo(f"eyes: {neutral.eyeball_points} points of {neutral_scan.name} are eyeballs seen between the lids, "
                    "left out of it and of the expression scans (--keep-eyeballs keeps them)")
@@ -178,6 +182,9 @@ def scans(neutral_scan: Path, neutral_landmarks: Path | None, expressions, out: 
         scan_path = files[name][0]
         if not (neutral.coloured and faces[name].coloured):
             uncoloured.append(name)
+        said = facing_said(faces[name].facing, scan_path.name)
+        if said and faces[name].facing.orientation != "outward":
+            click.echo(said)
         why = another_face(faces[name].gap_mm, faces[name].noise_mm)
         if why is not None:
             click.echo(f"warning: {name} ({scan_path.name}): {why}")

@@ -21,6 +21,7 @@ from livebridge.face.meshio import vertex_normals
 from livebridge.geometry.transforms import apply, transform_scale
 from livebridge.retarget.chart import PLANAR, SkinChart, face_chart
 from livebridge.retarget.eyeballs import eyeball_points
+from livebridge.retarget.facing import Facing, facing_points
 from livebridge.retarget.grid import (
     GAP_SPACINGS,
     GRID_SHAPE,
@@ -138,6 +139,9 @@ class FaceScan:
         (:mod:`~livebridge.retarget.eyeballs`).
     eyeballs_left_out : bool
         Whether they were sought (the neutral's choice; its expressions follow it).
+    facing : Facing
+        What the point cloud's normals said, and how many points they left out as facing away from the front
+        (:mod:`~livebridge.retarget.facing`).
     """
 
     grid: FaceGrid
@@ -158,6 +162,7 @@ class FaceScan:
     shading_removed: bool = False
     eyeball_points: int = 0
     eyeballs_left_out: bool = True
+    facing: Facing = Facing()
 
     @property
     def coloured(self) -> bool:
@@ -233,6 +238,7 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
     radius = crop_radius(moved) if radius is None else float(radius)
     scan = _as_points(scan, landmarks, radius / abs(transform_scale(scan2face)), mesh_spacing, scan2face)
     whole = scan.points
+    scan, facing = facing_points(scan, scan2face, radius)
     scan, points = _without_spikes(scan, apply(scan2face, scan.points), radius)
     scan, points, eyeballs = _without_eyeballs(scan, points, moved, leave_out_eyeballs)
     if not len(points):  # the crop holds no point: say how far apart the scan's and the landmarks' places are
@@ -250,7 +256,7 @@ def prepare_neutral(scan: Scan, landmarks: dict[str, np.ndarray], reference: dic
         raise InputError(f"flat: its face crop lies within {depth:.2g} mm (RMS) of a plane over {2 * radius:.3g} mm "
                          "(a face is tens of mm deep)", scan_source or source, "points")
     face.landmark_set(source)  # every landmark on the resampled face, or a clear error
-    return replace(face, eyeball_points=eyeballs, eyeballs_left_out=leave_out_eyeballs)
+    return replace(face, eyeball_points=eyeballs, eyeballs_left_out=leave_out_eyeballs, facing=facing)
 
 
 def _as_points(scan: Scan, landmarks: dict[str, np.ndarray], radius: float, spacing: float | None,
@@ -263,7 +269,7 @@ def _as_points(scan: Scan, landmarks: dict[str, np.ndarray], radius: float, spac
         return scan
     samples = scan.as_points(landmarks["nose_tip"], TEXTURE_REACH * radius + SKIN_MARGIN_MM, spacing)
     cell = SAMPLE_SPACING_MM if spacing is None else spacing
-    return _points_where(samples, front_surface(apply(scan2face, samples.points), cell, HIDDEN_DEPTH_MM))
+    return samples.where(front_surface(apply(scan2face, samples.points), cell, HIDDEN_DEPTH_MM))
 
 
 def _without_spikes(scan: Scan, points: np.ndarray, radius: float) -> tuple[Scan, np.ndarray]:
@@ -274,7 +280,7 @@ def _without_spikes(scan: Scan, points: np.ndarray, radius: float) -> tuple[Scan
     keep[keep] = ~spikes(points[keep])
     if keep.all():
         return scan, points
-    return _points_where(scan, keep), points[keep]
+    return scan.where(keep), points[keep]
 
 
 def _on_the_face(scan: Scan, points: np.ndarray, vertices: np.ndarray) -> tuple[Scan, np.ndarray, float]:
@@ -285,7 +291,7 @@ def _on_the_face(scan: Scan, points: np.ndarray, vertices: np.ndarray) -> tuple[
     far = cKDTree(vertices).query(points, distance_upper_bound=OFF_FACE_MM)[0] > OFF_FACE_MM
     if not far.any():
         return scan, points, 0.0
-    return _points_where(scan, ~far), points[~far], float(far.mean())
+    return scan.where(~far), points[~far], float(far.mean())
 
 
 def _without_eyeballs(scan: Scan, points: np.ndarray, landmarks: dict, leave_out: bool = True
@@ -298,12 +304,7 @@ def _without_eyeballs(scan: Scan, points: np.ndarray, landmarks: dict, leave_out
     eyes = eyeball_points(points, scan.colours, landmarks)
     if not eyes.any():
         return scan, points, 0
-    return _points_where(scan, ~eyes), points[~eyes], int(eyes.sum())
-
-
-def _points_where(scan: Scan, keep: np.ndarray) -> Scan:
-    """A point cloud's points where ``keep`` (n,) bool, with their colours."""
-    return Scan(scan.points[keep], np.zeros((0, 3), np.int64), None if scan.colours is None else scan.colours[keep])
+    return scan.where(~eyes), points[~eyes], int(eyes.sum())
 
 
 def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float, landmarks: dict,
@@ -425,6 +426,7 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     radius = float(neutral.grid.x[-1])
     first_guess = landmark_rigid(landmarks, neutral.landmarks, source)
     scan = _as_points(scan, landmarks, radius, mesh_spacing, first_guess)
+    scan, facing = facing_points(scan, first_guess, radius)  # the skull landmarks' frame is near enough
     normals = vertex_normals(neutral.vertices, neutral.triangles)
     scan2face = register_rigid(scan.points, landmarks, neutral.vertices, normals, neutral.landmarks, radius,
                                source=source, first_guess=first_guess)
@@ -439,7 +441,7 @@ def prepare_expression(scan: Scan, landmarks: dict[str, np.ndarray], neutral: Fa
     inside = points[crop_sphere(points, np.zeros(3), radius)]
     return replace(face, gap_mm=surface_gap(inside, neutral.vertices, normals),
                    noise_mm=noise_level(inside, face.grid), off_face_share=off_face, eyeball_points=eyeballs,
-                   eyeballs_left_out=neutral.eyeballs_left_out)
+                   eyeballs_left_out=neutral.eyeballs_left_out, facing=facing)
 
 
 def check_sides(landmarks: dict[str, np.ndarray], reference: dict[str, np.ndarray], source=None) -> None:

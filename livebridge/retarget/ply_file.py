@@ -1,11 +1,12 @@
 """PLY files (ASCII, binary little and big endian): a scan's points, colours, faces and texture, and writing them.
 
-The ``vertex`` element's x, y, z and colour (``red green blue`` or ``diffuse_red ..``: integers scaled by their
-type's maximum, floats taken as 0-1), the ``face`` element's vertex index lists (faces with more than three
-corners become triangle fans) and, with ``comment TextureFile`` lines (as MeshLab writes them), the texture on
-the faces' ``texcoord`` lists or the vertices' ``s t``. Other elements are skipped. Every bad value is named by
-its element and row: a truncated file, a wrong count, NaN or infinity, a face that points at a vertex that does
-not exist. :func:`~livebridge.retarget.scan.read_scan` reads PLY scans through :func:`read_ply`.
+The ``vertex`` element's x, y, z, colour (``red green blue`` or ``diffuse_red ..``: integers scaled by their
+type's maximum, floats taken as 0-1) and normal (``nx ny nz`` or ``normal_x ..``), the ``face`` element's vertex
+index lists (faces with more than three corners become triangle fans) and, with ``comment TextureFile`` lines
+(as MeshLab writes them), the texture on the faces' ``texcoord`` lists or the vertices' ``s t``. Other elements
+are skipped. Every bad value is named by its element and row: a truncated file, a wrong count, NaN or infinity,
+a face that points at a vertex that does not exist. :func:`~livebridge.retarget.scan.read_scan` reads PLY scans
+through :func:`read_ply`.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ class _Element:
 
 
 def read_ply(data: bytes, path: Path):
-    """The ``vertex`` element's x, y, z (and colour), the ``face`` element's vertex index lists and, with
+    """The ``vertex`` element's x, y, z (and colour, normal), the ``face`` element's vertex index lists and, with
     ``comment TextureFile`` lines, their texture (:func:`_ply_texture`); other elements skipped."""
     order, elements, body, comments = _ply_header(data, path)
     names = [element.name for element in elements]
@@ -82,7 +83,20 @@ def read_ply(data: bytes, path: Path):
         texture = _ply_texture(path, comments, table, faces, triangles, corners, face_of)
     colours = _ply_colours(vertex, table)
     # as for OBJ: the images hold the skin's pattern finer than the vertices
-    return points, triangles, None if texture is not None else colours, texture
+    return points, triangles, None if texture is not None else colours, texture, _ply_normals(vertex, table)
+
+
+_PLY_NORMALS = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
+
+
+def _ply_normals(vertex: _Element, table: dict) -> np.ndarray | None:
+    """The vertices' normals (n, 3) as written, None without."""
+    names = {p.name for p in vertex.properties if not p.is_list}
+    for triple in _PLY_NORMALS:
+        if all(name in names for name in triple):
+            with np.errstate(invalid="ignore"):  # a signalling NaN: refused by the scan's reader, naming the point
+                return np.stack([np.asarray(table[name], dtype=np.float64) for name in triple], axis=1)
+    return None
 
 
 _PLY_TEXCOORDS = (("s", "t"), ("u", "v"), ("texture_u", "texture_v"), ("texture_s", "texture_t"))

@@ -7,8 +7,11 @@ with more than three corners become triangle fans). Colour is read from PLY ``re
 ``diffuse_red ..``; integers scaled by their type's maximum, floats taken as 0-1), OBJ ``v x y z r g b`` and
 XYZ/CSV columns named ``r g b`` / ``red green blue`` (or, without a header, three whole numbers 0-255 after
 x y z on every line), or from the texture images of a textured mesh (OBJ ``vt`` with ``mtllib`` / ``map_Kd``;
-PLY ``comment TextureFile`` with face ``texcoord`` lists or vertex ``s t``). Every reader checks what it reads
-and names the file and the line (text) or the element (binary) of the first bad value: a truncated file, a
+PLY ``comment TextureFile`` with face ``texcoord`` lists or vertex ``s t``). A point cloud's normals, when the
+scanner or its software wrote them (PLY ``nx ny nz``, XYZ/CSV columns so named, or three unit-length numbers
+after x y z [r g b] on every line), say which way each point's surface faces: the face's preparation drops the
+points facing away from the front (:mod:`~livebridge.retarget.facing`). Every reader checks what it reads and
+names the file and the line (text) or the element (binary) of the first bad value: a truncated file, a
 wrong count, NaN or infinity, a face that points at a vertex that does not exist.
 """
 
@@ -48,15 +51,19 @@ class Scan:
     texture : Texture or None
         Texture images on the triangles (:mod:`~livebridge.retarget.texture`): a textured mesh's colour, which
         :meth:`as_points` samples into coloured points.
+    normals : ndarray, shape (n_points, 3), or None
+        A point cloud's unit normals as the file gives them (a row of zeros: not known), None without.
     """
 
     points: np.ndarray
     triangles: np.ndarray
     colours: np.ndarray | None = None
     texture: Texture | None = None
+    normals: np.ndarray | None = None
 
     def __post_init__(self):
-        for name, dtype in (("points", np.float64), ("triangles", np.int64), ("colours", np.float64)):
+        for name, dtype in (("points", np.float64), ("triangles", np.int64), ("colours", np.float64),
+                            ("normals", np.float64)):
             if getattr(self, name) is None:
                 continue
             array = np.array(getattr(self, name), dtype=dtype).reshape(-1, 3)
@@ -64,6 +71,13 @@ class Scan:
             object.__setattr__(self, name, array)
         if self.colours is not None and len(self.colours) != len(self.points):
             raise InputError(f"{len(self.colours)} colours for {len(self.points)} points", field="colours")
+        if self.normals is not None and len(self.normals) != len(self.points):
+            raise InputError(f"{len(self.normals)} normals for {len(self.points)} points", field="normals")
+
+    def where(self, keep: np.ndarray) -> Scan:
+        """A point cloud's points where ``keep`` (n_points,) bool, with their colours and normals."""
+        return Scan(self.points[keep], np.zeros((0, 3), np.int64), None if self.colours is None else self.colours[keep],
+                    normals=None if self.normals is None else self.normals[keep])
 
     @property
     def is_mesh(self) -> bool:
@@ -106,8 +120,8 @@ def read_scan(path: str | Path, scale: float = 1.0) -> Scan:
         raise file_error(error, path) from None
     if not data.strip():
         raise InputError("empty file: no points", path)
-    reader = {".ply": read_ply, ".obj": _read_obj, ".stl": read_stl}.get(suffix, _read_xyz)
-    points, triangles, colours, *texture = reader(data, path)
+    reader = {".ply": read_ply, ".obj": _read_obj, ".stl": _read_stl}.get(suffix, _read_xyz)
+    points, triangles, colours, texture, normals = reader(data, path)
     if not len(points):
         raise InputError("no points", path)
     check_faces(triangles, len(points), path)
@@ -117,7 +131,25 @@ def read_scan(path: str | Path, scale: float = 1.0) -> Scan:
         if len(bad):
             raise InputError(f"point {bad[0]}: colour {colours[bad[0]].tolist()} is not in 0-1 ({len(bad)} such)",
                              path, "colour")
-    return Scan(points * scale, triangles, colours, texture[0] if texture else None)
+    # a mesh's own triangles say which way it faces
+    normals = None if normals is None or len(triangles) else unit_normals(normals, path)
+    return Scan(points * scale, triangles, colours, texture, normals)
+
+
+def unit_normals(normals: np.ndarray, path) -> np.ndarray:
+    """A file's normals (n, 3) made unit length; zero rows kept (not known). An error names the file and the
+    first point whose normal is not finite."""
+    length = np.linalg.norm(normals, axis=1)
+    bad = np.flatnonzero(~np.isfinite(length))
+    if len(bad):
+        raise InputError(f"point {bad[0]}: normal {normals[bad[0]].tolist()} is not a direction ({len(bad)} such)",
+                         path, "normal")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(length[:, None] > 0, normals / length[:, None], 0.0)
+
+
+def _read_stl(data: bytes, path: Path):
+    return *read_stl(data, path), None, None
 
 
 # ------------------------------------------------------------------------------------------------ XYZ / CSV
@@ -127,23 +159,29 @@ _SEPARATORS = re.compile(r"[,;\s]+")
 def _read_xyz(data: bytes, path: Path):
     """``x y z [more columns]`` per line, separated by spaces, tabs, commas or semicolons.
 
-    A first line that is not numbers is a header (when it names x, y and z, those columns are read, and
-    r g b / red green blue when it names them); lines starting with ``#`` or ``//`` are comments. Without a
-    header, columns 4-6 are colour when they are whole numbers 0-255 on every line (else normals or other).
+    A first line that is not numbers is a header (when it names x, y and z, those columns are read, r g b /
+    red green blue and nx ny nz / normal_x normal_y normal_z when it names them; CloudCompare's ``//X,Y,Z,...``
+    too); other lines starting with ``#`` or ``//`` are comments. Without a header, columns 4-6 are colour when
+    they are whole numbers 0-255 on every line, and normals are the first of columns 4-6 and 7-9 that are not the
+    colour and are unit length (or zero) on every line.
     """
-    columns, colour_columns, guess = (0, 1, 2), None, True
-    rows, extra, first = [], [], True
+    columns, colour_columns, normal_columns, headed = (0, 1, 2), None, None, False
+    rows, tails, first = [], [], True
     for number, line in enumerate(_text(data, path).splitlines(), 1):
         text = line.strip()
-        if not text or text.startswith(("#", "//")):
+        comment = text.startswith(("#", "//"))
+        if first and comment and text.startswith("//") and _names_xyz(text[2:]):
+            text, comment = text[2:], False  # CloudCompare's header
+        if not text or comment:
             continue
         if ";" in text and "," in text:  # the European CSV: ';' between the numbers, ',' inside them
             raise InputError(f"line {number}: ';' between values and ',' within them ({text[:40]!r}): write the "
                              "numbers with a decimal point", path)
         cells = [cell for cell in _SEPARATORS.split(text) if cell]
         if first and not _is_number(cells[0]):
-            columns, first = _header_columns(cells, columns, path, number), False
-            colour_columns, guess = _colour_columns(cells), False
+            columns, first, headed = _header_columns(cells, columns, path, number), False, True
+            colour_columns = _named_columns(cells, _COLOUR_NAMES)
+            normal_columns = _named_columns(cells, _NORMAL_NAMES)
             continue
         first = False
         if len(cells) <= max(columns):
@@ -157,43 +195,76 @@ def _read_xyz(data: bytes, path: Path):
         if not all(map(math.isfinite, xyz)):
             raise InputError(f"line {number}: x, y, z must be finite, got {[cells[k] for k in columns]}", path)
         rows.append(xyz)
-        if colour_columns is not None or guess:
-            extra.append(_row_colour(cells, colour_columns, number, path))
+        if headed:
+            tails.append((_named_values(cells, colour_columns, "r, g, b", number, path),
+                          _named_values(cells, normal_columns, "nx, ny, nz", number, path)))
+        else:
+            tails.append(cells[3:9])
     points = np.array(rows, dtype=np.float64).reshape(-1, 3)
-    colours = _text_colours(extra, colour_columns is not None) if extra else None
-    return points, np.zeros((0, 3), np.int64), colours
+    if headed:
+        colours = None if colour_columns is None else _scaled_colours(np.array([c for c, _ in tails]).reshape(-1, 3))
+        normals = None if normal_columns is None else np.array([n for _, n in tails], dtype=np.float64).reshape(-1, 3)
+        return points, np.zeros((0, 3), np.int64), colours, None, normals
+    colours = _headerless_colours(tails)
+    return points, np.zeros((0, 3), np.int64), colours, None, _headerless_normals(tails, colours is not None)
 
 
 _COLOUR_NAMES = (("r", "g", "b"), ("red", "green", "blue"))
+_NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
+NORMAL_LENGTHS = (0.9, 1.1)
+"""Lengths a headerless file's normals have on every line (unit vectors, rounded as written), or zero."""
 
 
-def _colour_columns(cells) -> tuple[int, int, int] | None:
+def _names_xyz(text: str) -> bool:
+    names = [cell.strip().strip('"').lower() for cell in _SEPARATORS.split(text.strip()) if cell]
+    return all(axis in names for axis in "xyz")
+
+
+def _named_columns(cells, choices) -> tuple[int, int, int] | None:
     names = [cell.strip().strip('"').lower() for cell in cells]
-    for triple in _COLOUR_NAMES:
+    for triple in choices:
         if all(name in names for name in triple):
             return tuple(names.index(name) for name in triple)
     return None
 
 
-def _row_colour(cells, colour_columns, number, path):
-    """The row's named colour cells as floats (header), or its cells 4-6 (no header; None when absent)."""
-    if colour_columns is None:
-        return cells[3:6] if len(cells) >= 6 else None
-    try:
-        return [float(cells[k]) for k in colour_columns]
-    except (ValueError, IndexError):
-        raise InputError(f"line {number}: r, g, b must be numbers", path) from None
-
-
-def _text_colours(extra, named: bool) -> np.ndarray | None:
-    """Colours in 0-1 from text rows: named columns (0-255 when any exceeds 1), or headerless integer triples."""
-    if named:
-        colours = np.array(extra, dtype=np.float64).reshape(-1, 3)
-        return colours / 255.0 if colours.size and colours.max() > 1 else colours
-    if not extra or any(cells is None or not all(cell.isdigit() for cell in cells) for cells in extra):
+def _named_values(cells, columns, what: str, number: int, path):
+    """The row's cells in ``columns`` as floats (None without columns)."""
+    if columns is None:
         return None
-    colours = np.array(extra, dtype=np.float64)
+    try:
+        return [float(cells[k]) for k in columns]
+    except (ValueError, IndexError):
+        raise InputError(f"line {number}: {what} must be numbers", path) from None
+
+
+def _scaled_colours(colours: np.ndarray) -> np.ndarray:
+    """Named colour columns in 0-1 (0-255 when any exceeds 1)."""
+    return colours / 255.0 if colours.size and colours.max() > 1 else colours
+
+
+def _headerless_colours(tails) -> np.ndarray | None:
+    """Colours in 0-1 from every row's cells 4-6 when they are whole numbers 0-255 on every row, else None."""
+    if not tails or any(len(cells) < 3 or not all(cell.isdigit() for cell in cells[:3]) for cells in tails):
+        return None
+    colours = np.array([cells[:3] for cells in tails], dtype=np.float64)
     return colours / 255.0 if colours.max() <= 255 else None
+
+
+def _headerless_normals(tails, coloured: bool) -> np.ndarray | None:
+    """Normals from every row's cells 4-6 (not when they are the colour) or else 7-9, the first that are unit
+    length or zero on every row; None when neither is."""
+    for start in (0, 3)[coloured:]:
+        try:
+            normals = np.array([[float(cell) for cell in cells[start:start + 3]] for cells in tails])
+        except ValueError:
+            continue
+        if normals.shape != (len(tails), 3):
+            continue
+        length = np.linalg.norm(normals, axis=1)
+        if len(tails) and np.all((length == 0) | ((length >= NORMAL_LENGTHS[0]) & (length <= NORMAL_LENGTHS[1]))):
+            return normals
+    return None
 
 
 def _header_columns(cells, default, path, number):
@@ -234,7 +305,7 @@ def _read_obj(data: bytes, path: Path):
     if obj.libraries and len(obj.texcoords):
         texture = _obj_texture(path, obj.libraries, obj.texcoords, obj.corner_uv, obj.face_material)
         rgb = None if texture is not None else rgb  # the images hold the skin's pattern finer than the vertices
-    return obj.points, obj.triangles, rgb, texture
+    return obj.points, obj.triangles, rgb, texture, None
 
 
 def _obj_texture(path: Path, libraries: list[str], texcoords: np.ndarray, corner_uv: np.ndarray,
