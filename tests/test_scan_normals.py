@@ -134,6 +134,9 @@ def test_normals_into_the_face_are_turned_round_and_unoriented_ones_are_not_used
     kept, _ = _grid(both, None, landmarks)
     assert said.orientation == "unoriented" and said.left_out == 0
     np.testing.assert_array_equal(either.heights, kept.heights)
+    zeros, said = _grid(both, np.zeros_like(outward), landmarks)  # placeholders some writers put: no normals
+    assert said.orientation == "" and said.left_out == 0
+    np.testing.assert_array_equal(zeros.heights, kept.heights)
 
 
 def test_retarget_scans_tells_what_each_cloud_s_normals_did(tmp_path):

@@ -72,6 +72,8 @@ def facing_points(scan: Scan, scan2face: np.ndarray, radius: float) -> tuple[Sca
     normals = scan.normals @ np.linalg.inv(scan2face[:3, :3])  # a normal turns by the inverse transpose
     length = np.linalg.norm(normals, axis=1)
     known = length > 0
+    if not known.any():  # a writer's placeholder zeros
+        return scan, Facing()
     facing_z = np.where(known, normals[:, 2] / np.where(known, length, 1.0), 0.0)
     voters = crop_sphere(points, np.zeros(3), radius) & known
     voters[voters] = front_surface(points[voters], FRONT_CELL_MM, FRONT_CELL_MM)
