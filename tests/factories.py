@@ -53,6 +53,25 @@ def write_builtin_scans(folder, seed: int, stems: dict[str, str], basis=None, co
             f"{k},{float(x)!r},{float(y)!r},{float(z)!r}\n" for k, (x, y, z) in scan.landmarks.items()))
 
 
+def run_retarget_scans(folder, neutral: str, expressions: dict[str, str], *extra: str, grid: str = "40x40",
+                       out: str = "basis.npz"):
+    """``livebridge retarget scans`` on scan files in ``folder``: ``neutral`` (its landmarks ``STEM.landmarks.csv``
+    beside it) and muscle -> scan file, with a ``grid`` and ``out`` (in ``folder``); the CliRunner's result."""
+    from pathlib import Path
+
+    from click.testing import CliRunner
+
+    from livebridge.cli import main
+
+    folder = Path(folder)
+    expression_options = [arg for name, scan in expressions.items()
+                          for arg in ("--expression", f"{name}={folder / scan}")]
+    return CliRunner().invoke(main, [
+        "retarget", "scans", "--neutral", str(folder / neutral), "--neutral-landmarks",
+        str((folder / neutral).with_suffix(".landmarks.csv")), *expression_options, "--grid", grid,
+        "--out", str(folder / out), *extra])
+
+
 def split_triangles(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Every triangle cut in four at its edges' midpoints: the same surface, another (4x denser) topology; the
     first ``len(vertices)`` vertices are the given ones."""

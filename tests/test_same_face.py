@@ -7,8 +7,7 @@ import dataclasses
 import math
 
 import pytest
-from click.testing import CliRunner
-from factories import write_builtin_scans
+from factories import run_retarget_scans, write_builtin_scans
 
 from livebridge.retarget.same_face import GAP_FLOOR_MM, GAP_NOISES, another_face
 
@@ -32,7 +31,6 @@ def test_retarget_scans_warns_of_an_expression_of_another_face(tmp_path):
     bench retarget` (other proportions) is another face's: told, naming the expression and its file (its shape
     difference, built in as motion, also reads as a smile of both sides), and the basis is still written."""
     from livebridge.bench.retarget import known_warp
-    from livebridge.cli import main
     from livebridge.face.builtin import builtin_basis
     from livebridge.retarget.landmarks import load_landmark_set
 
@@ -41,11 +39,8 @@ def test_retarget_scans_warns_of_an_expression_of_another_face(tmp_path):
     landmarks = load_landmark_set("builtin-22").as_dict(basis.neutral, basis.triangles)
     other = dataclasses.replace(basis, neutral=known_warp(basis.neutral, landmarks))
     write_builtin_scans(tmp_path, 7, {"zygomatic_major_R": "other_smile_R"}, basis=other)
-    result = CliRunner().invoke(main, [
-        "retarget", "scans", "--neutral", str(tmp_path / "neutral.ply"), "--neutral-landmarks",
-        str(tmp_path / "neutral.landmarks.csv"), "--expression", f"zygomatic_major_L={tmp_path / 'smile_L.ply'}",
-        "--expression", f"zygomatic_major_R={tmp_path / 'other_smile_R.ply'}", "--grid", "40x40",
-        "--out", str(tmp_path / "basis.npz")])
+    result = run_retarget_scans(tmp_path, "neutral.ply", {"zygomatic_major_L": "smile_L.ply",
+                                                          "zygomatic_major_R": "other_smile_R.ply"})
     assert result.exit_code == 0, result.output
     warnings = [line for line in result.output.splitlines() if line.startswith("warning:")]
     told = [line for line in warnings if "registered on the neutral" in line]

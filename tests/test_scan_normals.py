@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from factories import run_retarget_scans
 
 from livebridge.errors import InputError
 from livebridge.face.builtin import builtin_basis
@@ -142,10 +143,7 @@ def test_normals_into_the_face_are_turned_round_and_unoriented_ones_are_not_used
 def test_retarget_scans_tells_what_each_cloud_s_normals_did(tmp_path):
     """A neutral cloud with normals out of the face, an expression's into it and another's either way: the build
     says what it left out, that it turned the second's round, and that it did not use the third's."""
-    from click.testing import CliRunner
-
     from livebridge.bench.scans import synthetic_scans
-    from livebridge.cli import main
 
     basis = builtin_basis()
     neutral, expressions = synthetic_scans(basis, load_landmark_set("builtin-22"), np.random.default_rng(3),
@@ -160,11 +158,8 @@ def test_retarget_scans_tells_what_each_cloud_s_normals_did(tmp_path):
             " ".join(f"{v:.6f}" for v in row) + "\n" for row in np.hstack([scan.points, normals])))
         (tmp_path / f"{name}.landmarks.csv").write_text("name,x,y,z\n" + "".join(
             f"{k},{x:.6f},{y:.6f},{z:.6f}\n" for k, (x, y, z) in scan.landmarks.items()))
-    result = CliRunner().invoke(main, [
-        "retarget", "scans", "--neutral", str(tmp_path / "neutral.xyz"), "--neutral-landmarks",
-        str(tmp_path / "neutral.landmarks.csv"), "--expression", f"jaw={tmp_path / 'jaw.xyz'}",
-        "--expression", f"frontalis_L={tmp_path / 'frontalis_L.xyz'}", "--grid", "40x40",
-        "--out", str(tmp_path / "b.npz")])
+    result = run_retarget_scans(tmp_path, "neutral.xyz", {"jaw": "jaw.xyz", "frontalis_L": "frontalis_L.xyz"},
+                                out="b.npz")
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
     neutral_line = next(line for line in lines if "neutral.xyz face away" in line)

@@ -1076,7 +1076,7 @@ def test_a_closing_eye_s_opening_shows_the_flow_the_expression_s_skin(ict, monke
                    "0.108, lip press 0.107, eyelids 0.195 / 0.177): the eyelids' closing skin is hidden or folded "
                    "in the closed eye and its stretched pattern does not locate its motion (tested to 600k points), "
                    "and at 60k the flow's noise (what the skin images resolve); clouds sampled over the whole "
-                   "mesh 11 of 16 (their hidden skin mixes into the front's)")
+                   "mesh 11 of 16 (their hidden skin mixes into the front's), 12 of 16 with their normals")
 def test_scan_basis_reproduces_the_ict_elements_within_10_percent(ict_scan_figures):
     figures = ict_scan_figures
     assert np.nanmax(figures.errors) <= ERROR_LIMIT, dict(zip(figures.names, np.round(figures.errors, 3)))
