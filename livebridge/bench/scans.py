@@ -114,16 +114,17 @@ def scan_surface(vertices: np.ndarray, triangles: np.ndarray, n_points: int, noi
     if hole is not None:
         keep &= np.linalg.norm(points - hole[0], axis=1) > hole[1]
     points = points[keep]
-    colours, point_normals = None, None
+    colours, point_normals, smooth = None, None, None
+    if normals or (skin is not None and light is not None):  # the vertices' normals interpolated
+        smooth = np.einsum("nk,nkd->nd", bary[keep], vertex_normals(vertices, triangles)[triangles[chosen[keep]]])
+        smooth /= np.linalg.norm(smooth, axis=1, keepdims=True)
     if normals:
-        on_vertices = vertex_normals(vertices, triangles)
-        point_normals = _noisy(np.einsum("nk,nkd->nd", bary[keep], on_vertices[triangles[chosen[keep]]]), rng)
+        point_normals = _noisy(smooth, rng)
     if skin is not None:
         texels = np.einsum("nk,nkd->nd", bary[keep], skin.vertex_texels[triangles[chosen[keep]]]).astype(np.float32)
         albedo = map_coordinates(skin.albedo, [texels[:, 1], texels[:, 0]], order=1, mode="nearest")
-        if light is not None:  # the vertices' normals interpolated: the skin is as smooth as the mesh
-            smooth = np.einsum("nk,nkd->nd", bary[keep], vertex_normals(vertices, triangles)[triangles[chosen[keep]]])
-            albedo = albedo * lambertian(smooth / np.linalg.norm(smooth, axis=1, keepdims=True), *light)
+        if light is not None:  # shaded by the interpolated normals: the skin is as smooth as the mesh
+            albedo = albedo * lambertian(smooth, *light)
         colours = albedo[:, None] * SKIN_TONE
     if eyes is not None:
         from livebridge.bench.scan_eyes import eye_points
@@ -147,7 +148,8 @@ NORMAL_NOISE = 0.05
 
 
 def _noisy(normals: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    normals = normals / np.linalg.norm(normals, axis=1, keepdims=True) + rng.normal(0.0, NORMAL_NOISE, normals.shape)
+    """Unit ``normals`` (n, 3) turned by :data:`NORMAL_NOISE`, unit again."""
+    normals = normals + rng.normal(0.0, NORMAL_NOISE, normals.shape)
     return normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 

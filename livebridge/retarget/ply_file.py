@@ -86,13 +86,14 @@ def read_ply(data: bytes, path: Path):
     return points, triangles, None if texture is not None else colours, texture, _ply_normals(vertex, table)
 
 
-_PLY_NORMALS = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
+NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
+"""The names a point's normal is written under (PLY vertex properties, XYZ/CSV header columns)."""
 
 
 def _ply_normals(vertex: _Element, table: dict) -> np.ndarray | None:
     """The vertices' normals (n, 3) as written, None without."""
     names = {p.name for p in vertex.properties if not p.is_list}
-    for triple in _PLY_NORMALS:
+    for triple in NORMAL_NAMES:
         if all(name in names for name in triple):
             with np.errstate(invalid="ignore"):  # a signalling NaN: refused by the scan's reader, naming the point
                 return np.stack([np.asarray(table[name], dtype=np.float64) for name in triple], axis=1)

@@ -28,7 +28,7 @@ from livebridge.errors import InputError, file_error
 from livebridge.face.obj_file import read_obj_data
 from livebridge.retarget.checks import check_faces
 from livebridge.retarget.mesh_samples import surface_samples
-from livebridge.retarget.ply_file import read_ply
+from livebridge.retarget.ply_file import NORMAL_NAMES, read_ply
 from livebridge.retarget.stl_file import read_stl
 from livebridge.retarget.texture import Texture, sample_textured
 
@@ -181,7 +181,7 @@ def _read_xyz(data: bytes, path: Path):
         if first and not _is_number(cells[0]):
             columns, first, headed = _header_columns(cells, columns, path, number), False, True
             colour_columns = _named_columns(cells, _COLOUR_NAMES)
-            normal_columns = _named_columns(cells, _NORMAL_NAMES)
+            normal_columns = _named_columns(cells, NORMAL_NAMES)
             continue
         first = False
         if len(cells) <= max(columns):
@@ -195,11 +195,11 @@ def _read_xyz(data: bytes, path: Path):
         if not all(map(math.isfinite, xyz)):
             raise InputError(f"line {number}: x, y, z must be finite, got {[cells[k] for k in columns]}", path)
         rows.append(xyz)
-        if headed:
+        if not headed:
+            tails.append(cells[3:9])
+        elif colour_columns is not None or normal_columns is not None:
             tails.append((_named_values(cells, colour_columns, "r, g, b", number, path),
                           _named_values(cells, normal_columns, "nx, ny, nz", number, path)))
-        else:
-            tails.append(cells[3:9])
     points = np.array(rows, dtype=np.float64).reshape(-1, 3)
     if headed:
         colours = None if colour_columns is None else _scaled_colours(np.array([c for c, _ in tails]).reshape(-1, 3))
@@ -210,18 +210,22 @@ def _read_xyz(data: bytes, path: Path):
 
 
 _COLOUR_NAMES = (("r", "g", "b"), ("red", "green", "blue"))
-_NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
 NORMAL_LENGTHS = (0.9, 1.1)
 """Lengths a headerless file's normals have on every line (unit vectors, rounded as written), or zero."""
 
 
+def _cell_names(cells) -> list[str]:
+    """A header's cells as names: unquoted, lower case."""
+    return [cell.strip().strip('"').lower() for cell in cells]
+
+
 def _names_xyz(text: str) -> bool:
-    names = [cell.strip().strip('"').lower() for cell in _SEPARATORS.split(text.strip()) if cell]
+    names = _cell_names(cell for cell in _SEPARATORS.split(text.strip()) if cell)
     return all(axis in names for axis in "xyz")
 
 
 def _named_columns(cells, choices) -> tuple[int, int, int] | None:
-    names = [cell.strip().strip('"').lower() for cell in cells]
+    names = _cell_names(cells)
     for triple in choices:
         if all(name in names for name in triple):
             return tuple(names.index(name) for name in triple)
@@ -262,13 +266,13 @@ def _headerless_normals(tails, coloured: bool) -> np.ndarray | None:
         if normals.shape != (len(tails), 3):
             continue
         length = np.linalg.norm(normals, axis=1)
-        if len(tails) and np.all((length == 0) | ((length >= NORMAL_LENGTHS[0]) & (length <= NORMAL_LENGTHS[1]))):
+        if np.all((length == 0) | ((length >= NORMAL_LENGTHS[0]) & (length <= NORMAL_LENGTHS[1]))):
             return normals
     return None
 
 
 def _header_columns(cells, default, path, number):
-    names = [cell.strip().strip('"').lower() for cell in cells]
+    names = _cell_names(cells)
     if all(axis in names for axis in "xyz"):
         return tuple(names.index(axis) for axis in "xyz")
     if any(_is_number(cell) for cell in cells[1:]):
