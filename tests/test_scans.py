@@ -171,6 +171,28 @@ def test_resampling_follows_the_surface_and_masks_a_hole(rng):
     assert grid.uv.min() >= 0 and grid.uv.max() <= 1 and len(grid.uv) == len(vertices)
 
 
+def test_two_scans_of_one_skin_make_the_same_skin_image(rng):
+    """Two random samplings of one skin pattern (30k points over 76 mm, 0.01 colour noise) resampled onto the
+    0.5 mm skin image: each lies close to the pattern and to the other (measured 0.024 and 0.022 RMS, the
+    pattern's own spread 0.25); an average of the points by distance measured 0.040 and 0.052 (see grid.py)."""
+    texture = _texture(rng, 0.8)
+    _, _, fine_x, fine_y = _skin_axes()
+    xx, yy = np.meshgrid(fine_x, fine_y)
+    inner = (np.abs(xx) < 34) & (np.abs(yy) < 34)
+    pattern = texture(np.column_stack([yy[inner], xx[inner]]))
+
+    def skin_image():
+        skin = rng.uniform(-38, 38, (30_000, 2))
+        grey = texture(skin[:, ::-1]) + rng.normal(0, 0.01, len(skin))
+        points = np.column_stack([skin, rng.normal(0, 0.1, len(skin))])
+        return resample(points, fine_x, fine_y, colours=np.repeat(grey[:, None], 3, axis=1)).colours[inner][:, 0]
+
+    first, second = skin_image(), skin_image()
+    assert np.isfinite(first).mean() > 0.99 and np.isfinite(second).mean() > 0.99
+    assert np.sqrt(np.nanmean((first - pattern) ** 2)) < 0.03
+    assert np.sqrt(np.nanmean((first - second) ** 2)) < 0.03
+
+
 def test_resampling_keeps_the_front_surface(rng):
     front = _dome(rng)
     behind = front - [0, 0, 40.0]  # e.g. the back of a head seen through the face

@@ -7,6 +7,17 @@ linearly over the x-y Delaunay triangulation of the rest (``scipy.interpolate.gr
 grid points. Grid points with no scan point within ``max_gap`` (holes, the eyes' openings, beyond the edge)
 are masked, never invented: they are no vertex of the mesh. A coloured scan's colours are interpolated the
 same way (the grid is then also an image of the skin).
+
+The colours were also measured averaged by distance instead (normalised convolution: each point's colour
+splatted bilinearly on the pixels, blurred by 0.2-0.7 of the points' spacing, divided by the splatted weight).
+On a textured plane scanned twice at random (30k or 8k points over 76 mm, 0.5 mm pixels, patterns blurred by
+0.4-1.5 mm, 0-0.2 mm of noise along the skin) the linear images lay closer to the pattern and to each other:
+30k points, a 0.8 mm pattern, no noise along the skin, 0.024 RMS from the pattern and 0.022 between the two
+scans against 0.040 and 0.052. An average of randomly placed points carries the pattern's change across its
+window as noise; a linear interpolation only its curvature. The average was closer only for a pattern finer than
+the pixels with 0.2 mm of noise along the skin (0.144 against 0.152 between the scans). In `livebridge bench
+scans` it lowered the mean relative error by 1-5 % (60k points 0.0867 -> 0.0855, the other face 0.0889 ->
+0.0844), no element crossing the bar and the right eyelid losing 0.011.
 """
 
 from __future__ import annotations
