@@ -25,6 +25,14 @@ orbicularis_oris): mean relative RMS error of those 8 at 60k points a scan 0.159
 after; each change undone alone gives 0.155 (heights smoothed plainly), 0.145 (the DIS preset's 4 mm
 patches), 0.138 (the former 8.5-spacing smoothing), 0.131 (the former trust threshold 0.8), 0.127 (no
 shrinkage).
+
+Tried and not taken: every one of these smoothings fitted locally linear (a weighted plane per pixel, which
+has no first-order bias where the window is one-sided: at the eye openings, the lips' seam, the outline) in
+both trackings: the eyelids 0.195 / 0.177 -> 0.202 / 0.203, the mean of the 16 0.0867 -> 0.0890 (60k, seed 7);
+with the true x-y motion in place of the flow, 0.127 / 0.123 -> 0.131 / 0.129. With the true motion, half the
+eyelids' squared error is on the 62 / 75 grid vertices next to the eye's opening (0.68 / 0.61 mm RMS; those
+sharing an edge with it lie 0.26 / 0.49 mm off the true face at the median: the resampling's fill over the
+lids' rims), against 0.06 / 0.05 mm RMS on the moving vertices more than 8 mm from it.
 """
 
 from __future__ import annotations
@@ -308,6 +316,13 @@ def robust_heights(dz: np.ndarray, weight: np.ndarray, blur, z_use: np.ndarray |
     ``blur(channels, weight) -> means`` smooths a list of channels with one weight (a normalised Gaussian
     convolution, or a lip seam's that keeps each lip apart). ``z_use`` (rows, cols) bool: the pixels whose
     heights count (default: all).
+
+    The heights take the base width's smoothing alone, without the x-y motion's twicing or choice of width:
+    in `livebridge bench scans`' draws (60k points a scan: seeds 7 and 8, the other face) twicing them (with
+    these weights) gave means of the 16 elements 0.0857 / 0.0877 / 0.0894 against 0.0867 / 0.0886 / 0.0889
+    (the other face's lip corner 0.126 -> 0.135), Lepski's choice among twiced, base and twice the base width
+    0.0863 on seed 7: a closing lid's crease, which the heights' smoothing flattens by up to 0.5 mm, kept its
+    figures within 0.002.
     """
     if z_use is not None:
         weight = np.where(z_use, weight, 0.0)
