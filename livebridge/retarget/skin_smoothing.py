@@ -321,7 +321,7 @@ def robust_heights(dz: np.ndarray, weight: np.ndarray, blur, z_use: np.ndarray |
     in `livebridge bench scans`' draws (60k points a scan: seeds 7 and 8, the other face) twicing them (with
     these weights) gave means of the 16 elements 0.0857 / 0.0877 / 0.0894 against 0.0867 / 0.0886 / 0.0889
     (the other face's lip corner 0.126 -> 0.135), Lepski's choice among twiced, base and twice the base width
-    0.0863 on seed 7: a closing lid's crease, which the heights' smoothing flattens by up to 0.5 mm, kept its
+    0.0863 on seed 7: a closing lid's crease, which the heights' smoothing flattens by up to 0.6 mm, kept its
     figures within 0.002.
     """
     if z_use is not None:
