@@ -11,7 +11,7 @@ from livebridge.retarget.eyelids import (
     moving_lids,
 )
 from livebridge.retarget.face_scan import skin_gap_mm
-from livebridge.retarget.grid import FaceGrid, resample
+from livebridge.retarget.grid import FaceGrid, point_spacing, resample
 from livebridge.retarget.skin_flow import pixels_of
 
 HALF_WIDTH = 12.0  # the eye's corners at x = -12 and +12 mm, the opening an ellipse between them
@@ -178,7 +178,7 @@ def _seen(points: np.ndarray) -> tuple[FaceGrid, float]:
     from dataclasses import replace
 
     from livebridge.retarget.face_scan import opening_gap_mm
-    from livebridge.retarget.grid import holes, point_spacing
+    from livebridge.retarget.grid import holes
 
     gap = opening_gap_mm(point_spacing(points[:, :2]), COARSE_STEP)
     skin = resample(points, FINE, FINE, skin_gap_mm(COARSE_STEP))
@@ -198,6 +198,30 @@ def test_a_squint_s_slit_narrower_than_the_skin_image_s_gap_gives_the_margins_mo
     seen, seen_gap = _seen(points)
     lid = lid_columns(neutral, seen, *CORNERS, gap, seen_gap)[centre]
     assert lid.upper_motion == pytest.approx(-6.0, abs=0.75) and lid.lower_motion == pytest.approx(0.0, abs=0.75)
+
+
+def _holes(grid: FaceGrid) -> tuple[np.ndarray, int]:
+    """The holes of ``grid`` inside it (labels, (n_rows, n_cols)) and the label of the one at its centre."""
+    from scipy.ndimage import label
+
+    labels, _ = label(~grid.valid)
+    on_edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    labels[np.isin(labels, on_edge)] = 0
+    return labels, int(labels[len(grid.y) // 2, len(grid.x) // 2])
+
+
+def test_a_grid_finer_than_the_scan_s_points_leaves_no_stray_holes_in_the_skin_image(rng):
+    """A 0.9 mm grid's own gap (1.35 mm) lies within three spacings of 0.44 mm-spaced points (what 60k points
+    over a face give): pixels where no point happened to fall became holes, read as the skin's. The scan's
+    spacing floors the gap."""
+    points = _scan_points(rng, 4.0, -4.0)[:4000]
+    spacing = point_spacing(points[:, :2])
+    step = 0.9
+    speckled, _ = _holes(resample(points, FINE, FINE, skin_gap_mm(step)))
+    labels, opening = _holes(resample(points, FINE, FINE, skin_gap_mm(step, spacing)))
+    assert len(np.unique(speckled)) > 3  # the speckle the floor is for
+    assert opening > 0 and set(np.unique(labels)) == {0, opening}
+    assert skin_gap_mm(1.4, spacing) == skin_gap_mm(1.4)  # a coarse grid's gap is its own
 
 
 def test_a_stray_gap_in_a_closed_eye_is_no_opening(rng):
@@ -226,7 +250,7 @@ def _lid_scans(rng, upper_after: float, lower_after: float, rim_mm: float = 0.0)
     from scipy.interpolate import RegularGridInterpolator
 
     from livebridge.retarget.face_scan import FaceScan, opening_gap_mm
-    from livebridge.retarget.grid import holes, point_spacing, square_axes
+    from livebridge.retarget.grid import holes, square_axes
     from livebridge.retarget.skin_flow import fine_axes
 
     texel, reach = 0.25, 12.0

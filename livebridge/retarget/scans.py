@@ -73,7 +73,7 @@ from livebridge.face.muscle_place import muscle_for
 from livebridge.geometry.transforms import apply, invert
 from livebridge.retarget.chart import SkinChart
 from livebridge.retarget.eyelids import LID_LANDMARK_NAMES, closing_openings, eyelid_guess, moving_lids
-from livebridge.retarget.face_scan import LANDMARK_SMOOTHING, FaceScan, opening_gap_mm, skin_gap_mm
+from livebridge.retarget.face_scan import LANDMARK_SMOOTHING, FaceScan, opening_gap_mm
 from livebridge.retarget.grid import (
     FaceGrid,
 )
@@ -158,7 +158,7 @@ def _lids_guess(neutral: FaceScan, expression: FaceScan, base: np.ndarray
     chart, vertices = neutral.chart, neutral.vertices
     before, after = chart.landmarks(neutral.landmarks), chart.landmarks(expression.landmarks)
     seen, seen_grow = _seen_openings(expression)
-    eyes = moving_lids(neutral.skin, seen, before, after, skin_gap_mm(neutral.grid.spacing), seen_grow)
+    eyes = moving_lids(neutral.skin, seen, before, after, neutral.skin_gap, seen_grow)
     guess, lids = eyelid_guess(neutral.skin, seen, neutral.skin_pixels(), chart.motion_to_chart(vertices, base), eyes)
     return guess, lids, eyes
 
@@ -248,7 +248,7 @@ def _seen_openings(expression: FaceScan) -> tuple[FaceGrid, float]:
     squinting eye's slit), and how far inside the true edges those holes lie, mm (see
     :func:`~livebridge.retarget.face_scan.opening_gap_mm`);
     the skin image itself and its gap when the scan has no such mask."""
-    skin, gap = expression.skin, skin_gap_mm(expression.grid.spacing)
+    skin, gap = expression.skin, expression.skin_gap
     if expression.skin_holes is None:
         return skin, gap
     return (replace(skin, heights=np.where(expression.skin_holes, np.nan, skin.heights)),
