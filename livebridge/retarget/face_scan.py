@@ -331,7 +331,7 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
     resampling triangulates others)."""
     inside = crop_sphere(points, np.zeros(3), radius)
     _check_dense(points[inside], x, y, source)
-    grid = resample(points[inside], x, y, source=source)
+    grid = resample(points[inside], x, y, source=source, seeded_holes=True)  # the basis's mesh: no pinholes
     fitted = fitted_heights(points[inside], grid) if fit_surface else None
     if isinstance(chart, str):
         chart = face_chart(grid.vertices, chart)
