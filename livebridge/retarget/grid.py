@@ -273,9 +273,9 @@ def _near_with_holes(points_xy: np.ndarray, grid_xy: np.ndarray, max_gap: float,
     as before; a hole narrower than about three gaps is filled as the grid's cells are (of the 16 expression
     scans', one: a nostril flared by the levator labii, 22 grid points). The elements built on the filled grids
     (the bench's draws at 60k: seeds 7, 8, the other face) have means of 0.0874 / 0.0885 / 0.0893 relative RMS
-    against 0.0867 / 0.0886 / 0.0889: seed 7's right eyelid went 0.177 -> 0.190 (one of its holes, 3 points
-    above the lid's crease, had changed the skin flow's first guess there), the other face's lip corner 0.126 ->
-    0.133, its left eyelid 0.191 -> 0.189."""
+    against 0.0867 / 0.0886 / 0.0889: seed 7's right eyelid went 0.177 -> 0.190 (one of its holes, 3 points, lay
+    just above that lid's crease, where the built lid now moves 0.5-0.8 mm otherwise), the other face's lip
+    corner 0.126 -> 0.133, its left eyelid 0.191 -> 0.189."""
     from scipy.ndimage import label
 
     gap, _ = cKDTree(points_xy).query(grid_xy, distance_upper_bound=HOLE_SEED_GAPS * max_gap, workers=-1)
