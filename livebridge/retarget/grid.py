@@ -5,8 +5,9 @@ a sphere around the nose tip, only the surface a frontal scanner sees is kept (p
 surface at the same x, y: the inside of a nostril or a mouth, the back of a head), and ``z`` is interpolated
 linearly over the x-y Delaunay triangulation of the rest (``scipy.interpolate.griddata``) at ``150 x 150``
 grid points. Grid points with no scan point within ``max_gap`` (holes, the eyes' openings, beyond the edge)
-are masked, never invented: they are no vertex of the mesh. A coloured scan's colours are interpolated the
-same way (the grid is then also an image of the skin).
+are masked, never invented: they are no vertex of the mesh (on a face scan's grid, only where they make a hole
+the scan has, not a grid point that fell between its random points: :func:`_near_with_holes`). A coloured
+scan's colours are interpolated the same way (the grid is then also an image of the skin).
 
 The colours were also measured averaged by distance instead (normalised convolution: each point's colour
 splatted bilinearly on the pixels, blurred by 0.2-0.7 of the points' spacing, divided by the splatted weight).
