@@ -82,3 +82,14 @@ def split_triangles(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.nda
     ab, bc, ca = mid.T
     split = np.concatenate([np.column_stack(t) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
     return np.vstack([vertices, vertices[unique].mean(axis=1)]), split
+
+
+def interior_holes(grid) -> np.ndarray:
+    """The masked points of a :class:`~livebridge.retarget.grid.FaceGrid` labelled by hole (8-connected), 0 on
+    the grid's surface and in the gaps open to its edge; shape (n_rows, n_cols)."""
+    from scipy.ndimage import label
+
+    labels, _ = label(~grid.valid, structure=np.ones((3, 3), bool))
+    on_edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    labels[np.isin(labels, on_edge)] = 0
+    return labels

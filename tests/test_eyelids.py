@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from factories import interior_holes
 
 from livebridge.retarget.eyelids import (
     TAPER_BEYOND_EYE_WIDTHS,
@@ -200,16 +201,6 @@ def test_a_squint_s_slit_narrower_than_the_skin_image_s_gap_gives_the_margins_mo
     assert lid.upper_motion == pytest.approx(-6.0, abs=0.75) and lid.lower_motion == pytest.approx(0.0, abs=0.75)
 
 
-def _holes(grid: FaceGrid) -> tuple[np.ndarray, int]:
-    """The holes of ``grid`` inside it (labels, (n_rows, n_cols)) and the label of the one at its centre."""
-    from scipy.ndimage import label
-
-    labels, _ = label(~grid.valid)
-    on_edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    labels[np.isin(labels, on_edge)] = 0
-    return labels, int(labels[len(grid.y) // 2, len(grid.x) // 2])
-
-
 def test_a_grid_finer_than_the_scan_s_points_leaves_no_stray_holes_in_the_skin_image(rng):
     """A 0.9 mm grid's own gap (1.35 mm) lies within three spacings of 0.44 mm-spaced points (what 60k points
     over a face give): pixels where no point happened to fall became holes, read as the skin's. The scan's
@@ -217,8 +208,9 @@ def test_a_grid_finer_than_the_scan_s_points_leaves_no_stray_holes_in_the_skin_i
     points = _scan_points(rng, 4.0, -4.0)[:4000]
     spacing = point_spacing(points[:, :2])
     step = 0.9
-    speckled, _ = _holes(resample(points, FINE, FINE, skin_gap_mm(step)))
-    labels, opening = _holes(resample(points, FINE, FINE, skin_gap_mm(step, spacing)))
+    speckled = interior_holes(resample(points, FINE, FINE, skin_gap_mm(step)))
+    labels = interior_holes(resample(points, FINE, FINE, skin_gap_mm(step, spacing)))
+    opening = labels[len(FINE) // 2, len(FINE) // 2]
     assert len(np.unique(speckled)) > 3  # the speckle the floor is for
     assert opening > 0 and set(np.unique(labels)) == {0, opening}
     assert skin_gap_mm(1.4, spacing) == skin_gap_mm(1.4)  # a coarse grid's gap is its own

@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from factories import assert_cli_refused, write_builtin_scans
+from factories import assert_cli_refused, interior_holes, write_builtin_scans
 
 from livebridge.bench.scans import ERROR_LIMIT, build_and_measure, synthetic_scans
 from livebridge.errors import InputError
@@ -175,22 +175,13 @@ def test_a_grid_point_between_random_points_is_no_hole_but_a_scan_s_hole_is(rng)
     """Points about 0.44 mm apart, denser on one side (a scanner's density changes over a face) around an 8 mm
     hole: with the gap alone (3 spacings, here one 1.49 mm cell) some grid points fell where no point did; with
     the holes seeded (as a face scan's grid is resampled) only the scan's hole is one, and just as far out."""
-    from scipy.ndimage import label
-
     xy = rng.uniform(-40.0, 40.0, (20_000, 2))
     xy = xy[rng.uniform(0.0, 1.0, len(xy)) < 0.25 + 0.2 * (xy[:, 0] + 40.0) / 80.0]
     xy = xy[np.hypot(xy[:, 0] - 10.0, xy[:, 1] - 5.0) > 8.0]
     points = np.column_stack([xy, -0.01 * (xy ** 2).sum(axis=1)])
     x = y = np.linspace(-35.0, 35.0, 48)
-
-    def holes(grid):
-        labels, _ = label(~grid.valid, structure=np.ones((3, 3), bool))
-        on_edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-        labels[np.isin(labels, on_edge)] = 0
-        return labels
-
-    speckled = holes(resample(points, x, y))
-    seeded = holes(resample(points, x, y, seeded_holes=True))
+    speckled = interior_holes(resample(points, x, y))
+    seeded = interior_holes(resample(points, x, y, seeded_holes=True))
     xx, yy = np.meshgrid(x, y)
     hole = speckled.ravel()[np.argmin(np.hypot(xx - 10.0, yy - 5.0))]
     assert len(np.unique(speckled)) > 2  # the speckle (and the hole)
