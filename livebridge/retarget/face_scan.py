@@ -354,11 +354,12 @@ def _resampled(scan: Scan, points: np.ndarray, x: np.ndarray, y: np.ndarray, rad
     colours = None if colours is None else colours[wider]
     if remove_shading and shading is not None:
         colours = unshaded(colours, normals, shading)
-    skin = resample(on_chart, fine_x, fine_y, skin_gap_mm(step, spacing), source, colours)
+    skin_gap = skin_gap_mm(step, spacing)
+    skin = resample(on_chart, fine_x, fine_y, skin_gap, source, colours)
     visible = in_front(skin, on_chart)  # not another surface seen through a gap of the skin (a nostril)
     if not visible.all():
         on_chart, colours = on_chart[visible], None if colours is None else colours[visible]
-        skin = resample(on_chart, fine_x, fine_y, skin_gap_mm(step, spacing), source, colours)
+        skin = resample(on_chart, fine_x, fine_y, skin_gap, source, colours)
     skin_holes = holes(on_chart, fine_x, fine_y, opening_gap_mm(spacing, step))
     return FaceScan(grid, landmarks, scan2face, skin, factor, margin, spacing, chart=chart, skin_holes=skin_holes,
                     shading=shading, shading_removed=bool(remove_shading) and shading is not None,
